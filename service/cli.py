@@ -1,0 +1,66 @@
+"""The ``inspection`` command line: one console script, one module per subcommand.
+
+Each module in :mod:`service.commands` defines ``register(subparsers)``, which
+adds its parser and sets ``func`` (``args -> exit code``). Modules are
+imported only when the CLI starts, so ``inspection --help`` stays quick.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+# Subcommand -> module in service.commands, in the order --help lists them.
+COMMANDS = {
+    "build-tree": "tree",
+    "info": "tree",
+    "align": "align",
+    "check": "align",
+    "calibrate": "calibrate",
+    "run": "line",
+    "router": "line",
+    "ingest": "line",
+    "worker": "line",
+    "api": "line",
+    "replay": "replay",
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="inspection",
+        description="In-line shape inspection: CAD trees, registration, the simulated line.",
+    )
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv: debug)")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for module in dict.fromkeys(COMMANDS.values()):
+        try:
+            mod = importlib.import_module(f"service.commands.{module}")
+        except ModuleNotFoundError as exc:
+            if exc.name != f"service.commands.{module}":
+                raise
+            continue
+        mod.register(sub)
+    return parser
+
+
+def configure_logging(verbosity: int) -> None:
+    level = logging.WARNING - 10 * min(verbosity, 2)
+    logging.basicConfig(
+        level=level,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        stream=sys.stderr,
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    configure_logging(args.verbose)
+    return int(args.func(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
