@@ -1,0 +1,499 @@
+"""Validated configuration: the line (``configs/line.toml``) and part specs (``configs/parts/``).
+
+Every model rejects unknown keys (``extra="forbid"``) so a typo fails at
+start-up instead of being ignored, and every quantity carries its unit in its
+name (``trigger_period_s``, ``radius_mm``). Nothing is read at import time:
+``main`` calls :func:`load_line_config` and :func:`load_part_spec` and passes
+the results on.
+
+Paths in a line file that describe the installation (the rig calibration, the
+parts directory) are relative to the file's own directory; storage paths are
+deployment values, relative to the working directory, and may be overridden by
+environment variables (see :data:`ENV_OVERRIDES`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import re
+import tomllib
+from collections.abc import Mapping
+from enum import StrEnum
+from pathlib import Path
+from typing import Annotated, Any
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+NAME_PATTERN = r"^[A-Za-z0-9._-]+$"
+"""Line, station, part and serial names: safe in zenoh keys, URLs and file names."""
+
+_NAME_RE = re.compile(NAME_PATTERN)
+
+Name = Annotated[str, Field(pattern=NAME_PATTERN, min_length=1, max_length=64)]
+"""A name restricted to ``[A-Za-z0-9._-]+`` (at most 64 characters)."""
+
+GENERATED_PANEL = "generated:panel"
+"""The ``cad`` value that selects the project's own procedural sheet-metal panel."""
+
+
+class ConfigError(ValueError):
+    """A configuration file is missing, is not TOML, or does not validate."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+def is_valid_name(value: str) -> bool:
+    """Whether ``value`` may be used as a line, station, part or serial name."""
+    return bool(_NAME_RE.fullmatch(value)) and len(value) <= 64
+
+
+# --------------------------------------------------------------------------- parts
+
+
+class PointKind(StrEnum):
+    """What a comparison point measures. Only ``surface`` is measured today."""
+
+    surface = "surface"
+    hole = "hole"
+    trim_edge = "trim_edge"
+
+
+Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+
+
+class ComparisonPointSpec(_Strict):
+    """A named point on the CAD surface whose deviation along ``normal`` is toleranced.
+
+    The signed deviation (positive on the outer side of the surface) must lie
+    within ``[lower_mm, upper_mm]``; measured points within ``radius_mm`` of
+    ``position_mm`` are pooled, and at least ``min_support`` of them are needed
+    for a verdict (fewer: not measurable).
+    """
+
+    name: Name
+    position_mm: Vec3 = Field(description="Nominal position on the CAD surface, CAD frame, mm.")
+    normal: Vec3 = Field(description="Outward surface normal, CAD frame; normalised on load.")
+    lower_mm: float = Field(description="Lower signed limit of the deviation, mm.")
+    upper_mm: float = Field(description="Upper signed limit of the deviation, mm.")
+    radius_mm: float = Field(gt=0, le=100, description="Support radius, mm.")
+    min_support: int = Field(
+        default=10, ge=1, le=100_000, description="Points needed for a verdict."
+    )
+    kind: PointKind = PointKind.surface
+
+    @field_validator("normal")
+    @classmethod
+    def _unit_normal(cls, v: list[float]) -> list[float]:
+        n = math.sqrt(sum(c * c for c in v))
+        if not n > 1e-9:
+            raise ValueError("normal must be a non-zero vector")
+        return [c / n for c in v]
+
+    @model_validator(mode="after")
+    def _ordered_limits(self) -> ComparisonPointSpec:
+        if not self.lower_mm < self.upper_mm:
+            raise ValueError(f"lower_mm ({self.lower_mm}) must be below upper_mm ({self.upper_mm})")
+        return self
+
+
+class Loss(StrEnum):
+    """Robust loss of the fine registration (IRLS weight function)."""
+
+    l2 = "l2"
+    huber = "huber"
+    cauchy = "cauchy"
+    tukey = "tukey"
+
+
+class RegistrationSettings(_Strict):
+    """How a cloud is fitted to the CAD model; mapped onto ``inspection.align``/``register``."""
+
+    loss: Loss = Loss.tukey
+    max_iterations: int = Field(default=50, ge=1, le=1000)
+    max_correspondence_mm: float = Field(
+        default=10.0,
+        gt=0,
+        le=1000,
+        description="Points farther than this from the CAD are outliers.",
+    )
+    min_inlier_fraction: float = Field(
+        default=0.5, ge=0, le=1, description="Below this the fit is reported as an error."
+    )
+    max_rms_mm: float = Field(
+        default=1.0, gt=0, le=100, description="Above this the fit is an error."
+    )
+    max_points: int = Field(
+        default=50_000,
+        ge=100,
+        le=10_000_000,
+        description="Clouds are subsampled to this size to fit.",
+    )
+
+
+class TreeSettings(_Strict):
+    """Build parameters of the closest-point grid (``GridTree.build``); ``None``: its defaults."""
+
+    spacing_mm: float | None = Field(default=None, gt=0, le=100)
+    band_mm: float | None = Field(default=None, gt=0, le=1000)
+
+    def build_kwargs(self) -> dict[str, float]:
+        """Keyword arguments for ``GridTree.build`` (only those set)."""
+        return {k: v for k, v in self.model_dump().items() if v is not None}
+
+
+class PartSpecBase(_Strict):
+    """A part type without its CAD source: what a client sends with a CAD upload."""
+
+    name: Name
+    version: str = Field(default="1", min_length=1, max_length=64, pattern=NAME_PATTERN)
+    scale: float = Field(
+        default=1.0, gt=0, le=1e6, description="Multiplies CAD coordinates to give mm."
+    )
+    description: str = Field(default="", max_length=1000)
+    points: list[ComparisonPointSpec] = Field(default_factory=list, max_length=1000)
+    registration: RegistrationSettings = Field(default_factory=RegistrationSettings)
+    tree: TreeSettings = Field(default_factory=TreeSettings)
+
+    @field_validator("points")
+    @classmethod
+    def _unique_point_names(cls, v: list[ComparisonPointSpec]) -> list[ComparisonPointSpec]:
+        seen: set[str] = set()
+        for p in v:
+            if p.name in seen:
+                raise ValueError(f"comparison point name {p.name!r} is used twice")
+            seen.add(p.name)
+        return v
+
+
+class PartSpec(PartSpecBase):
+    """A part type: its CAD source, comparison points, registration and tree settings.
+
+    ``cad`` is a mesh path (relative to the spec file's directory unless
+    absolute) or :data:`GENERATED_PANEL`, the project's own sheet-metal panel,
+    whose parameters are given in ``panel`` (keyword arguments of
+    ``inspection.panel.PanelSpec``).
+    """
+
+    cad: str = Field(min_length=1, max_length=4096)
+    panel: dict[str, Any] = Field(default_factory=dict)
+
+    @model_validator(mode="after")
+    def _panel_only_when_generated(self) -> PartSpec:
+        if self.panel and self.cad != GENERATED_PANEL:
+            raise ValueError(f"'panel' parameters are only allowed with cad = {GENERATED_PANEL!r}")
+        if self.cad.startswith("generated:") and self.cad != GENERATED_PANEL:
+            raise ValueError(
+                f"unknown generated CAD {self.cad!r}; the only one is {GENERATED_PANEL!r}"
+            )
+        return self
+
+    @property
+    def is_generated(self) -> bool:
+        return self.cad == GENERATED_PANEL
+
+    def cad_path(self, base_dir: Path) -> Path:
+        """The CAD file's path, resolved against ``base_dir`` (the spec's directory)."""
+        if self.is_generated:
+            raise ValueError(f"part {self.name!r} has a generated CAD, not a file")
+        p = Path(self.cad)
+        return p if p.is_absolute() else base_dir / p
+
+
+# --------------------------------------------------------------------------- line
+
+
+class LineSection(_Strict):
+    name: Name = "line1"
+    conveyor_speed_mm_s: float = Field(default=1000.0, gt=0, le=10_000)
+    trigger_period_s: float = Field(
+        default=2.0, ge=0.05, le=3600, description="Time between triggers."
+    )
+
+
+class StationSection(_Strict):
+    name: Name = "st1"
+    rig_calibration: str | None = Field(
+        default="rig.toml",
+        description="Calibrated rig (TOML), relative to the line file; None: Rig.default().",
+    )
+    parts_dir: str = Field(default="parts", description="Part specs, relative to the line file.")
+    parts: list[Name] = Field(default_factory=lambda: ["demo-panel"], min_length=1)
+    queue_size: int = Field(
+        default=4, ge=1, le=1000, description="Frame sets waiting for the worker."
+    )
+
+    @field_validator("parts")
+    @classmethod
+    def _unique(cls, v: list[str]) -> list[str]:
+        if len(set(v)) != len(v):
+            raise ValueError("station parts must be unique")
+        return v
+
+
+class ProjectorSection(_Strict):
+    flash_ms: float = Field(default=2.0, gt=0, le=1000, description="Flash (exposure) duration.")
+    pattern_seed: int = Field(default=0, ge=0)
+
+
+class ZenohMode(StrEnum):
+    peer = "peer"
+    client = "client"
+    router = "router"
+
+
+class ZenohSection(_Strict):
+    prefix: str = Field(default="insp/v1", pattern=r"^[A-Za-z0-9._-]+(/[A-Za-z0-9._-]+)*$")
+    mode: ZenohMode = ZenohMode.peer
+    listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
+    connect: list[str] = Field(default_factory=list)
+    multicast_scouting: bool = False
+
+    @field_validator("listen", "connect")
+    @classmethod
+    def _endpoints(cls, v: list[str]) -> list[str]:
+        for e in v:
+            if not re.fullmatch(r"[a-z0-9]+/\S+", e):
+                raise ValueError(f"not a zenoh endpoint (like tcp/127.0.0.1:7447): {e!r}")
+        return v
+
+
+class StorageSection(_Strict):
+    data_dir: str = Field(default="runs", description="Relative to the working directory.")
+    database: str = Field(
+        default="results.sqlite", description="SQLite file, relative to data_dir."
+    )
+    mcap_dir: str = Field(default="mcap", description="Relative to data_dir.")
+    mcap_rotate_mb: float = Field(default=512.0, gt=0, le=1_000_000)
+    trees_dir: str = Field(default="trees", description="Tree cache, relative to data_dir.")
+    deviations_dir: str = Field(
+        default="deviations", description="Per-inspection arrays, rel. to data_dir."
+    )
+
+    def data_path(self) -> Path:
+        return Path(self.data_dir)
+
+    def database_path(self) -> Path:
+        return self.data_path() / self.database
+
+    def mcap_path(self) -> Path:
+        return self.data_path() / self.mcap_dir
+
+    def trees_path(self) -> Path:
+        return self.data_path() / self.trees_dir
+
+    def deviations_path(self) -> Path:
+        return self.data_path() / self.deviations_dir
+
+
+class RecordPolicy(StrEnum):
+    all = "all"
+    failures = "failures"
+    every_nth = "every_nth"
+
+
+class RetentionSection(_Strict):
+    """What the MCAP recorder keeps, and the disk budget it keeps within.
+
+    ``record``: every part, only parts that did not pass, or every n-th part
+    (failures are always kept). The oldest files are deleted when the MCAP
+    directory exceeds ``max_total_mb`` or a file is older than ``max_age_h``
+    (either may be ``None``: no such limit).
+    """
+
+    record: RecordPolicy = RecordPolicy.all
+    every_nth: int = Field(default=10, ge=1, le=1_000_000)
+    max_total_mb: float | None = Field(default=10_000.0, gt=0)
+    max_age_h: float | None = Field(default=None, gt=0)
+
+
+class SimulatorSection(_Strict):
+    defect_rate: float = Field(
+        default=0.1, ge=0, le=1, description="Fraction of parts given a defect."
+    )
+    seed: int = Field(default=0, ge=0)
+
+
+class HttpSection(_Strict):
+    host: str = "127.0.0.1"
+    port: int = Field(default=8000, ge=0, le=65535, description="0: any free port.")
+    max_upload_mb: float = Field(default=100.0, gt=0, le=10_000)
+    trend_window: int = Field(default=50, ge=2, le=100_000, description="Parts in a trend.")
+
+
+class LineConfig(_Strict):
+    """The whole line: ``configs/line.toml``.
+
+    ``base_dir`` is the line file's directory (set by :func:`load_line_config`);
+    installation paths (rig calibration, parts) are resolved against it.
+    """
+
+    line: LineSection = Field(default_factory=LineSection)
+    station: StationSection = Field(default_factory=StationSection)
+    projector: ProjectorSection = Field(default_factory=ProjectorSection)
+    zenoh: ZenohSection = Field(default_factory=ZenohSection)
+    storage: StorageSection = Field(default_factory=StorageSection)
+    retention: RetentionSection = Field(default_factory=RetentionSection)
+    simulator: SimulatorSection = Field(default_factory=SimulatorSection)
+    http: HttpSection = Field(default_factory=HttpSection)
+    base_dir: str = Field(default=".", exclude=True)
+
+    def rig_calibration_path(self) -> Path | None:
+        if self.station.rig_calibration is None:
+            return None
+        p = Path(self.station.rig_calibration)
+        return p if p.is_absolute() else Path(self.base_dir) / p
+
+    def parts_path(self) -> Path:
+        p = Path(self.station.parts_dir)
+        return p if p.is_absolute() else Path(self.base_dir) / p
+
+    def part_spec_paths(self) -> list[Path]:
+        """The spec file of every part of the station (``<parts_dir>/<name>.toml``)."""
+        return [self.parts_path() / f"{name}.toml" for name in self.station.parts]
+
+    def key(self, *parts: str) -> str:
+        """A zenoh key under the prefix, line and station: ``key("frames")``."""
+        return "/".join([self.zenoh.prefix, self.line.name, self.station.name, *parts])
+
+    def effective(self) -> dict[str, Any]:
+        """The configuration as plain JSON data (what is logged and recorded)."""
+        return self.model_dump(mode="json")
+
+    def hash(self) -> str:
+        """SHA-256 (hex) of the canonical JSON of :meth:`effective`."""
+        return canonical_hash(self.effective())
+
+
+def canonical_hash(data: Any) -> str:
+    """SHA-256 (hex) of ``data`` as JSON with sorted keys and no spaces."""
+    blob = json.dumps(data, sort_keys=True, separators=(",", ":"), ensure_ascii=True)
+    return hashlib.sha256(blob.encode()).hexdigest()
+
+
+ENV_OVERRIDES: dict[str, tuple[str, str]] = {
+    "INSPECTION_DATA_DIR": ("storage", "data_dir"),
+    "INSPECTION_HTTP_HOST": ("http", "host"),
+    "INSPECTION_HTTP_PORT": ("http", "port"),
+    "INSPECTION_ZENOH_MODE": ("zenoh", "mode"),
+    "INSPECTION_ZENOH_LISTEN": ("zenoh", "listen"),
+    "INSPECTION_ZENOH_CONNECT": ("zenoh", "connect"),
+    "INSPECTION_TRIGGER_PERIOD_S": ("line", "trigger_period_s"),
+    "INSPECTION_DEFECT_RATE": ("simulator", "defect_rate"),
+}
+"""Environment variables that override deployment values: variable -> (section, key).
+
+List values (zenoh endpoints) are comma-separated; an empty value means an
+empty list.
+"""
+
+_LIST_KEYS = {("zenoh", "listen"), ("zenoh", "connect")}
+
+
+def _read_toml(path: Path) -> dict[str, Any]:
+    try:
+        with path.open("rb") as fh:
+            return tomllib.load(fh)
+    except FileNotFoundError as exc:
+        raise ConfigError(f"{path}: no such file") from exc
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
+
+
+def _format_validation(path: Path | str, exc: ValidationError) -> str:
+    lines = [f"{path}: invalid configuration"]
+    for err in exc.errors():
+        where = ".".join(str(x) for x in err["loc"]) or "(top level)"
+        lines.append(f"  {where}: {err['msg']}")
+    return "\n".join(lines)
+
+
+def apply_overrides(
+    data: dict[str, Any],
+    env: Mapping[str, str] | None = None,
+    overrides: Mapping[tuple[str, str], Any] | None = None,
+) -> dict[str, Any]:
+    """Return ``data`` (raw TOML) with environment variables, then explicit overrides, applied.
+
+    ``overrides`` maps (section, key) to a value (e.g. from command-line
+    flags); a value of ``None`` is skipped. Values are validated afterwards
+    with the rest.
+    """
+    out = {k: (dict(v) if isinstance(v, dict) else v) for k, v in data.items()}
+    for var, (section, key) in ENV_OVERRIDES.items():
+        if env is None or var not in env:
+            continue
+        raw = env[var]
+        value: Any = (
+            [e.strip() for e in raw.split(",") if e.strip()]
+            if (section, key) in _LIST_KEYS
+            else raw
+        )
+        out.setdefault(section, {})[key] = value
+    for (section, key), value in (overrides or {}).items():
+        if value is not None:
+            out.setdefault(section, {})[key] = value
+    return out
+
+
+def load_line_config(
+    path: str | Path,
+    *,
+    env: Mapping[str, str] | None = None,
+    overrides: Mapping[tuple[str, str], Any] | None = None,
+) -> LineConfig:
+    """Read, override and validate a line file.
+
+    Parameters
+    ----------
+    path : str or Path
+        The TOML file.
+    env : mapping, optional
+        Environment to take :data:`ENV_OVERRIDES` from; pass ``os.environ`` in
+        ``main``. ``None``: no environment overrides (tests stay hermetic).
+    overrides : mapping of (section, key) to value, optional
+        Applied after the environment (command-line flags win).
+
+    Raises
+    ------
+    ConfigError
+        Missing file, bad TOML, unknown keys, values out of bounds.
+    """
+    p = Path(path)
+    data = apply_overrides(_read_toml(p), env, overrides)
+    if "base_dir" in data:
+        raise ConfigError(f"{p}: 'base_dir' is not a configuration key")
+    data["base_dir"] = str(p.parent)
+    try:
+        return LineConfig.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(_format_validation(p, exc)) from exc
+
+
+def line_config_from_env(path: str | Path, **kwargs: Any) -> LineConfig:
+    """:func:`load_line_config` with the process environment (for ``main``)."""
+    return load_line_config(path, env=os.environ, **kwargs)
+
+
+def load_part_spec(path: str | Path) -> PartSpec:
+    """Read and validate a part spec; the file's stem must equal its ``name``.
+
+    Raises
+    ------
+    ConfigError
+    """
+    p = Path(path)
+    data = _read_toml(p)
+    try:
+        spec = PartSpec.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(_format_validation(p, exc)) from exc
+    if spec.name != p.stem:
+        raise ConfigError(
+            f"{p}: the part's name {spec.name!r} differs from the file name {p.stem!r}"
+        )
+    return spec

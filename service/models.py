@@ -1,0 +1,287 @@
+"""The data the service exchanges: one pydantic model per record, shared by REST, zenoh and MCAP.
+
+:class:`InspectionResult` is the contract of ../DESIGN section 5: the same
+model is published on zenoh (JSON), returned and listed by the REST API, stored
+in SQLite and recorded in MCAP with its JSON Schema
+(``InspectionResult.model_json_schema()``). Its ``schema_version`` changes
+whenever a field is added, removed or changes meaning.
+
+Request and response models of the API are kept apart (``PartCreate`` /
+``PartPublic``). Non-finite numbers are rejected everywhere: JSON has no NaN,
+so a missing value is ``null``.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from enum import StrEnum
+from typing import Annotated, Generic, TypeVar
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from .config import NAME_PATTERN, ComparisonPointSpec, Name, PartSpecBase
+
+SCHEMA_VERSION = 1
+"""Version of :class:`InspectionResult`'s JSON."""
+
+T = TypeVar("T")
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+# --------------------------------------------------------------------------- results
+
+
+class Status(StrEnum):
+    """The status of one inspected (or missed) part."""
+
+    passed = "pass"
+    fail = "fail"
+    not_measurable = "not_measurable"
+    error = "error"
+    missed = "missed"
+
+
+class Verdict(StrEnum):
+    """The verdict of one comparison point."""
+
+    passed = "pass"
+    fail = "fail"
+    not_measurable = "not_measurable"
+
+
+class PointResult(_Model):
+    """The deviation at one named comparison point."""
+
+    name: str
+    deviation_mm: float | None = Field(
+        description="Robust signed deviation along the CAD normal, mm; null if not measurable."
+    )
+    lower_mm: float
+    upper_mm: float
+    support: int = Field(ge=0, description="Measured points pooled within the support radius.")
+    verdict: Verdict
+
+
+class FieldStats(_Model):
+    """Summary of the signed deviations of the whole cloud (CAD frame, mm).
+
+    Only inlier points (those the registration kept) count; ``null`` when no
+    point does.
+    """
+
+    points: int = Field(ge=0, description="Points measured.")
+    inliers: int = Field(ge=0, description="Points counted below.")
+    mean_mm: float | None = None
+    std_mm: float | None = None
+    rms_mm: float | None = None
+    min_mm: float | None = None
+    max_mm: float | None = None
+    p05_mm: float | None = None
+    p95_mm: float | None = None
+
+
+Matrix4 = Annotated[
+    list[Annotated[list[float], Field(min_length=4, max_length=4)]],
+    Field(min_length=4, max_length=4),
+]
+
+
+class InspectionResult(_Model):
+    """The result of one triggered part (DESIGN section 5).
+
+    ``transform`` is T_cad_rig, which maps rig-frame points into the CAD frame,
+    as a nested 4x4 list, rows first; ``null`` when no fit was made.
+    ``timings_ms`` holds one entry per pipeline stage that ran (e.g.
+    ``reconstruct``, ``align``, ``deviations``, ``total``).
+    """
+
+    schema_version: int = SCHEMA_VERSION
+    id: str = Field(
+        min_length=1, max_length=128, pattern=NAME_PATTERN, description="Unique per inspection."
+    )
+    line: Name
+    station: Name
+    part: Name
+    serial: Name
+    seq: int = Field(ge=0, description="Per-station trigger sequence number.")
+    triggered_ns: int = Field(
+        ge=0, description="Trigger time, ns since the Unix epoch (ingest clock)."
+    )
+    status: Status
+    reason: str | None = Field(default=None, description="Why the status is error, missed, ...")
+    transform: Matrix4 | None = None
+    rms_mm: float | None = Field(default=None, ge=0)
+    inlier_fraction: float | None = Field(default=None, ge=0, le=1)
+    comparison: list[PointResult] = Field(default_factory=list)
+    field: FieldStats | None = None
+    timings_ms: dict[str, float] = Field(default_factory=dict)
+    spec_version: str | None = None
+    cad_hash: str | None = None
+    tree_hash: str | None = None
+    calibration_id: str | None = None
+    software_version: str
+
+    @field_validator("transform")
+    @classmethod
+    def _rigid_bottom_row(cls, v: list[list[float]] | None) -> list[list[float]] | None:
+        if v is not None and any(
+            abs(a - b) > 1e-9 for a, b in zip(v[3], (0.0, 0.0, 0.0, 1.0), strict=True)
+        ):
+            raise ValueError("the last row of a homogeneous transform must be [0, 0, 0, 1]")
+        return v
+
+    @property
+    def key_suffix(self) -> str:
+        """``result/<part>/<serial>``: the tail of the zenoh key this result is published on."""
+        return f"result/{self.part}/{self.serial}"
+
+
+def make_result_id(line: str, station: str, seq: int, triggered_ns: int) -> str:
+    """The id of the result of one trigger: unique per line, station, sequence number and time.
+
+    Deterministic, so a replay of a recorded trigger gets the same id.
+    """
+    return f"{line}.{station}.{triggered_ns}.{seq}"
+
+
+def new_upload_id() -> str:
+    """A fresh id for an inspection that did not come from a trigger (an API upload)."""
+    return f"upload.{time.time_ns()}.{os.urandom(4).hex()}"
+
+
+def missed_serial(seq: int) -> str:
+    """The serial published for a missed part whose serial never arrived."""
+    return f"unknown-{seq}"
+
+
+def software_version() -> str:
+    """The installed package's version (``0+unknown`` when not installed)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("inspection")
+    except PackageNotFoundError:
+        return "0+unknown"
+
+
+# --------------------------------------------------------------------------- API
+
+
+class ErrorDetail(_Model):
+    code: str = Field(description="Stable, machine-readable, e.g. 'unknown_part'.")
+    message: str
+
+
+class ErrorBody(_Model):
+    """Every 4xx/5xx answer of the API: ``{"error": {"code": ..., "message": ...}}``."""
+
+    error: ErrorDetail
+
+
+class Page(_Model, Generic[T]):
+    """One page of a list; pass ``next`` as ``cursor`` to get the following page (null: the end)."""
+
+    items: list[T]
+    next: str | None = None
+
+
+class PartCreate(PartSpecBase):
+    """The spec JSON sent with a CAD upload to create a part (the CAD comes as the file)."""
+
+
+class PartState(StrEnum):
+    building = "building"
+    ready = "ready"
+    failed = "failed"
+
+
+class PartPublic(_Model):
+    """A part type as the API shows it."""
+
+    name: str
+    version: str
+    description: str = ""
+    cad: str = Field(
+        description="Where the CAD came from: a file name, an upload, or generated:panel."
+    )
+    scale: float
+    cad_hash: str | None = None
+    tree_hash: str | None = None
+    state: PartState
+    job: str | None = Field(
+        default=None, description="The tree build job, while building or if failed."
+    )
+    points: list[ComparisonPointSpec]
+    faces: int | None = None
+    extents_mm: list[float] | None = None
+
+
+class JobState(StrEnum):
+    queued = "queued"
+    running = "running"
+    done = "done"
+    failed = "failed"
+
+
+class Job(_Model):
+    """A background job (a tree build) and its progress."""
+
+    id: str
+    kind: str = "tree_build"
+    part: str
+    state: JobState
+    progress: float = Field(ge=0, le=1, description="Fraction done, 0..1.")
+    message: str = ""
+    created_ns: int
+    finished_ns: int | None = None
+
+
+class TrendPoint(_Model):
+    """Process statistics of one comparison point over the last parts.
+
+    ``cp = (upper - lower) / (6 sigma)``, ``cpk = min(upper - mean, mean -
+    lower) / (3 sigma)``; null with fewer than two measurements or zero sigma.
+    """
+
+    name: str
+    n: int = Field(ge=0, description="Measurements used (not-measurable ones are left out).")
+    mean_mm: float | None = None
+    sigma_mm: float | None = None
+    lower_mm: float | None = None
+    upper_mm: float | None = None
+    cp: float | None = None
+    cpk: float | None = None
+    fails: int = Field(default=0, ge=0)
+
+
+class Trend(_Model):
+    """Trends of a part over its last ``window`` results (status pass or fail)."""
+
+    part: str
+    window: int
+    parts: int = Field(description="Results used (at most window).")
+    since_ns: int | None = None
+    until_ns: int | None = None
+    points: list[TrendPoint]
+
+
+class Health(_Model):
+    """Liveness (the process answers) and readiness (every check passes)."""
+
+    alive: bool = True
+    ready: bool
+    checks: dict[str, bool]
+    version: str
+
+
+def finite_or_none(x: float | None) -> float | None:
+    """``x`` as a float, or None when it is missing or not finite (JSON has no NaN)."""
+    if x is None:
+        return None
+    x = float(x)
+    return x if math.isfinite(x) else None
