@@ -18,7 +18,7 @@ $(BIN)/python:
 	$(BIN)/python -m pip install -q --upgrade pip
 
 $(VENV)/.installed-dev: pyproject.toml | $(BIN)/python
-	$(BIN)/python -m pip install -q -e '.[dev]'
+	$(BIN)/python -m pip install -q -e '.[dev,step]'
 	touch $@
 
 $(VENV)/.installed-bench: pyproject.toml $(VENV)/.installed-dev
@@ -26,7 +26,7 @@ $(VENV)/.installed-bench: pyproject.toml $(VENV)/.installed-dev
 	@ldconfig -p | grep -q 'libusb-1.0.so' || { [ "$$(id -u)" = 0 ] && \
 		(apt-get update -qq && apt-get install -y -qq libusb-1.0-0 >/dev/null) || \
 		echo "note: libusb-1.0 is missing; Open3D peers will be skipped"; }
-	$(BIN)/python -m pip install -q -e '.[dev,bench]'
+	$(BIN)/python -m pip install -q -e '.[dev,step,bench]'
 	touch $@
 
 install: $(VENV)/.installed-dev

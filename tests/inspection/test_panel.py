@@ -1,0 +1,95 @@
+import numpy as np
+import pytest
+import trimesh
+
+from inspection import InvalidInput
+from inspection.panel import Hole, PanelSpec, panel_height, sheet_metal_panel
+
+
+@pytest.fixture(scope="module")
+def panel():
+    return sheet_metal_panel()
+
+
+def test_footprint_and_height(panel):
+    spec = PanelSpec()
+    extents = panel.extents
+    # The flange bends outwards by its bend radius all round.
+    np.testing.assert_allclose(extents[:2], [spec.length_mm + 2 * spec.bend_radius_mm,
+                                             spec.width_mm + 2 * spec.bend_radius_mm], atol=1e-6)
+    assert panel.bounds[0, 2] == pytest.approx(0.0, abs=1e-9)
+    top = panel_height(spec, np.array([0.0]), np.array([0.0]))[0]
+    assert panel.bounds[1, 2] >= top
+
+
+def test_single_manifold_sheet_with_one_boundary_per_hole(panel):
+    mesh = panel.to_trimesh()
+    assert mesh.is_winding_consistent
+    assert len(mesh.split(only_watertight=False)) == 1
+    edges = mesh.edges_sorted
+    unique, counts = np.unique(edges, axis=0, return_counts=True)
+    assert counts.max() == 2  # manifold: no edge shared by three faces
+    boundary = unique[counts == 1]
+    # Boundary loops: one per hole plus the flange's lower edge.
+    import networkx as nx
+
+    graph = nx.Graph()
+    graph.add_edges_from(boundary)
+    assert nx.number_connected_components(graph) == len(PanelSpec().holes) + 1
+
+
+def test_normals_face_the_visible_side(panel):
+    centres = panel.vertices[panel.faces].mean(axis=1)
+    spec = PanelSpec()
+    top = (np.abs(centres[:, 0]) < spec.length_mm / 2 - 1) & (np.abs(centres[:, 1]) < spec.width_mm / 2 - 1)
+    assert (panel.face_normals[top, 2] > 0.5).all()
+    wall = centres[:, 2] < spec.flange_mm - 2 * spec.bend_radius_mm
+    outward = np.einsum("ij,ij->i", panel.face_normals[wall, :2], centres[wall, :2])
+    assert (outward > 0).all()
+
+
+def test_holes_are_open(panel):
+    for hole in PanelSpec().holes:
+        origin = np.array([[hole.x_mm, hole.y_mm, 200.0]])
+        hits = trimesh.ray.ray_triangle.RayMeshIntersector(panel.to_trimesh()).intersects_any(
+            origin, np.array([[0.0, 0.0, -1.0]])
+        )
+        assert not hits[0]
+
+
+def test_surface_matches_the_height_function(panel):
+    spec = PanelSpec()
+    rng = np.random.default_rng(3)
+    xy = rng.uniform([-250, -170], [250, 170], size=(200, 2))
+    far_from_holes = np.all(
+        [np.hypot(xy[:, 0] - h.x_mm, xy[:, 1] - h.y_mm) > h.radius_mm + 10 for h in spec.holes], axis=0
+    )
+    xy = xy[far_from_holes]
+    mesh = panel.to_trimesh()
+    locations, index_ray, _ = mesh.ray.intersects_location(
+        np.column_stack([xy, np.full(len(xy), 200.0)]), np.tile([0.0, 0.0, -1.0], (len(xy), 1))
+    )
+    z = np.full(len(xy), np.nan)
+    z[index_ray] = locations[:, 2]
+    # Piecewise-linear mesh vs the smooth height function: within a small chord error.
+    np.testing.assert_allclose(z, panel_height(spec, xy[:, 0], xy[:, 1]), atol=0.05)
+
+
+def test_scaled_panel_fits_the_rig_volume():
+    small = sheet_metal_panel(PanelSpec().scaled(400.0, 260.0))
+    assert small.extents[0] <= 420 and small.extents[1] <= 280
+
+
+@pytest.mark.parametrize(
+    "spec",
+    [
+        PanelSpec(length_mm=-1.0),
+        PanelSpec(bend_radius_mm=30.0),
+        PanelSpec(holes=(Hole(295.0, 0.0, 10.0),)),
+        PanelSpec(holes=(Hole(0.0, 0.0, 2.0),)),
+        PanelSpec(feature_spacing_mm=10.0),
+    ],
+)
+def test_bad_specs_are_refused(spec):
+    with pytest.raises(InvalidInput):
+        sheet_metal_panel(spec)
