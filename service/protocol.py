@@ -1,0 +1,473 @@
+"""The wire format of the line: FrameSet bytes and zenoh key expressions.
+
+A FrameSet is one trigger's worth of camera images plus the metadata that
+makes it traceable. It travels on ``<prefix>/<line>/<station>/frames`` as::
+
+    offset  size  field
+    0       4     magic b"INSF"
+    4       2     version (uint16, little-endian), currently 1
+    6       2     flags (uint16, little-endian), 0; readers ignore unknown bits
+    8       4     header length H in bytes (uint32, little-endian)
+    12      H     header: UTF-8 JSON object (see docs/protocol.md)
+    12+H    ...   image payloads, concatenated in header order
+
+The header lists every image with its size, pixel format and encoding (raw
+``mono8`` rows, or a PNG file), and the byte ``length`` of its payload. The
+format is specified in ``docs/protocol.md`` precisely enough for a reader in
+any language; this module is the reference implementation.
+
+Names (line, station, part, serial) are restricted to ``[A-Za-z0-9._-]+`` and
+rejected at the edge otherwise, so that a name can never add a level to a key
+expression or match as a wildcard.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import struct
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+
+from inspection.arrays import Image
+
+MAGIC = b"INSF"
+VERSION = 1
+PREAMBLE = struct.Struct("<4sHHI")
+"""Magic, version, flags, header length: 12 bytes, little-endian."""
+
+DEFAULT_PREFIX = "insp/v1"
+ENCODINGS = ("raw", "png")
+PIXEL_FORMATS = ("mono8",)
+
+# Generous upper bounds: a hostile or corrupt header must not make us allocate
+# gigabytes before we notice.
+MAX_HEADER_BYTES = 1 << 20
+MAX_IMAGES = 16
+MAX_SIDE_PX = 16384
+MAX_NAME_LEN = 128
+
+_NAME_RE = re.compile(r"[A-Za-z0-9._-]+")
+
+
+class ProtocolError(ValueError):
+    """Bytes or names that do not follow the wire format."""
+
+
+# --------------------------------------------------------------------------- names and keys
+
+
+def validate_name(value: object, what: str = "name") -> str:
+    """Return ``value`` if it is a valid line, station, part or serial name.
+
+    Raises
+    ------
+    ProtocolError
+        Not a string, empty, too long, or a character outside ``[A-Za-z0-9._-]``.
+    """
+    if not isinstance(value, str):
+        raise ProtocolError(f"{what} must be a string, got {type(value).__name__}")
+    if len(value) > MAX_NAME_LEN:
+        raise ProtocolError(f"{what} is longer than {MAX_NAME_LEN} characters")
+    if not _NAME_RE.fullmatch(value):
+        raise ProtocolError(f"{what} {value!r} must match [A-Za-z0-9._-]+")
+    return value
+
+
+def validate_prefix(prefix: str) -> str:
+    """Return ``prefix`` if it is one or more valid names joined by ``/``."""
+    if not isinstance(prefix, str) or not prefix:
+        raise ProtocolError("key prefix must be a non-empty string")
+    for chunk in prefix.split("/"):
+        validate_name(chunk, "key prefix chunk")
+    return prefix
+
+
+@dataclass(frozen=True)
+class Keys:
+    """The key expressions of one line (DESIGN.md section 5).
+
+    Parameters
+    ----------
+    line : str
+    prefix : str
+        Default ``insp/v1``.
+    """
+
+    line: str
+    prefix: str = DEFAULT_PREFIX
+
+    def __post_init__(self) -> None:
+        validate_name(self.line, "line")
+        validate_prefix(self.prefix)
+
+    def frames(self, station: str) -> str:
+        """``<prefix>/<line>/<station>/frames``: FrameSet bytes."""
+        return f"{self.prefix}/{self.line}/{validate_name(station, 'station')}/frames"
+
+    def result(self, station: str, part: str, serial: str) -> str:
+        """``<prefix>/<line>/<station>/result/<part>/<serial>``: InspectionResult JSON."""
+        return (
+            f"{self.prefix}/{self.line}/{validate_name(station, 'station')}/result/"
+            f"{validate_name(part, 'part')}/{validate_name(serial, 'serial')}"
+        )
+
+    def results(self, station: str = "*") -> str:
+        """Selector for every result of a station (``*``: of every station)."""
+        if station != "*":
+            validate_name(station, "station")
+        return f"{self.prefix}/{self.line}/{station}/result/**"
+
+    def status(self, station: str) -> str:
+        """``<prefix>/<line>/<station>/status``: worker status and heartbeat (JSON)."""
+        return f"{self.prefix}/{self.line}/{validate_name(station, 'station')}/status"
+
+    def worker_token(self, station: str, worker_id: str) -> str:
+        """``@<prefix>/<line>/<station>/worker/<id>``: liveliness token of one worker."""
+        return (
+            f"@{self.prefix}/{self.line}/{validate_name(station, 'station')}/worker/"
+            f"{validate_name(worker_id, 'worker id')}"
+        )
+
+    def workers(self, station: str = "*") -> str:
+        """Selector for the liveliness tokens of a station's workers."""
+        if station != "*":
+            validate_name(station, "station")
+        return f"@{self.prefix}/{self.line}/{station}/worker/*"
+
+
+def parse_result_key(key: str, prefix: str = DEFAULT_PREFIX) -> tuple[str, str, str, str]:
+    """Split a result key into ``(line, station, part, serial)``."""
+    head = prefix + "/"
+    if not key.startswith(head):
+        raise ProtocolError(f"key {key!r} does not start with {head!r}")
+    parts = key[len(head) :].split("/")
+    if len(parts) != 5 or parts[2] != "result":
+        raise ProtocolError(f"{key!r} is not a result key")
+    line, station, _, part, serial = parts
+    for value, what in ((line, "line"), (station, "station"), (part, "part"), (serial, "serial")):
+        validate_name(value, what)
+    return line, station, part, serial
+
+
+# --------------------------------------------------------------------------- FrameSet
+
+
+@dataclass(frozen=True, eq=False)
+class Defect:
+    """A dent injected into a simulated part: the truth kept with its frames.
+
+    Attributes
+    ----------
+    center_mm : (3,) float, part (CAD) frame, mm
+        A point on the surface at the middle of the dent.
+    normal : (3,) float, part frame
+        Outward surface normal there; the dent pushes the surface along ``-normal``.
+    depth_mm : float
+        Depth at the centre, mm (positive: into the material).
+    radius_mm : float
+        Radius of the dent, mm.
+    """
+
+    center_mm: tuple[float, float, float]
+    normal: tuple[float, float, float]
+    depth_mm: float
+    radius_mm: float
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "center_mm": [float(v) for v in self.center_mm],
+            "normal": [float(v) for v in self.normal],
+            "depth_mm": float(self.depth_mm),
+            "radius_mm": float(self.radius_mm),
+        }
+
+    @classmethod
+    def from_json(cls, obj: Any) -> Defect:
+        try:
+            c = tuple(float(v) for v in obj["center_mm"])
+            n = tuple(float(v) for v in obj["normal"])
+            d = cls(c, n, float(obj["depth_mm"]), float(obj["radius_mm"]))  # type: ignore[arg-type]
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ProtocolError(f"bad defect in truth: {exc}") from exc
+        if len(c) != 3 or len(n) != 3:
+            raise ProtocolError("defect center_mm and normal need three numbers")
+        return d
+
+
+@dataclass(frozen=True, eq=False)
+class Truth:
+    """What the simulator knows about a simulated part (absent for real parts).
+
+    Attributes
+    ----------
+    T_rig_part : (4, 4) float64
+        Pose of the part in the nominal rig's frame (maps part points to rig points).
+    defect : Defect or None
+    """
+
+    T_rig_part: np.ndarray
+    defect: Defect | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "T_rig_part": np.asarray(self.T_rig_part, dtype=np.float64).tolist(),
+            "defect": None if self.defect is None else self.defect.to_json(),
+        }
+
+    @classmethod
+    def from_json(cls, obj: Any) -> Truth:
+        if not isinstance(obj, dict):
+            raise ProtocolError("truth must be a JSON object")
+        try:
+            T = np.asarray(obj["T_rig_part"], dtype=np.float64)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ProtocolError(f"bad truth.T_rig_part: {exc}") from exc
+        if T.shape != (4, 4) or not np.isfinite(T).all():
+            raise ProtocolError("truth.T_rig_part must be a finite 4x4 matrix")
+        defect = obj.get("defect")
+        return cls(T, None if defect is None else Defect.from_json(defect))
+
+
+@dataclass(frozen=True, eq=False)
+class FrameSet:
+    """One trigger: the rig's images and their metadata.
+
+    Attributes
+    ----------
+    line, station, part, serial : str
+        Names matching ``[A-Za-z0-9._-]+``. ``part`` is the part spec's name.
+    seq : int
+        Per-station sequence number, counting up by one per trigger from 0.
+    triggered_ns : int
+        Trigger time, ns since the Unix epoch, from the ingest host's clock.
+    calibration_id : str
+        Identifies the rig calibration the frames are meant to be measured with.
+    images : list of (H, W) uint8
+        One image per camera, in the rig's camera order.
+    cameras : list of str
+        Camera names, one per image.
+    truth : Truth or None
+        Pose and injected defect of a simulated part.
+    """
+
+    line: str
+    station: str
+    part: str
+    serial: str
+    seq: int
+    triggered_ns: int
+    calibration_id: str
+    images: list[Image]
+    cameras: list[str] = field(default_factory=list)
+    truth: Truth | None = None
+
+    def __post_init__(self) -> None:
+        validate_name(self.line, "line")
+        validate_name(self.station, "station")
+        validate_name(self.part, "part")
+        validate_name(self.serial, "serial")
+        for value, what in ((self.seq, "seq"), (self.triggered_ns, "triggered_ns")):
+            if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value < 2**63:
+                raise ProtocolError(f"{what} must be an integer in [0, 2**63), got {value!r}")
+        if not isinstance(self.calibration_id, str) or len(self.calibration_id) > 256:
+            raise ProtocolError("calibration_id must be a string of at most 256 characters")
+        if not 1 <= len(self.images) <= MAX_IMAGES:
+            raise ProtocolError(f"a FrameSet carries 1..{MAX_IMAGES} images, got {len(self.images)}")
+        for i, img in enumerate(self.images):
+            if not isinstance(img, np.ndarray) or img.dtype != np.uint8 or img.ndim != 2:
+                raise ProtocolError(f"image {i} must be a (H, W) uint8 array")
+            if not (0 < img.shape[0] <= MAX_SIDE_PX and 0 < img.shape[1] <= MAX_SIDE_PX):
+                raise ProtocolError(f"image {i} has an unsupported size {img.shape}")
+        if not self.cameras:
+            object.__setattr__(self, "cameras", [f"cam{i}" for i in range(len(self.images))])
+        if len(self.cameras) != len(self.images):
+            raise ProtocolError("one camera name per image")
+        for name in self.cameras:
+            validate_name(name, "camera")
+
+
+def _encode_image(img: np.ndarray, encoding: str) -> bytes:
+    if encoding == "raw":
+        return np.ascontiguousarray(img).tobytes()
+    # Level 1: the images are noisy, higher levels cost time and save little.
+    ok, buf = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    if not ok:  # pragma: no cover - OpenCV fails only on unsupported arrays
+        raise ProtocolError("PNG encoding failed")
+    return buf.tobytes()
+
+
+def encode_frameset(fs: FrameSet, *, encoding: str = "raw") -> bytes:
+    """Serialise a FrameSet to its wire bytes.
+
+    Parameters
+    ----------
+    fs : FrameSet
+    encoding : {"raw", "png"}
+        Both are lossless: ``raw`` is fastest, ``png`` is smaller.
+
+    Returns
+    -------
+    bytes
+    """
+    if encoding not in ENCODINGS:
+        raise ProtocolError(f"encoding must be one of {ENCODINGS}, got {encoding!r}")
+    payloads = [_encode_image(img, encoding) for img in fs.images]
+    header: dict[str, Any] = {
+        "line": fs.line,
+        "station": fs.station,
+        "part": fs.part,
+        "serial": fs.serial,
+        "seq": fs.seq,
+        "triggered_ns": fs.triggered_ns,
+        "calibration_id": fs.calibration_id,
+        "images": [
+            {
+                "camera": cam,
+                "width": int(img.shape[1]),
+                "height": int(img.shape[0]),
+                "pixel_format": "mono8",
+                "encoding": encoding,
+                "length": len(p),
+            }
+            for cam, img, p in zip(fs.cameras, fs.images, payloads, strict=True)
+        ],
+        "truth": None if fs.truth is None else fs.truth.to_json(),
+    }
+    head = json.dumps(header, separators=(",", ":"), allow_nan=False).encode("utf-8")
+    return b"".join([PREAMBLE.pack(MAGIC, VERSION, 0, len(head)), head, *payloads])
+
+
+def read_header(data: bytes | bytearray | memoryview) -> tuple[dict[str, Any], int]:
+    """Parse the preamble and JSON header.
+
+    Returns
+    -------
+    header : dict
+    payload_offset : int
+        Where the first image's bytes start.
+
+    Raises
+    ------
+    ProtocolError
+    """
+    buf = memoryview(data)
+    if len(buf) < PREAMBLE.size:
+        raise ProtocolError(f"truncated FrameSet: {len(buf)} bytes, the preamble alone is 12")
+    magic, version, _flags, hlen = PREAMBLE.unpack_from(buf, 0)
+    if magic != MAGIC:
+        raise ProtocolError(f"not a FrameSet: magic {bytes(magic)!r}, expected {MAGIC!r}")
+    if version != VERSION:
+        raise ProtocolError(f"unsupported FrameSet version {version} (this reader knows {VERSION})")
+    if hlen > MAX_HEADER_BYTES or PREAMBLE.size + hlen > len(buf):
+        raise ProtocolError(f"truncated FrameSet: header of {hlen} bytes does not fit")
+    try:
+        header = json.loads(bytes(buf[PREAMBLE.size : PREAMBLE.size + hlen]).decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ProtocolError(f"FrameSet header is not UTF-8 JSON: {exc}") from exc
+    if not isinstance(header, dict):
+        raise ProtocolError("FrameSet header must be a JSON object")
+    return header, PREAMBLE.size + hlen
+
+
+def _decode_image(payload: memoryview, meta: dict[str, Any], i: int) -> np.ndarray:
+    w, h = meta["width"], meta["height"]
+    if meta["pixel_format"] not in PIXEL_FORMATS:
+        raise ProtocolError(f"image {i}: unsupported pixel_format {meta['pixel_format']!r}")
+    if meta["encoding"] == "raw":
+        if len(payload) != w * h:
+            raise ProtocolError(f"image {i}: {len(payload)} bytes for a {w}x{h} mono8 image")
+        return np.frombuffer(payload, dtype=np.uint8).reshape(h, w).copy()
+    if meta["encoding"] == "png":
+        img = cv2.imdecode(np.frombuffer(payload, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise ProtocolError(f"image {i}: PNG payload cannot be decoded")
+        if img.dtype != np.uint8 or img.ndim != 2 or img.shape != (h, w):
+            raise ProtocolError(f"image {i}: PNG is {img.dtype} {img.shape}, header says {h}x{w} mono8")
+        return img
+    raise ProtocolError(f"image {i}: unknown encoding {meta['encoding']!r}")
+
+
+def decode_frameset(data: bytes | bytearray | memoryview) -> FrameSet:
+    """Parse wire bytes into a FrameSet, validating everything.
+
+    Raises
+    ------
+    ProtocolError
+        Wrong magic or version, truncated data, a header that does not match
+        the payload, invalid names, undecodable images.
+    """
+    header, offset = read_header(data)
+    buf = memoryview(data)
+    try:
+        metas = header["images"]
+        if not isinstance(metas, list) or not 1 <= len(metas) <= MAX_IMAGES:
+            raise ProtocolError(f"header.images must list 1..{MAX_IMAGES} images")
+        images = []
+        cameras = []
+        for i, meta in enumerate(metas):
+            if not isinstance(meta, dict):
+                raise ProtocolError(f"image {i}: metadata must be an object")
+            for key in ("width", "height", "length"):
+                v = meta[key]
+                if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+                    raise ProtocolError(f"image {i}: {key} must be a non-negative integer")
+            if not (0 < meta["width"] <= MAX_SIDE_PX and 0 < meta["height"] <= MAX_SIDE_PX):
+                raise ProtocolError(f"image {i}: unsupported size {meta['width']}x{meta['height']}")
+            end = offset + meta["length"]
+            if end > len(buf):
+                raise ProtocolError(f"truncated FrameSet: image {i} ends past the data")
+            images.append(_decode_image(buf[offset:end], meta, i))
+            cameras.append(meta.get("camera", f"cam{i}"))
+            offset = end
+        if offset != len(buf):
+            raise ProtocolError(f"{len(buf) - offset} trailing bytes after the last image")
+        truth = header.get("truth")
+        return FrameSet(
+            line=header["line"],
+            station=header["station"],
+            part=header["part"],
+            serial=header["serial"],
+            seq=header["seq"],
+            triggered_ns=header["triggered_ns"],
+            calibration_id=header.get("calibration_id", ""),
+            images=images,
+            cameras=cameras,
+            truth=None if truth is None else Truth.from_json(truth),
+        )
+    except KeyError as exc:
+        raise ProtocolError(f"FrameSet header lacks the field {exc.args[0]!r}") from exc
+
+
+def peek_identity(data: bytes | bytearray | memoryview) -> dict[str, Any]:
+    """Best-effort ``line, station, part, serial, seq, triggered_ns`` of bad bytes.
+
+    A worker that cannot decode a FrameSet still wants to say which trigger the
+    error belongs to. Fields that cannot be read, or are not valid, are left out.
+    """
+    try:
+        header, _ = read_header(data)
+    except ProtocolError:
+        return {}
+    out: dict[str, Any] = {}
+    for key in ("line", "station", "part", "serial"):
+        try:
+            out[key] = validate_name(header.get(key), key)
+        except ProtocolError:
+            pass
+    for key in ("seq", "triggered_ns"):
+        v = header.get(key)
+        if isinstance(v, int) and not isinstance(v, bool) and 0 <= v < 2**63:
+            out[key] = v
+    if isinstance(header.get("calibration_id"), str):
+        out["calibration_id"] = header["calibration_id"]
+    return out
+
+
+def images_equal(a: Sequence[np.ndarray], b: Sequence[np.ndarray]) -> bool:
+    """True when two image lists are identical, pixel for pixel."""
+    return len(a) == len(b) and all(x.shape == y.shape and np.array_equal(x, y) for x, y in zip(a, b))
