@@ -277,7 +277,9 @@ class FrameSet:
         if not isinstance(self.calibration_id, str) or len(self.calibration_id) > 256:
             raise ProtocolError("calibration_id must be a string of at most 256 characters")
         if not 1 <= len(self.images) <= MAX_IMAGES:
-            raise ProtocolError(f"a FrameSet carries 1..{MAX_IMAGES} images, got {len(self.images)}")
+            raise ProtocolError(
+                f"a FrameSet carries 1..{MAX_IMAGES} images, got {len(self.images)}"
+            )
         for i, img in enumerate(self.images):
             if not isinstance(img, np.ndarray) or img.dtype != np.uint8 or img.ndim != 2:
                 raise ProtocolError(f"image {i} must be a (H, W) uint8 array")
@@ -387,7 +389,9 @@ def _decode_image(payload: memoryview, meta: dict[str, Any], i: int) -> np.ndarr
         if img is None:
             raise ProtocolError(f"image {i}: PNG payload cannot be decoded")
         if img.dtype != np.uint8 or img.ndim != 2 or img.shape != (h, w):
-            raise ProtocolError(f"image {i}: PNG is {img.dtype} {img.shape}, header says {h}x{w} mono8")
+            raise ProtocolError(
+                f"image {i}: PNG is {img.dtype} {img.shape}, header says {h}x{w} mono8"
+            )
         return img
     raise ProtocolError(f"image {i}: unknown encoding {meta['encoding']!r}")
 
@@ -470,4 +474,6 @@ def peek_identity(data: bytes | bytearray | memoryview) -> dict[str, Any]:
 
 def images_equal(a: Sequence[np.ndarray], b: Sequence[np.ndarray]) -> bool:
     """True when two image lists are identical, pixel for pixel."""
-    return len(a) == len(b) and all(x.shape == y.shape and np.array_equal(x, y) for x, y in zip(a, b))
+    return len(a) == len(b) and all(
+        x.shape == y.shape and np.array_equal(x, y) for x, y in zip(a, b, strict=False)
+    )

@@ -59,7 +59,16 @@ def doc_reader(data: bytes) -> tuple[dict, list[bytes]]:
 def test_round_trip_is_lossless(encoding, truth):
     fs = make_frameset(3, truth=truth)
     back = decode_frameset(encode_frameset(fs, encoding=encoding))
-    for name in ("line", "station", "part", "serial", "seq", "triggered_ns", "calibration_id", "cameras"):
+    for name in (
+        "line",
+        "station",
+        "part",
+        "serial",
+        "seq",
+        "triggered_ns",
+        "calibration_id",
+        "cameras",
+    ):
         assert getattr(back, name) == getattr(fs, name)
     assert all(np.array_equal(a, b) for a, b in zip(fs.images, back.images, strict=True))
     if truth:
@@ -115,7 +124,9 @@ def corruptions():
         "size_mismatch": with_header(images=bad_img),
         "no_images": with_header(images=[]),
         "bad_truth": with_header(truth={"T_rig_part": [[1, 2], [3, 4]]}),
-        "unknown_encoding": with_header(images=[dict(m, encoding="jpeg") for m in header["images"]]),
+        "unknown_encoding": with_header(
+            images=[dict(m, encoding="jpeg") for m in header["images"]]
+        ),
     }
 
 
