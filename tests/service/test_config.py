@@ -1,0 +1,158 @@
+"""Line and part configuration: the shipped files, strictness, overrides, hashing."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from service.config import (
+    GENERATED_PANEL,
+    ConfigError,
+    LineConfig,
+    load_line_config,
+    load_part_spec,
+)
+
+ROOT = Path(__file__).resolve().parents[2]
+LINE = ROOT / "configs" / "line.toml"
+
+
+def write(tmp_path: Path, name: str, text: str) -> Path:
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def test_shipped_line_config_validates_and_lists_existing_parts():
+    cfg = load_line_config(LINE)
+    assert cfg.zenoh.multicast_scouting is False
+    assert all(e.startswith("tcp/127.0.0.1:") for e in cfg.zenoh.listen)
+    for p in cfg.part_spec_paths():
+        spec = load_part_spec(p)
+        assert spec.name == p.stem
+
+
+def test_shipped_demo_part_is_generated_and_has_points():
+    spec = load_part_spec(ROOT / "configs" / "parts" / "demo-panel.toml")
+    assert spec.cad == GENERATED_PANEL
+    assert len(spec.points) >= 3
+    for cp in spec.points:
+        assert abs(sum(c * c for c in cp.normal) - 1) < 1e-9
+        assert cp.lower_mm < cp.upper_mm
+
+
+def test_defaults_equal_an_empty_file(tmp_path):
+    cfg = load_line_config(write(tmp_path, "line.toml", ""))
+    assert cfg.effective() == LineConfig().effective()
+
+
+@pytest.mark.parametrize(
+    "text, where",
+    [
+        ("[line]\nnmae = 'x'\n", "line.nmae"),
+        ("[line]\ntrigger_period_s = 0\n", "line.trigger_period_s"),
+        ("[line]\nname = 'has space'\n", "line.name"),
+        ("[zenoh]\nlisten = ['localhost']\n", "zenoh.listen"),
+        ("[retention]\nrecord = 'some'\n", "retention.record"),
+        ("[simulator]\ndefect_rate = 1.5\n", "simulator.defect_rate"),
+        ("[bogus]\n", "bogus"),
+        ("[storage]\nmcap_rotate_mb = nan\n", "storage.mcap_rotate_mb"),
+    ],
+)
+def test_bad_line_files_fail_with_the_key(tmp_path, text, where):
+    with pytest.raises(ConfigError, match=where.replace(".", r"\.")):
+        load_line_config(write(tmp_path, "line.toml", text))
+
+
+def test_not_toml_and_missing(tmp_path):
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_line_config(write(tmp_path, "line.toml", "[line\n"))
+    with pytest.raises(ConfigError, match="no such file"):
+        load_line_config(tmp_path / "absent.toml")
+
+
+def test_environment_then_flags_override(tmp_path):
+    path = write(tmp_path, "line.toml", "[http]\nport = 8000\n")
+    env = {
+        "INSPECTION_DATA_DIR": "/srv/data",
+        "INSPECTION_HTTP_PORT": "9001",
+        "INSPECTION_ZENOH_CONNECT": "tcp/10.0.0.1:7447, tcp/10.0.0.2:7447",
+        "UNRELATED": "x",
+    }
+    cfg = load_line_config(path, env=env)
+    assert cfg.storage.data_dir == "/srv/data"
+    assert cfg.http.port == 9001
+    assert cfg.zenoh.connect == ["tcp/10.0.0.1:7447", "tcp/10.0.0.2:7447"]
+    cfg2 = load_line_config(
+        path, env=env, overrides={("http", "port"): 9002, ("line", "name"): None}
+    )
+    assert cfg2.http.port == 9002
+    with pytest.raises(ConfigError, match="http.port"):
+        load_line_config(path, env={"INSPECTION_HTTP_PORT": "eighty"})
+
+
+def test_hash_follows_the_effective_values(tmp_path):
+    a = load_line_config(write(tmp_path, "a.toml", "[http]\nport = 8000\n"))
+    b = load_line_config(write(tmp_path, "b.toml", "# same values\n[http]\nport = 8000\n"))
+    c = load_line_config(write(tmp_path, "c.toml", "[http]\nport = 8001\n"))
+    assert a.hash() == b.hash() != c.hash()
+    assert len(a.hash()) == 64
+
+
+def test_installation_paths_are_relative_to_the_file(tmp_path):
+    cfg = load_line_config(
+        write(tmp_path, "line.toml", "[station]\nrig_calibration = 'rig.toml'\n")
+    )
+    assert cfg.rig_calibration_path() == tmp_path / "rig.toml"
+    assert cfg.parts_path() == tmp_path / "parts"
+    assert cfg.key("frames") == "insp/v1/line1/st1/frames"
+
+
+PART = """
+name = "bracket"
+cad = "bracket.stl"
+scale = 25.4
+[[points]]
+name = "p1"
+position_mm = [0, 0, 1]
+normal = [0, 0, 2]
+lower_mm = -0.2
+upper_mm = 0.3
+radius_mm = 5
+"""
+
+
+def test_part_spec(tmp_path):
+    spec = load_part_spec(write(tmp_path, "bracket.toml", PART))
+    assert spec.points[0].normal == [0.0, 0.0, 1.0]
+    assert spec.cad_path(tmp_path) == tmp_path / "bracket.stl"
+    assert spec.registration.loss == "tukey"
+    assert spec.tree.build_kwargs() == {}
+
+
+@pytest.mark.parametrize(
+    "change, match",
+    [
+        (("lower_mm = -0.2", "lower_mm = 0.4"), "lower_mm"),
+        (("normal = [0, 0, 2]", "normal = [0, 0, 0]"), "normal"),
+        (("radius_mm = 5", "radius_mm = -1"), "radius_mm"),
+        (('cad = "bracket.stl"', 'cad = "generated:box"'), "generated"),
+        (("scale = 25.4", "scale = 25.4\ncolour = 'red'"), "colour"),
+        (('name = "p1"', 'name = "p 1"'), "points.0.name"),
+    ],
+)
+def test_bad_part_specs(tmp_path, change, match):
+    with pytest.raises(ConfigError, match=match):
+        load_part_spec(write(tmp_path, "bracket.toml", PART.replace(*change)))
+
+
+def test_part_name_must_match_file(tmp_path):
+    with pytest.raises(ConfigError, match="file name"):
+        load_part_spec(write(tmp_path, "other.toml", PART))
+
+
+def test_duplicate_point_names(tmp_path):
+    text = PART + PART[PART.index("[[points]]") :]
+    with pytest.raises(ConfigError, match="used twice"):
+        load_part_spec(write(tmp_path, "bracket.toml", text))
