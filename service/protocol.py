@@ -49,7 +49,7 @@ PIXEL_FORMATS = ("mono8",)
 MAX_HEADER_BYTES = 1 << 20
 MAX_IMAGES = 16
 MAX_SIDE_PX = 16384
-MAX_NAME_LEN = 128
+MAX_NAME_LEN = 64
 
 _NAME_RE = re.compile(r"[A-Za-z0-9._-]+")
 

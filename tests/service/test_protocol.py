@@ -143,7 +143,7 @@ def test_peek_identity_of_bad_bytes_keeps_valid_fields():
     assert peek_identity(b"garbage") == {}
 
 
-@pytest.mark.parametrize("bad", ["", "a/b", "*", "**", "a b", "é", "x" * 129, None, 3])
+@pytest.mark.parametrize("bad", ["", "a/b", "*", "**", "a b", "é", "x" * 65, None, 3])
 def test_names_are_restricted(bad):
     with pytest.raises(ProtocolError):
         validate_name(bad)

@@ -1,0 +1,301 @@
+"""The ingest adapter: a trigger at the line rate, a frame source, FrameSets on zenoh.
+
+A :class:`FrameSource` turns one trigger into one :class:`FrameSet`. The
+default is :class:`SimulatedRig`: it places the station's part on the
+conveyor in a resting pose with a random in-plane rotation and position,
+gives it a random serial, now and then presses a dent into it (the truth goes
+into the FrameSet header), and renders the rig's images. A real-camera
+source implements the same one-method protocol.
+
+:class:`Ingest` fires the trigger every ``trigger_period_s`` (on an absolute
+schedule, so a slow capture does not make the line drift), numbers the
+triggers per station from 0, and publishes each FrameSet with congestion
+control BLOCK.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+import trimesh
+
+from inspection.cad import CadModel
+
+from .pipeline import Stages
+from .protocol import Defect, FrameSet, Truth, encode_frameset
+
+log = logging.getLogger(__name__)
+
+
+class FrameSource(Protocol):
+    """Turns a trigger into a FrameSet."""
+
+    def capture(self, seq: int, triggered_ns: int) -> FrameSet:
+        """Fire the flash and the cameras; ``seq`` and ``triggered_ns`` go into the FrameSet."""
+
+
+@dataclass(frozen=True)
+class SimulationSettings:
+    """What the simulated rig varies from part to part.
+
+    Attributes
+    ----------
+    defect_rate : float
+        Fraction of parts that get a dent, 0..1.
+    dent_depth_mm, dent_radius_mm : float
+        Size of an injected dent.
+    position_range_mm : (float, float)
+        Half-ranges of the random x, y position of the part's centre on the conveyor.
+    yaw_range_deg : float
+        Half-range of the random in-plane rotation about the part's long axis
+        lying along the conveyor; 180 allows any rotation. The default keeps a
+        600 x 400 mm part inside the 800 x 500 mm volume.
+    flip : bool
+        Also turn half of the parts by a half turn (arriving either way round).
+    seed : int
+        With ``seq``, fixes everything about a part: the same (seed, seq)
+        gives the same part, pose, serial and images.
+    """
+
+    defect_rate: float = 0.1
+    dent_depth_mm: float = 1.5
+    dent_radius_mm: float = 15.0
+    position_range_mm: tuple[float, float] = (60.0, 30.0)
+    yaw_range_deg: float = 5.0
+    flip: bool = True
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.defect_rate <= 1:
+            raise ValueError("defect_rate must lie in [0, 1]")
+        if self.dent_depth_mm <= 0 or self.dent_radius_mm <= 0:
+            raise ValueError("dent depth and radius must be positive")
+
+
+def dent(vertices: np.ndarray, vertex_normals: np.ndarray, defect: Defect) -> np.ndarray:
+    """Press a smooth dent into a mesh: vertices near ``center_mm`` move along ``-normal``.
+
+    The profile is ``depth * (1 - (r / radius)^2)^2`` for ``r < radius``
+    (smooth at the rim), r the distance to the centre. Returns new vertices.
+    """
+    c = np.asarray(defect.center_mm)
+    r = np.linalg.norm(vertices - c, axis=1)
+    inside = r < defect.radius_mm
+    # Only the side the camera sees: vertices whose normal agrees with the dent's.
+    inside &= vertex_normals @ np.asarray(defect.normal) > 0.5
+    w = (1 - (r[inside] / defect.radius_mm) ** 2) ** 2
+    out = vertices.copy()
+    out[inside] -= (defect.depth_mm * w)[:, None] * np.asarray(defect.normal)[None, :]
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class SimPart:
+    """A part the simulator can place: its CAD, mesh, resting poses and their probabilities."""
+
+    name: str
+    cad: CadModel
+    mesh: trimesh.Trimesh
+    resting_poses: np.ndarray
+    """(K, 4, 4): T_conveyor_part of each stable resting pose (part centre above the origin)."""
+    probabilities: np.ndarray
+
+    @classmethod
+    def from_cad(cls, name: str, cad: CadModel, *, flat: bool = True) -> SimPart:
+        """``flat``: the part rests as modelled (z up, lowest point on z = 0), e.g. the panel.
+
+        Otherwise trimesh's stable poses of the convex hull are used.
+        """
+        mesh = trimesh.Trimesh(cad.vertices, cad.faces, process=False)
+        if flat:
+            T = np.eye(4)
+            centre = (cad.vertices.min(axis=0) + cad.vertices.max(axis=0)) / 2
+            T[:3, 3] = [-centre[0], -centre[1], -cad.vertices[:, 2].min()]
+            poses, probs = T[None], np.ones(1)
+        else:
+            poses, probs = mesh.convex_hull.compute_stable_poses(n_samples=1)
+            poses, probs = np.asarray(poses)[:6], np.asarray(probs)[:6]
+            for T in poses:
+                v = trimesh.transform_points(cad.vertices, T)
+                centre = (v.min(axis=0) + v.max(axis=0)) / 2
+                T[:2, 3] -= centre[:2]
+        return cls(name, cad, mesh, poses, probs / probs.sum())
+
+
+class SimulatedRig:
+    """The default :class:`FrameSource`: renders the station's parts with the stages' simulator.
+
+    Parameters
+    ----------
+    stages : Stages
+        Its ``render`` and ``rig`` make the images, ``calibration_id`` is stamped on them.
+    parts : sequence of SimPart
+        The part types this station sees (chosen uniformly).
+    line, station : str
+    settings : SimulationSettings
+    """
+
+    def __init__(
+        self,
+        stages: Stages,
+        parts: Sequence[SimPart],
+        *,
+        line: str,
+        station: str,
+        settings: SimulationSettings | None = None,
+    ) -> None:
+        if not parts:
+            raise ValueError("the simulated rig needs at least one part")
+        self.stages = stages
+        self.parts = list(parts)
+        self.line = line
+        self.station = station
+        self.settings = settings or SimulationSettings()
+        self._normals = {p.name: p.mesh.vertex_normals.copy() for p in self.parts}
+
+    def capture(self, seq: int, triggered_ns: int) -> FrameSet:
+        s = self.settings
+        rng = np.random.default_rng([s.seed, seq])
+        part = self.parts[int(rng.integers(len(self.parts)))]
+        rest = part.resting_poses[rng.choice(len(part.resting_poses), p=part.probabilities)]
+        angle = np.deg2rad(rng.uniform(-s.yaw_range_deg, s.yaw_range_deg))
+        if s.flip and rng.random() < 0.5:
+            angle += np.pi
+        c, si = np.cos(angle), np.sin(angle)
+        place = np.eye(4)
+        place[:2, :2] = [[c, -si], [si, c]]
+        place[:2, 3] = rng.uniform(-1, 1, 2) * np.asarray(s.position_range_mm)
+        T_rig_part = place @ rest
+        serial = f"{part.name[:8].upper()}-{seq:06d}-{rng.integers(16**4):04x}"
+        defect = None
+        mesh = part.mesh
+        if rng.random() < s.defect_rate:
+            defect = self._random_defect(part, T_rig_part, rng)
+            mesh = trimesh.Trimesh(
+                dent(part.cad.vertices, self._normals[part.name], defect),
+                part.cad.faces,
+                process=False,
+            )
+        images = self.stages.render(self.stages.rig, mesh, T_rig_part, int(rng.integers(2**31)))
+        return FrameSet(
+            line=self.line,
+            station=self.station,
+            part=part.name,
+            serial=serial,
+            seq=seq,
+            triggered_ns=triggered_ns,
+            calibration_id=self.stages.calibration_id,
+            images=images,
+            cameras=[f"cam{i}" for i in range(len(images))],
+            truth=Truth(T_rig_part, defect),
+        )
+
+    def _random_defect(
+        self, part: SimPart, T_rig_part: np.ndarray, rng: np.random.Generator
+    ) -> Defect:
+        """A dent at a random point of the surface the cameras see (normal up in the rig)."""
+        mesh = part.mesh
+        up_in_part = T_rig_part[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+        visible = np.flatnonzero(mesh.face_normals @ up_in_part > 0.7)
+        weights = mesh.area_faces[visible] / mesh.area_faces[visible].sum()
+        face = int(visible[rng.choice(len(visible), p=weights)])
+        a, b = rng.random(2)
+        if a + b > 1:
+            a, b = 1 - a, 1 - b
+        tri = mesh.triangles[face]
+        centre = tri[0] + a * (tri[1] - tri[0]) + b * (tri[2] - tri[0])
+        n = mesh.face_normals[face]
+        return Defect(
+            tuple(float(v) for v in centre),  # type: ignore[arg-type]
+            tuple(float(v) for v in n),  # type: ignore[arg-type]
+            self.settings.dent_depth_mm,
+            self.settings.dent_radius_mm,
+        )
+
+
+class Ingest:
+    """Fires triggers on a fixed period and publishes one FrameSet per trigger.
+
+    Parameters
+    ----------
+    source : FrameSource
+    publish : callable(bytes) -> None
+        Sends the encoded FrameSet (a zenoh publisher's ``put``).
+    period_s : float
+        Trigger period (``trigger_period_s``).
+    encoding : {"raw", "png"}
+        Image encoding on the wire.
+    on_trigger : callable(FrameSet) -> None, optional
+        Called after each publish (benchmarks, tests, logs).
+    """
+
+    def __init__(
+        self,
+        source: FrameSource,
+        publish: Callable[[bytes], None],
+        *,
+        period_s: float,
+        encoding: str = "raw",
+        on_trigger: Callable[[FrameSet], None] | None = None,
+    ) -> None:
+        if period_s <= 0:
+            raise ValueError("period_s must be positive")
+        self.source = source
+        self.publish = publish
+        self.period_s = period_s
+        self.encoding = encoding
+        self.on_trigger = on_trigger
+        self.seq = 0
+        self.stop_event = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def trigger(self) -> FrameSet:
+        """Fire one trigger now: capture, publish, count."""
+        t_ns = time.time_ns()
+        fs = self.source.capture(self.seq, t_ns)
+        self.publish(encode_frameset(fs, encoding=self.encoding))
+        self.seq += 1
+        if self.on_trigger is not None:
+            self.on_trigger(fs)
+        return fs
+
+    def run(self, count: int | None = None) -> None:
+        """Trigger until :meth:`stop` (or ``count`` triggers). Capture errors are logged, counted as a trigger."""
+        t0 = time.monotonic()
+        k = 0
+        while not self.stop_event.is_set() and (count is None or k < count):
+            delay = t0 + k * self.period_s - time.monotonic()
+            if delay > 0 and self.stop_event.wait(delay):
+                break
+            if delay < -self.period_s:
+                # Behind by more than a period: the line is slower than the
+                # trigger; skip ahead rather than fire a burst.
+                skipped = int(-delay // self.period_s)
+                log.warning("ingest is %d triggers behind; skipping ahead", skipped)
+                k += skipped
+            try:
+                self.trigger()
+            except Exception:
+                log.exception("trigger seq %d failed; the worker will see a gap", self.seq)
+                self.seq += 1
+            k += 1
+
+    def start(self, count: int | None = None) -> None:
+        self._thread = threading.Thread(target=self.run, args=(count,), name="ingest", daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout_s: float = 30.0) -> None:
+        self.stop_event.set()
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+
+
+def sim_parts(parts: Mapping[str, CadModel], generated: set[str]) -> list[SimPart]:
+    """SimParts for a station: generated panels rest flat, other CAD on stable poses."""
+    return [SimPart.from_cad(n, cad, flat=n in generated) for n, cad in parts.items()]

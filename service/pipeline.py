@@ -1,0 +1,443 @@
+"""One FrameSet in, one InspectionResult out: reconstruct, align, deviations.
+
+The worker and replay call the same :meth:`Pipeline.run`, which is what lets
+a replay reproduce a recorded result exactly. The stages are plain callables
+collected in :class:`Stages`, so the line can run with the four-camera flash
+rig (``inspection.reconstruct`` / ``align`` / ``deviations``) or with the
+simple depth rig of :mod:`service.depthrig`.
+
+:meth:`Pipeline.run` never raises for a bad trigger: every failure becomes a
+result with status ``error`` and a reason.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import trimesh
+
+from inspection.cad import CadModel
+from inspection.errors import InspectionError
+
+from .config import PartSpec
+from .models import (
+    FieldStats,
+    InspectionResult,
+    PointResult,
+    Status,
+    Verdict,
+    finite_or_none,
+    make_result_id,
+    missed_serial,
+    software_version,
+)
+from .protocol import FrameSet
+
+log = logging.getLogger(__name__)
+
+
+# --------------------------------------------------------------------------- stages
+
+
+@dataclass(frozen=True)
+class Stages:
+    """The computation behind the pipeline, as plain callables.
+
+    Attributes
+    ----------
+    name : str
+        ``depth`` or ``flash``; recorded with every run.
+    rig : object
+        What ``reconstruct`` and ``render`` measure with.
+    calibration_id : str
+        Identifies ``rig``.
+    reconstruct : callable(rig, frames) -> cloud
+        ``cloud.points`` (N, 3) float64 rig frame mm, ``cloud.weights`` (N,),
+        ``cloud.report`` (dict or object).
+    build_tree : callable(cad, spec) -> (tree, tree_hash)
+    align : callable(tree, points_rig, spec) -> registration
+        ``registration.transform`` is T_cad_rig (4, 4); also ``rms_mm``,
+        ``inlier_fraction``, ``converged``, ``stop_reason``.
+    deviations : callable(tree, points_cad, spec) -> deviations
+        ``distances`` (N,) signed mm, ``comparison`` list with ``name``,
+        ``deviation_mm``, ``support``, ``verdict``.
+    render : callable(rig, mesh, T_rig_part, seed) -> list of images
+        The simulator matching ``reconstruct`` (used by ingest).
+    """
+
+    name: str
+    rig: Any
+    calibration_id: str
+    reconstruct: Callable[[Any, list[np.ndarray]], Any]
+    build_tree: Callable[[CadModel, PartSpec], tuple[Any, str]]
+    align: Callable[[Any, np.ndarray, PartSpec], Any]
+    deviations: Callable[[Any, np.ndarray, PartSpec], Any]
+    render: Callable[[Any, trimesh.Trimesh, np.ndarray, int], list[np.ndarray]]
+
+
+def depth_stages(rig: Any | None = None) -> Stages:
+    """The simple depth rig of :mod:`service.depthrig`."""
+    from . import depthrig
+
+    rig = rig or depthrig.DepthRig()
+
+    def build_tree(cad: CadModel, spec: PartSpec) -> tuple[Any, str]:
+        tree = depthrig.build_tree(cad)
+        return tree, tree.hash
+
+    def align(tree: Any, points: np.ndarray, spec: PartSpec) -> Any:
+        r = spec.registration
+        return depthrig.align(
+            tree,
+            points,
+            max_points=min(r.max_points, 20_000),
+            max_correspondence_mm=r.max_correspondence_mm,
+            max_iterations=r.max_iterations,
+        )
+
+    def deviations(tree: Any, points_cad: np.ndarray, spec: PartSpec) -> Any:
+        return depthrig.deviations(tree, points_cad, spec.points)
+
+    def render(rig_: Any, mesh: trimesh.Trimesh, T: np.ndarray, seed: int) -> list[np.ndarray]:
+        return depthrig.render(rig_, mesh, T)
+
+    return Stages(
+        name="depth",
+        rig=rig,
+        calibration_id=rig.calibration_id,
+        reconstruct=depthrig.reconstruct,
+        build_tree=build_tree,
+        align=align,
+        deviations=deviations,
+        render=render,
+    )
+
+
+def flash_stages_available() -> bool:
+    """Whether :mod:`inspection` provides the four-camera stages yet."""
+    import inspection
+
+    return all(
+        hasattr(inspection, n)
+        for n in ("simulate", "reconstruct", "align", "deviations", "GridTree", "Rig")
+    )
+
+
+def default_stages() -> Stages:
+    """The depth rig: always available, deterministic, fast on two cores."""
+    return depth_stages()
+
+
+# --------------------------------------------------------------------------- parts
+
+
+@dataclass(frozen=True, eq=False)
+class PreparedPart:
+    """A part type ready to be measured: spec, CAD and its preloaded tree."""
+
+    spec: PartSpec
+    cad: CadModel
+    tree: Any
+    tree_hash: str
+
+    @property
+    def name(self) -> str:
+        return self.spec.name
+
+
+def prepare_part(spec: PartSpec, cad: CadModel, stages: Stages) -> PreparedPart:
+    """Build the part's tree with the stages' builder (done once, at start-up)."""
+    t0 = time.perf_counter()
+    tree, tree_hash = stages.build_tree(cad, spec)
+    log.info(
+        "part %s: tree %s built in %.2f s", spec.name, tree_hash[:12], time.perf_counter() - t0
+    )
+    return PreparedPart(spec, cad, tree, tree_hash)
+
+
+# --------------------------------------------------------------------------- results
+
+
+@dataclass(frozen=True, eq=False)
+class Outcome:
+    """The result and the arrays behind it (for the recorder).
+
+    Attributes
+    ----------
+    result : InspectionResult
+    points_rig : (N, 3) float64 or None
+        The reconstructed cloud, rig frame, mm (after subsampling to the part's ``max_points``).
+    distances : (N,) float64 or None
+        Signed deviation of each point from the CAD, mm.
+    T_cad_rig : (4, 4) float64 or None
+    """
+
+    result: InspectionResult
+    points_rig: np.ndarray | None = None
+    distances: np.ndarray | None = None
+    T_cad_rig: np.ndarray | None = None
+
+
+@dataclass
+class Pipeline:
+    """Measures FrameSets of the parts it knows.
+
+    Parameters
+    ----------
+    stages : Stages
+    parts : mapping of part name to PreparedPart
+    line, station : str
+        Only FrameSets of this line and station are accepted (None: any).
+    """
+
+    stages: Stages
+    parts: Mapping[str, PreparedPart]
+    line: str | None = None
+    station: str | None = None
+    version: str = field(default_factory=software_version)
+
+    def _base(self, fs: FrameSet) -> dict[str, Any]:
+        part = self.parts.get(fs.part)
+        return dict(
+            id=make_result_id(fs.line, fs.station, fs.seq, fs.triggered_ns),
+            line=fs.line,
+            station=fs.station,
+            part=fs.part,
+            serial=fs.serial,
+            seq=fs.seq,
+            triggered_ns=fs.triggered_ns,
+            calibration_id=fs.calibration_id or None,
+            software_version=self.version,
+            spec_version=part.spec.version if part else None,
+            cad_hash=part.cad.hash if part else None,
+            tree_hash=part.tree_hash if part else None,
+        )
+
+    def run(self, fs: FrameSet) -> Outcome:
+        """Measure one FrameSet; never raises for bad data (status ``error`` instead)."""
+        timings: dict[str, float] = {}
+        t_start = time.perf_counter()
+        base = self._base(fs)
+        try:
+            return self._run(fs, base, timings, t_start)
+        except (InspectionError, ValueError, np.linalg.LinAlgError) as exc:
+            reason = f"{type(exc).__name__}: {exc}"
+        except Exception as exc:  # a bug in a stage must not take the worker down
+            log.exception("pipeline failed on %s seq %d", fs.serial, fs.seq)
+            reason = f"internal error: {type(exc).__name__}: {exc}"
+        timings["total"] = (time.perf_counter() - t_start) * 1e3
+        return Outcome(
+            InspectionResult(status=Status.error, reason=reason[:2000], timings_ms=timings, **base)
+        )
+
+    def _error(
+        self, base: dict[str, Any], reason: str, timings: dict[str, float], t0: float
+    ) -> Outcome:
+        timings["total"] = (time.perf_counter() - t0) * 1e3
+        return Outcome(
+            InspectionResult(status=Status.error, reason=reason, timings_ms=timings, **base)
+        )
+
+    def _run(
+        self, fs: FrameSet, base: dict[str, Any], timings: dict[str, float], t0: float
+    ) -> Outcome:
+        if self.line is not None and fs.line != self.line:
+            return self._error(
+                base, f"FrameSet of line {fs.line!r}, this is {self.line!r}", timings, t0
+            )
+        if self.station is not None and fs.station != self.station:
+            return self._error(
+                base, f"FrameSet of station {fs.station!r}, this is {self.station!r}", timings, t0
+            )
+        part = self.parts.get(fs.part)
+        if part is None:
+            known = ", ".join(sorted(self.parts)) or "none"
+            return self._error(base, f"unknown part {fs.part!r} (known: {known})", timings, t0)
+        if fs.calibration_id and fs.calibration_id != self.stages.calibration_id:
+            return self._error(
+                base,
+                f"frames are for calibration {fs.calibration_id!r}, "
+                f"this worker measures with {self.stages.calibration_id!r}",
+                timings,
+                t0,
+            )
+        spec = part.spec
+
+        t = time.perf_counter()
+        cloud = self.stages.reconstruct(self.stages.rig, fs.images)
+        timings["reconstruct"] = (time.perf_counter() - t) * 1e3
+        points = np.asarray(cloud.points, dtype=np.float64)
+        if points.ndim != 2 or points.shape[1] != 3:
+            return self._error(
+                base, f"reconstruction gave points of shape {points.shape}", timings, t0
+            )
+        finite = np.isfinite(points).all(axis=1)
+        if not finite.all():
+            log.debug("dropping %d non-finite points", int((~finite).sum()))
+            points = points[finite]
+        if len(points) == 0:
+            return self._error(base, "empty cloud: no surface seen in the frames", timings, t0)
+        if len(points) > spec.registration.max_points:
+            # A fixed stride, not a random draw: replay must see the same points.
+            keep = np.linspace(0, len(points) - 1, spec.registration.max_points).astype(np.int64)
+            points = points[keep]
+
+        t = time.perf_counter()
+        reg = self.stages.align(part.tree, points, spec)
+        timings["align"] = (time.perf_counter() - t) * 1e3
+        T = np.asarray(reg.transform, dtype=np.float64)
+        rms = finite_or_none(reg.rms_mm)
+        inliers = finite_or_none(reg.inlier_fraction)
+        fit = dict(
+            transform=T.tolist(),
+            rms_mm=rms,
+            inlier_fraction=None if inliers is None else min(max(inliers, 0.0), 1.0),
+        )
+        reasons = []
+        if not np.isfinite(T).all():
+            return self._error(base, "registration gave a non-finite transform", timings, t0)
+        if rms is None or rms > spec.registration.max_rms_mm:
+            reasons.append(f"fit rms {rms} mm above {spec.registration.max_rms_mm} mm")
+        if inliers is None or inliers < spec.registration.min_inlier_fraction:
+            reasons.append(
+                f"inlier fraction {inliers} below {spec.registration.min_inlier_fraction}"
+            )
+        if reasons:
+            timings["total"] = (time.perf_counter() - t0) * 1e3
+            return Outcome(
+                InspectionResult(
+                    status=Status.error,
+                    reason="registration failed: " + "; ".join(reasons),
+                    timings_ms=timings,
+                    **fit,
+                    **base,
+                ),
+                points_rig=points,
+                T_cad_rig=T,
+            )
+
+        t = time.perf_counter()
+        points_cad = points @ T[:3, :3].T + T[:3, 3]
+        dev = self.stages.deviations(part.tree, points_cad, spec)
+        timings["deviations"] = (time.perf_counter() - t) * 1e3
+        distances = np.asarray(dev.distances, dtype=np.float64)
+
+        limits = {p.name: (p.lower_mm, p.upper_mm) for p in spec.points}
+        comparison = [
+            PointResult(
+                name=c.name,
+                deviation_mm=finite_or_none(c.deviation_mm),
+                lower_mm=limits[c.name][0],
+                upper_mm=limits[c.name][1],
+                support=int(c.support),
+                verdict=Verdict(str(getattr(c.verdict, "value", c.verdict))),
+            )
+            for c in dev.comparison
+        ]
+        verdicts = {c.verdict for c in comparison}
+        status = (
+            Status.fail
+            if Verdict.fail in verdicts
+            else Status.not_measurable
+            if Verdict.not_measurable in verdicts
+            else Status.passed
+        )
+        reason = None
+        if status is Status.not_measurable:
+            names = [c.name for c in comparison if c.verdict is Verdict.not_measurable]
+            reason = "not enough support at " + ", ".join(names)
+        elif status is Status.fail:
+            reason = "out of tolerance at " + ", ".join(
+                c.name for c in comparison if c.verdict is Verdict.fail
+            )
+        timings["total"] = (time.perf_counter() - t0) * 1e3
+        result = InspectionResult(
+            status=status,
+            reason=reason,
+            comparison=comparison,
+            field=field_stats(distances, spec.registration.max_correspondence_mm),
+            timings_ms=timings,
+            **fit,
+            **base,
+        )
+        return Outcome(result, points_rig=points, distances=distances, T_cad_rig=T)
+
+
+def field_stats(distances: np.ndarray, gate_mm: float) -> FieldStats:
+    """Summary of signed deviations; points beyond ``gate_mm`` are outliers, left out."""
+    d = distances[np.isfinite(distances)]
+    inl = d[np.abs(d) <= gate_mm]
+    if not len(inl):
+        return FieldStats(points=len(distances), inliers=0)
+    p05, p95 = np.percentile(inl, [5, 95])
+    return FieldStats(
+        points=len(distances),
+        inliers=len(inl),
+        mean_mm=float(inl.mean()),
+        std_mm=float(inl.std()),
+        rms_mm=float(np.sqrt(np.mean(inl**2))),
+        min_mm=float(inl.min()),
+        max_mm=float(inl.max()),
+        p05_mm=float(p05),
+        p95_mm=float(p95),
+    )
+
+
+def missed_result(
+    *,
+    line: str,
+    station: str,
+    seq: int,
+    triggered_ns: int,
+    reason: str,
+    part: str | None = None,
+    serial: str | None = None,
+    calibration_id: str | None = None,
+    unknown_part: str = "unknown",
+) -> InspectionResult:
+    """The result of a trigger that was never inspected (dropped, or a gap in ``seq``)."""
+    return InspectionResult(
+        id=make_result_id(line, station, seq, triggered_ns),
+        line=line,
+        station=station,
+        part=part or unknown_part,
+        serial=serial or missed_serial(seq),
+        seq=seq,
+        triggered_ns=triggered_ns,
+        status=Status.missed,
+        reason=reason,
+        calibration_id=calibration_id,
+        software_version=software_version(),
+    )
+
+
+def error_result(
+    *,
+    line: str,
+    station: str,
+    seq: int,
+    triggered_ns: int,
+    reason: str,
+    part: str | None = None,
+    serial: str | None = None,
+    calibration_id: str | None = None,
+) -> InspectionResult:
+    """The result of a FrameSet that could not even be decoded."""
+    return InspectionResult(
+        id=make_result_id(line, station, seq, triggered_ns),
+        line=line,
+        station=station,
+        part=part or "unknown",
+        serial=serial or missed_serial(seq),
+        seq=seq,
+        triggered_ns=triggered_ns,
+        status=Status.error,
+        reason=reason[:2000],
+        calibration_id=calibration_id,
+        software_version=software_version(),
+    )

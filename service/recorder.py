@@ -1,0 +1,588 @@
+"""MCAP recording of the line: frames, clouds, poses, calibrations and results.
+
+One recorder per run writes ``<dir>/<run_id>-<index>.mcap``, starting a new
+file when the current one passes ``rotate_bytes``. Channels (Foxglove's
+well-known schemas, as protobuf; results as JSON with their JSON Schema):
+
+=============================  ==============================  ===========================
+topic                          schema                          what
+=============================  ==============================  ===========================
+``/<camera>/image``            foxglove.RawImage (mono8) or    one per camera and trigger
+                               foxglove.CompressedImage (png)
+``/<camera>/calibration``      foxglove.CameraCalibration      once per file
+``/frameset``                  JSON (FrameSet header)          line, station, part, serial,
+                                                               seq, triggered_ns, truth
+``/cloud``                     foxglove.PointCloud             x, y, z (rig frame, mm) and
+                                                               ``deviation`` (mm, float32)
+``/part/pose``                 foxglove.FrameTransform         T_rig_cad (parent ``rig``)
+``/result``                    JSON (InspectionResult)         every result, always
+=============================  ==============================  ===========================
+
+All timestamps are ns since the Unix epoch; every message of one trigger has
+the trigger's time as ``log_time``. Config, rig calibration and CAD hashes go
+into the file's metadata records.
+
+Crash safety: the writer finishes its chunk and flushes after every trigger,
+so a killed process leaves a file readable up to the last completed trigger;
+:func:`recover` rewrites such a file into a complete, indexed one.
+
+Retention: the policy decides whose frames and cloud are written (every part,
+failures only, or every n-th part plus all failures; results are always
+written, they are small), and the oldest files are deleted when the directory
+passes its size budget or a file its age limit.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections.abc import Iterable, Iterator, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO, Any
+
+import cv2
+import numpy as np
+from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
+from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+from google.protobuf.timestamp_pb2 import Timestamp
+from mcap.records import Channel, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType
+from mcap.writer import Writer as McapWriter
+from mcap_protobuf.schema import build_file_descriptor_set
+
+from .models import InspectionResult, Status
+from .pipeline import Outcome
+from .protocol import FrameSet
+
+log = logging.getLogger(__name__)
+
+RIG_FRAME = "rig"
+PART_FRAME = "part_cad"
+PROFILE = "inspection"
+
+
+@dataclass(frozen=True)
+class Retention:
+    """What to record and how much disk to use.
+
+    Attributes
+    ----------
+    record : {"all", "failures", "every_nth"}
+    every_nth : int
+    max_total_bytes : int or None
+    max_age_s : float or None
+    """
+
+    record: str = "all"
+    every_nth: int = 10
+    max_total_bytes: int | None = None
+    max_age_s: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.record not in ("all", "failures", "every_nth"):
+            raise ValueError(f"record must be all, failures or every_nth, got {self.record!r}")
+        if self.every_nth < 1:
+            raise ValueError("every_nth must be at least 1")
+
+    @classmethod
+    def from_config(cls, section: Any) -> Retention:
+        """From the line config's ``[retention]`` section."""
+        return cls(
+            record=str(getattr(section.record, "value", section.record)),
+            every_nth=section.every_nth,
+            max_total_bytes=None
+            if section.max_total_mb is None
+            else int(section.max_total_mb * 1e6),
+            max_age_s=None if section.max_age_h is None else section.max_age_h * 3600.0,
+        )
+
+    def keeps_frames(self, result: InspectionResult) -> bool:
+        """Whether the frames and cloud of this result are recorded."""
+        if result.status is Status.missed:
+            return False  # nothing to record but the result
+        failed = result.status is not Status.passed
+        if self.record == "all" or failed:
+            return True
+        if self.record == "failures":
+            return False
+        return result.seq % self.every_nth == 0
+
+
+def _ts(ns: int) -> Timestamp:
+    return Timestamp(seconds=ns // 1_000_000_000, nanos=ns % 1_000_000_000)
+
+
+def _quaternion(R: np.ndarray) -> tuple[float, float, float, float]:
+    """(x, y, z, w) of a rotation matrix (Shepperd's method, stable for every angle)."""
+    m = R
+    tr = m[0, 0] + m[1, 1] + m[2, 2]
+    if tr > 0:
+        s = np.sqrt(tr + 1.0) * 2
+        return ((m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, s / 4)
+    i = int(np.argmax([m[0, 0], m[1, 1], m[2, 2]]))
+    j, k = (i + 1) % 3, (i + 2) % 3
+    s = np.sqrt(1.0 + m[i, i] - m[j, j] - m[k, k]) * 2
+    q = [0.0, 0.0, 0.0, 0.0]
+    q[i] = s / 4
+    q[j] = (m[j, i] + m[i, j]) / s
+    q[k] = (m[k, i] + m[i, k]) / s
+    q[3] = (m[k, j] - m[j, k]) / s
+    return q[0], q[1], q[2], q[3]
+
+
+def result_json_schema() -> str:
+    """The JSON Schema of :class:`InspectionResult`, as recorded with the ``/result`` channel."""
+    return json.dumps(InspectionResult.model_json_schema())
+
+
+FRAMESET_SCHEMA = {
+    "title": "FrameSetHeader",
+    "type": "object",
+    "description": "The FrameSet wire header (docs/protocol.md) without the image list.",
+    "properties": {
+        k: {"type": t}
+        for k, t in [
+            ("line", "string"),
+            ("station", "string"),
+            ("part", "string"),
+            ("serial", "string"),
+            ("seq", "integer"),
+            ("triggered_ns", "integer"),
+            ("calibration_id", "string"),
+            ("cameras", "array"),
+            ("truth", ["object", "null"]),
+        ]
+    },
+}
+
+
+class _File:
+    """One open MCAP file with its registered schemas and channels."""
+
+    def __init__(self, path: Path, metadata: Mapping[str, Mapping[str, str]]) -> None:
+        self.path = path
+        self.stream: IO[bytes] = path.open("wb")
+        self.writer = McapWriter(
+            self.stream,
+            chunk_size=4 * 1024 * 1024,
+            # Uncompressed: camera noise does not compress, and lz4/zstd would
+            # cost 30-60 % of the write speed (dependency notes).
+            compression=CompressionType.NONE,
+        )
+        self.writer.start(profile=PROFILE, library="inspection-recorder")
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        for name, data in metadata.items():
+            self.writer.add_metadata(name, dict(data))
+        self.writer.flush()
+
+    def _proto_channel(self, topic: str, cls: Any) -> int:
+        if topic not in self._channels:
+            name = cls.DESCRIPTOR.full_name
+            if name not in self._schemas:
+                self._schemas[name] = self.writer.register_schema(
+                    name=name,
+                    encoding="protobuf",
+                    data=build_file_descriptor_set(cls).SerializeToString(),
+                )
+            self._channels[topic] = self.writer.register_channel(
+                topic=topic, message_encoding="protobuf", schema_id=self._schemas[name]
+            )
+        return self._channels[topic]
+
+    def _json_channel(self, topic: str, schema_name: str, schema: str) -> int:
+        if topic not in self._channels:
+            if schema_name not in self._schemas:
+                self._schemas[schema_name] = self.writer.register_schema(
+                    name=schema_name, encoding="jsonschema", data=schema.encode()
+                )
+            self._channels[topic] = self.writer.register_channel(
+                topic=topic, message_encoding="json", schema_id=self._schemas[schema_name]
+            )
+        return self._channels[topic]
+
+    def proto(self, topic: str, msg: Any, log_ns: int) -> None:
+        ch = self._proto_channel(topic, type(msg))
+        self.writer.add_message(ch, log_ns, msg.SerializeToString(), time.time_ns())
+
+    def json(self, topic: str, schema_name: str, schema: str, doc: bytes, log_ns: int) -> None:
+        ch = self._json_channel(topic, schema_name, schema)
+        self.writer.add_message(ch, log_ns, doc, time.time_ns())
+
+    def size(self) -> int:
+        return self.stream.tell()
+
+    def flush(self) -> None:
+        self.writer.flush()
+
+    def close(self) -> None:
+        self.writer.finish()
+        self.stream.close()
+
+
+class Recorder:
+    """Records every outcome of a run into rotated MCAP files.
+
+    Parameters
+    ----------
+    directory : Path
+    run_id : str
+        File name stem; use something unique per run (start time, line).
+    metadata : mapping of name to {key: value}
+        Written into every file (config and its hash, rig calibration, CAD hashes).
+    calibrations : list of dict, optional
+        One per camera: ``name``, ``width``, ``height``, ``K`` (9), ``D``, ``R``
+        (9), ``P`` (12), ``distortion_model``; written once per file.
+    rotate_bytes : int
+    retention : Retention
+    image_encoding : {"raw", "png"}
+        ``raw`` writes foxglove.RawImage, ``png`` a lossless CompressedImage.
+    """
+
+    def __init__(
+        self,
+        directory: str | Path,
+        run_id: str,
+        *,
+        metadata: Mapping[str, Mapping[str, str]] | None = None,
+        calibrations: list[dict[str, Any]] | None = None,
+        rotate_bytes: int = 512 * 1024 * 1024,
+        retention: Retention | None = None,
+        image_encoding: str = "raw",
+    ) -> None:
+        if image_encoding not in ("raw", "png"):
+            raise ValueError("image_encoding must be raw or png")
+        self.directory = Path(directory)
+        self.directory.mkdir(parents=True, exist_ok=True)
+        self.run_id = run_id
+        self.metadata = {k: dict(v) for k, v in (metadata or {}).items()}
+        self.calibrations = calibrations or []
+        self.rotate_bytes = rotate_bytes
+        self.retention = retention or Retention()
+        self.image_encoding = image_encoding
+        self._lock = threading.Lock()
+        self._index = 0
+        self._file: _File | None = None
+        self._schema = result_json_schema()
+        self.files: list[Path] = []
+        self.recorded = 0
+        self.frames_recorded = 0
+        self._open_next()
+
+    # ------------------------------------------------------------------ files
+
+    def _open_next(self) -> None:
+        path = self.directory / f"{self.run_id}-{self._index:04d}.mcap"
+        self._index += 1
+        self._file = _File(path, self.metadata)
+        self.files.append(path)
+        now = time.time_ns()
+        for cal in self.calibrations:
+            self._file.proto(f"/{cal['name']}/calibration", _calibration(cal, now), now)
+        self._file.flush()
+        self.enforce_budget()
+        log.info("recording to %s", path)
+
+    def enforce_budget(self) -> list[Path]:
+        """Delete the oldest finished files beyond the size or age budget; returns them."""
+        current = self._file.path if self._file else None
+        files = sorted(
+            (p for p in self.directory.glob("*.mcap") if p != current),
+            key=lambda p: p.stat().st_mtime,
+        )
+        removed = []
+        now = time.time()
+        if self.retention.max_age_s is not None:
+            for p in list(files):
+                if now - p.stat().st_mtime > self.retention.max_age_s:
+                    files.remove(p)
+                    removed.append(p)
+        if self.retention.max_total_bytes is not None:
+            total = sum(p.stat().st_size for p in files) + (self._file.size() if self._file else 0)
+            while files and total > self.retention.max_total_bytes:
+                p = files.pop(0)
+                total -= p.stat().st_size
+                removed.append(p)
+        for p in removed:
+            log.info("retention: deleting %s", p)
+            p.unlink(missing_ok=True)
+        return removed
+
+    # ------------------------------------------------------------------ records
+
+    def record(self, outcome: Outcome, fs: FrameSet | None) -> bool:
+        """Write one trigger; returns whether its frames were kept. Flushes before returning."""
+        result = outcome.result
+        with self._lock:
+            assert self._file is not None, "recorder is closed"
+            f = self._file
+            t = result.triggered_ns
+            keep = fs is not None and self.retention.keeps_frames(result)
+            if keep:
+                assert fs is not None
+                header = {
+                    "line": fs.line,
+                    "station": fs.station,
+                    "part": fs.part,
+                    "serial": fs.serial,
+                    "seq": fs.seq,
+                    "triggered_ns": fs.triggered_ns,
+                    "calibration_id": fs.calibration_id,
+                    "cameras": list(fs.cameras),
+                    "truth": None if fs.truth is None else fs.truth.to_json(),
+                }
+                f.json(
+                    "/frameset",
+                    "FrameSetHeader",
+                    json.dumps(FRAMESET_SCHEMA),
+                    json.dumps(header).encode(),
+                    t,
+                )
+                for cam, img in zip(fs.cameras, fs.images, strict=True):
+                    f.proto(f"/{cam}/image", self._image(cam, img, t), t)
+                if outcome.points_rig is not None and len(outcome.points_rig):
+                    f.proto("/cloud", _cloud(outcome.points_rig, outcome.distances, t), t)
+                self.frames_recorded += 1
+            if outcome.T_cad_rig is not None and np.isfinite(outcome.T_cad_rig).all():
+                f.proto("/part/pose", _pose(np.linalg.inv(outcome.T_cad_rig), t), t)
+            f.json(
+                "/result", "InspectionResult", self._schema, result.model_dump_json().encode(), t
+            )
+            # Finish the chunk now: a killed process loses at most the trigger
+            # being written, never the ones before it.
+            f.flush()
+            self.recorded += 1
+            if f.size() > self.rotate_bytes:
+                f.close()
+                self._open_next()
+            return keep
+
+    __call__ = record
+
+    def _image(self, cam: str, img: np.ndarray, t: int) -> Any:
+        if self.image_encoding == "png":
+            ok, buf = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+            return CompressedImage(timestamp=_ts(t), frame_id=cam, format="png", data=buf.tobytes())
+        h, w = img.shape
+        return RawImage(
+            timestamp=_ts(t),
+            frame_id=cam,
+            width=w,
+            height=h,
+            encoding="mono8",
+            step=w,
+            data=np.ascontiguousarray(img).tobytes(),
+        )
+
+    def close(self) -> None:
+        """Finish the current file (summary and index written)."""
+        with self._lock:
+            if self._file is not None:
+                self._file.close()
+                self._file = None
+        self.enforce_budget()
+
+
+def _calibration(cal: Mapping[str, Any], t: int) -> CameraCalibration:
+    return CameraCalibration(
+        timestamp=_ts(t),
+        frame_id=cal["name"],
+        width=int(cal["width"]),
+        height=int(cal["height"]),
+        distortion_model=cal.get("distortion_model", "plumb_bob"),
+        D=[float(x) for x in cal.get("D", [0, 0, 0, 0, 0])],
+        K=[float(x) for x in cal["K"]],
+        R=[float(x) for x in cal.get("R", [1, 0, 0, 0, 1, 0, 0, 0, 1])],
+        P=[float(x) for x in cal["P"]],
+    )
+
+
+def _cloud(points: np.ndarray, distances: np.ndarray | None, t: int) -> PointCloud:
+    n = len(points)
+    rec = np.empty(n, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("deviation", "<f4")])
+    rec["x"], rec["y"], rec["z"] = points[:, 0], points[:, 1], points[:, 2]
+    rec["deviation"] = distances if distances is not None and len(distances) == n else np.nan
+    f32 = PackedElementField.FLOAT32
+    return PointCloud(
+        timestamp=_ts(t),
+        frame_id=RIG_FRAME,
+        point_stride=16,
+        fields=[
+            PackedElementField(name=name, offset=4 * i, type=f32)
+            for i, name in enumerate(("x", "y", "z", "deviation"))
+        ],
+        data=rec.tobytes(),
+    )
+
+
+def _pose(T_rig_cad: np.ndarray, t: int) -> FrameTransform:
+    x, y, z, w = _quaternion(T_rig_cad[:3, :3])
+    msg = FrameTransform(timestamp=_ts(t), parent_frame_id=RIG_FRAME, child_frame_id=PART_FRAME)
+    msg.translation.x, msg.translation.y, msg.translation.z = (float(v) for v in T_rig_cad[:3, 3])
+    msg.rotation.x, msg.rotation.y, msg.rotation.z, msg.rotation.w = x, y, z, w
+    return msg
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def iter_records(path: str | Path) -> Iterator[Any]:
+    """Every record of a possibly unfinished MCAP file, stopping quietly at a torn end."""
+    with Path(path).open("rb") as fh:
+        reader = StreamReader(fh, skip_magic=False)
+        try:
+            yield from reader.records
+        except Exception as exc:  # a torn record at the end of a killed file
+            log.info("%s: stopped at a damaged record (%s)", path, exc)
+
+
+@dataclass(frozen=True)
+class Recovered:
+    """What :func:`recover` saved."""
+
+    path: Path
+    messages: int
+    channels: int
+    metadata: int
+
+
+def recover(path: str | Path, out: str | Path | None = None) -> Recovered:
+    """Rewrite an unfinished MCAP file (a killed recorder) into a complete one.
+
+    Every message of every completed chunk is kept; the torn tail is dropped.
+    ``out`` defaults to ``<path stem>.recovered.mcap``; the original is left alone.
+    """
+    src = Path(path)
+    dst = Path(out) if out is not None else src.with_suffix(".recovered.mcap")
+    schemas: dict[int, Schema] = {}
+    channels: dict[int, Channel] = {}
+    n_msgs = n_meta = 0
+    with dst.open("wb") as fh:
+        w = McapWriter(fh, compression=CompressionType.NONE)
+        w.start(profile=PROFILE, library="inspection-recover")
+        schema_map: dict[int, int] = {}
+        channel_map: dict[int, int] = {}
+        for rec in iter_records(src):
+            if isinstance(rec, Schema):
+                schemas[rec.id] = rec
+            elif isinstance(rec, Channel):
+                channels[rec.id] = rec
+            elif isinstance(rec, Metadata):
+                w.add_metadata(rec.name, dict(rec.metadata))
+                n_meta += 1
+            elif isinstance(rec, Message):
+                ch = channels.get(rec.channel_id)
+                if ch is None:
+                    continue
+                if ch.id not in channel_map:
+                    sid = 0
+                    if ch.schema_id:
+                        if ch.schema_id not in schema_map:
+                            s = schemas[ch.schema_id]
+                            schema_map[ch.schema_id] = w.register_schema(s.name, s.encoding, s.data)
+                        sid = schema_map[ch.schema_id]
+                    channel_map[ch.id] = w.register_channel(
+                        ch.topic, ch.message_encoding, sid, dict(ch.metadata)
+                    )
+                w.add_message(
+                    channel_map[ch.id], rec.log_time, rec.data, rec.publish_time, rec.sequence
+                )
+                n_msgs += 1
+        w.finish()
+    log.info("recovered %d messages from %s into %s", n_msgs, src, dst)
+    return Recovered(dst, n_msgs, len(channel_map), n_meta)
+
+
+@dataclass(frozen=True, eq=False)
+class RecordedTrigger:
+    """One trigger read back: the FrameSet (when its frames were kept) and the logged result."""
+
+    frameset: FrameSet | None
+    result: InspectionResult
+
+
+def read_recording(
+    paths: Iterable[str | Path],
+) -> tuple[dict[str, dict[str, str]], list[RecordedTrigger]]:
+    """Read recorded files back into FrameSets and results, in trigger order.
+
+    Works on finished and unfinished files alike (messages are read in file
+    order, not through the index).
+
+    Returns
+    -------
+    metadata : dict of name to {key: value}
+    triggers : list of RecordedTrigger, ordered by (triggered_ns, seq)
+    """
+    metadata: dict[str, dict[str, str]] = {}
+    headers: dict[int, dict[str, Any]] = {}
+    images: dict[tuple[int, str], np.ndarray] = {}
+    results: list[InspectionResult] = []
+    for path in paths:
+        channels: dict[int, Channel] = {}
+        schema_names: dict[int, str] = {}
+        for rec in iter_records(path):
+            if isinstance(rec, Schema):
+                schema_names[rec.id] = rec.name
+            elif isinstance(rec, Channel):
+                channels[rec.id] = rec
+            elif isinstance(rec, Metadata):
+                metadata[rec.name] = dict(rec.metadata)
+            elif isinstance(rec, Message) and rec.channel_id in channels:
+                topic = channels[rec.channel_id].topic
+                if topic == "/result":
+                    results.append(InspectionResult.model_validate_json(rec.data))
+                elif topic == "/frameset":
+                    h = json.loads(rec.data)
+                    headers[h["triggered_ns"]] = h
+                elif topic.endswith("/image"):
+                    cam = topic[1 : -len("/image")]
+                    schema = schema_names.get(channels[rec.channel_id].schema_id, "")
+                    images[(rec.log_time, cam)] = _decode_image(topic, schema, rec.data)
+    from .protocol import Truth
+
+    triggers = []
+    for r in sorted(results, key=lambda r: (r.triggered_ns, r.seq)):
+        h = headers.get(r.triggered_ns)
+        fs = None
+        if h is not None and h["seq"] == r.seq:
+            cams = h["cameras"]
+            if all((r.triggered_ns, c) in images for c in cams):
+                fs = FrameSet(
+                    line=h["line"],
+                    station=h["station"],
+                    part=h["part"],
+                    serial=h["serial"],
+                    seq=h["seq"],
+                    triggered_ns=h["triggered_ns"],
+                    calibration_id=h["calibration_id"],
+                    images=[images[(r.triggered_ns, c)] for c in cams],
+                    cameras=cams,
+                    truth=None if h["truth"] is None else Truth.from_json(h["truth"]),
+                )
+        triggers.append(RecordedTrigger(fs, r))
+    return metadata, triggers
+
+
+def _decode_image(topic: str, schema: str, data: bytes) -> np.ndarray:
+    if schema == "foxglove.RawImage":
+        raw = RawImage()
+        raw.ParseFromString(data)
+        if raw.encoding != "mono8" or len(raw.data) != raw.height * raw.step:
+            raise ValueError(f"{topic}: not a mono8 image of {raw.height} rows of {raw.step}")
+        arr = np.frombuffer(raw.data, np.uint8).reshape(raw.height, raw.step)
+        return arr[:, : raw.width].copy()
+    comp = CompressedImage()
+    comp.ParseFromString(data)
+    img = cv2.imdecode(np.frombuffer(comp.data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ValueError(f"{topic}: image cannot be decoded")
+    return img
