@@ -68,6 +68,9 @@ class Stages:
         ``deviation_mm``, ``support``, ``verdict``.
     render : callable(rig, mesh, T_rig_part, seed) -> list of images
         The simulator matching ``reconstruct`` (used by ingest).
+    calibrations : callable() -> list of dict
+        One per camera, for the recorder (``name``, ``width``, ``height``,
+        ``K``, ``D``, ``R``, ``P``, ``distortion_model``).
     """
 
     name: str
@@ -78,6 +81,7 @@ class Stages:
     align: Callable[[Any, np.ndarray, PartSpec], Any]
     deviations: Callable[[Any, np.ndarray, PartSpec], Any]
     render: Callable[[Any, trimesh.Trimesh, np.ndarray, int], list[np.ndarray]]
+    calibrations: Callable[[], list[dict[str, Any]]] = list
 
 
 def depth_stages(rig: Any | None = None) -> Stages:
@@ -106,8 +110,22 @@ def depth_stages(rig: Any | None = None) -> Stages:
     def render(rig_: Any, mesh: trimesh.Trimesh, T: np.ndarray, seed: int) -> list[np.ndarray]:
         return depthrig.render(rig_, mesh, T)
 
+    def calibrations() -> list[dict[str, Any]]:
+        # The depth camera is orthographic: one pixel is pixel_mm on the
+        # conveyor. Foxglove has no orthographic model, so K carries the scale
+        # (px per mm) and the principal point; both images share it.
+        rows, cols = rig.shape
+        f = 1.0 / rig.pixel_mm
+        K = [f, 0.0, cols / 2, 0.0, f, rows / 2, 0.0, 0.0, 1.0]
+        P = [f, 0.0, cols / 2, 0.0, 0.0, f, rows / 2, 0.0, 0.0, 0.0, 1.0, 0.0]
+        return [
+            {"name": name, "width": cols, "height": rows, "K": K, "P": P, "D": [0.0] * 5}
+            for name in ("cam0", "cam1")
+        ]
+
     return Stages(
         name="depth",
+        calibrations=calibrations,
         rig=rig,
         calibration_id=rig.calibration_id,
         reconstruct=depthrig.reconstruct,

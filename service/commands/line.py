@@ -1,0 +1,130 @@
+"""``inspection run | router | ingest | worker | api``: the simulated line, whole or in pieces."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+DEFAULT_CONFIG = "configs/line.toml"
+
+
+def _stop_on_signals() -> threading.Event:
+    """An event set by SIGINT or SIGTERM: every run stops cleanly on it."""
+    stop = threading.Event()
+
+    def handler(signum: int, frame: Any) -> None:
+        log.info("signal %d: stopping", signum)
+        stop.set()
+
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
+    return stop
+
+
+def _config(args: argparse.Namespace, *, mode: str | None = None) -> Any:
+    from service.config import ConfigError, line_config_from_env
+
+    overrides: dict[tuple[str, str], Any] = {
+        ("storage", "data_dir"): getattr(args, "data_dir", None),
+        ("http", "port"): getattr(args, "http_port", None),
+    }
+    listen = getattr(args, "zenoh_listen", None)
+    connect = getattr(args, "zenoh_connect", None)
+    if listen is not None:
+        overrides[("zenoh", "listen")] = listen
+    if mode is not None:
+        overrides[("zenoh", "mode")] = mode
+    if mode == "client":
+        overrides[("zenoh", "listen")] = listen or []
+        overrides[("zenoh", "connect")] = connect
+    try:
+        return line_config_from_env(args.config, overrides=overrides)
+    except ConfigError as exc:
+        print(f"inspection: {exc}", file=sys.stderr)
+        return None
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from service.line import run_line
+
+    cfg = _config(args)
+    if cfg is None:
+        return 2
+    stop = _stop_on_signals()
+    return run_line(cfg, stop, parts_limit=args.parts)
+
+
+def cmd_router(args: argparse.Namespace) -> int:
+    from service.bus import BusSettings
+    from service.line import run_router
+
+    settings = BusSettings(mode="router", listen=tuple(args.zenoh_listen))
+    stop = _stop_on_signals()
+    print(f"zenoh router listening on {', '.join(args.zenoh_listen)}", flush=True)
+    return run_router(settings, stop)
+
+
+def cmd_piece(args: argparse.Namespace) -> int:
+    from service import line
+
+    cfg = _config(args, mode="client")
+    if cfg is None:
+        return 2
+    stop = _stop_on_signals()
+    if args.command == "ingest":
+        return line.run_ingest(cfg, stop, count=args.count)
+    if args.command == "worker":
+        return line.run_worker(cfg, stop)
+    return line.run_api(cfg, stop)
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--config", default=DEFAULT_CONFIG, help=f"line config (default {DEFAULT_CONFIG})"
+    )
+    p.add_argument(
+        "--data-dir", help="where results, recordings and trees go (default from config)"
+    )
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "run",
+        help="run the whole simulated line in one process",
+        description="Ingest, worker, REST API, result store and MCAP recorder on one zenoh "
+        "peer session that listens only on --zenoh-listen.",
+    )
+    _common(p)
+    p.add_argument("--http-port", type=int, help="REST API port (default from config; 0: any)")
+    p.add_argument(
+        "--zenoh-listen",
+        action="append",
+        metavar="ENDPOINT",
+        help="zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable)",
+    )
+    p.add_argument("--parts", type=int, metavar="N", help="stop cleanly after N results")
+    p.set_defaults(func=cmd_run)
+
+    p = subparsers.add_parser("router", help="a zenoh router for the line's separate processes")
+    p.add_argument("--zenoh-listen", action="append", required=True, metavar="ENDPOINT")
+    p.set_defaults(func=cmd_router)
+
+    for name, text in (
+        ("ingest", "the ingest adapter (simulated rig) alone, as a zenoh client"),
+        ("worker", "a worker alone (measure, publish, store, record), as a zenoh client"),
+        ("api", "the REST API alone, as a zenoh client"),
+    ):
+        p = subparsers.add_parser(name, help=text)
+        _common(p)
+        p.add_argument("--zenoh-connect", action="append", required=True, metavar="ENDPOINT")
+        if name == "api":
+            p.add_argument("--http-port", type=int, help="REST API port (default from config)")
+        if name == "ingest":
+            p.add_argument("--count", type=int, help="stop after this many triggers")
+        p.set_defaults(func=cmd_piece)

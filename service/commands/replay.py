@@ -1,0 +1,112 @@
+"""``inspection replay FILE.mcap [--compare] [--publish]``: re-measure or re-publish a recorded run."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    from service.recorder import recover
+    from service.replay import ReplayError, Tolerances, recording_files, replay
+
+    files = [f for p in args.files for f in recording_files(p)]
+    missing = [str(f) for f in files if not f.is_file()]
+    if not files or missing:
+        print(
+            f"inspection replay: no such recording: {', '.join(missing) or args.files}",
+            file=sys.stderr,
+        )
+        return 2
+    if args.recover:
+        for f in files:
+            r = recover(f)
+            print(f"recovered {r.messages} messages of {f} into {r.path}")
+        return 0
+    if args.publish:
+        return _publish(args, files)
+    try:
+        report = replay(
+            files,
+            parts_dir=args.parts_dir,
+            tolerances=Tolerances(args.transform_tol, args.deviation_tol),
+        )
+    except ReplayError as exc:
+        print(f"inspection replay: {exc}", file=sys.stderr)
+        return 2
+    print(report.summary())
+    if args.compare and not report.ok:
+        return 1
+    return 0
+
+
+def _publish(args: argparse.Namespace, files: list[Any]) -> int:
+    from service import bus
+    from service.protocol import Keys
+    from service.recorder import read_recording
+    from service.replay import publish
+
+    if not args.zenoh_connect and not args.zenoh_listen:
+        print(
+            "inspection replay --publish needs --zenoh-connect or --zenoh-listen", file=sys.stderr
+        )
+        return 2
+    settings = bus.BusSettings(
+        mode="client" if args.zenoh_connect else "peer",
+        connect=tuple(args.zenoh_connect or ()),
+        listen=tuple(args.zenoh_listen or ()),
+    )
+    _, triggers = read_recording(files)
+    first = next((t.frameset for t in triggers if t.frameset is not None), None)
+    if first is None:
+        print("the recording holds no frames to publish", file=sys.stderr)
+        return 2
+    stop = threading.Event()
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    session = bus.open_session(settings)
+    try:
+        pub = bus.frame_publisher(session, Keys(first.line, args.prefix).frames(first.station))
+        if args.wait_subscriber and not bus.wait_for_subscribers(pub, args.wait_subscriber):
+            print("no subscriber appeared; publishing anyway", file=sys.stderr)
+        n = publish(files, pub.put, speed=args.speed, stop=stop)
+        pub.undeclare()
+    finally:
+        session.close()
+    print(f"published {n} frame sets")
+    return 0
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "replay",
+        help="re-run a recorded run through the pipeline, compare, or publish it again",
+        description="Re-measure every FrameSet of MCAP recordings (files or run directories) "
+        "with the line's pipeline. --compare exits 1 on any difference beyond tolerance.",
+    )
+    p.add_argument("files", nargs="+", metavar="FILE.mcap")
+    p.add_argument("--compare", action="store_true", help="exit 1 if a result differs")
+    p.add_argument("--publish", action="store_true", help="publish the frames on zenoh instead")
+    p.add_argument(
+        "--recover", action="store_true", help="repair unfinished files (a killed recorder)"
+    )
+    p.add_argument("--speed", type=float, default=1.0, help="publish rate vs recorded (0: at once)")
+    p.add_argument("--zenoh-connect", action="append", metavar="ENDPOINT")
+    p.add_argument("--zenoh-listen", action="append", metavar="ENDPOINT")
+    p.add_argument("--prefix", default="insp/v1", help="key prefix to publish under")
+    p.add_argument(
+        "--wait-subscriber",
+        type=float,
+        default=10.0,
+        metavar="S",
+        help="wait up to S seconds for a frames subscriber before publishing",
+    )
+    p.add_argument("--parts-dir", default="configs/parts", help="where non-generated CAD files are")
+    p.add_argument("--transform-tol", type=float, default=1e-9)
+    p.add_argument("--deviation-tol", type=float, default=1e-6, help="mm")
+    p.set_defaults(func=cmd_replay)

@@ -1,0 +1,469 @@
+"""The simulated line: ingest, worker, store, recorder and API, together or apart.
+
+:func:`run_line` runs everything in one process on one zenoh session in peer
+mode, listening only where the config says (subscribers connect to it as
+clients). The same pieces run as separate processes with :func:`run_router`
+(a zenoh router), :func:`run_ingest`, :func:`run_worker` and :func:`run_api`,
+each a client of the router.
+
+Every ``run_*`` returns when ``stop`` is set (SIGINT in the CLI) and closes
+what it opened in reverse order: zenoh sessions with live subscribers would
+otherwise keep the process from exiting.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from inspection.cad import CadModel, load_cad
+
+from . import bus
+from .config import LineConfig, PartSpec, load_part_spec
+from .ingest import Ingest, SimPart, SimulatedRig, SimulationSettings
+from .models import InspectionResult, software_version
+from .pipeline import Outcome, Pipeline, PreparedPart, Stages, default_stages, prepare_part
+from .protocol import FrameSet, Keys
+from .recorder import Recorder, Retention
+from .store import ResultStore
+from .worker import ZenohWorker, result_from_json
+
+log = logging.getLogger(__name__)
+
+
+# --------------------------------------------------------------------------- set-up
+
+
+def load_cad_for(spec: PartSpec, base_dir: Path) -> CadModel:
+    """The CAD model of a part spec: the generated panel or the mesh file."""
+    if spec.is_generated:
+        from inspection.panel import Hole, PanelSpec, sheet_metal_panel
+
+        kwargs: dict[str, Any] = {}
+        for k, v in spec.panel.items():
+            if k == "holes":
+                v = tuple(Hole(**h) if isinstance(h, dict) else Hole(*h) for h in v)
+            elif isinstance(v, list):
+                v = tuple(v)
+            kwargs[k] = v
+        return sheet_metal_panel(PanelSpec(**kwargs), name=spec.name)
+    return load_cad(spec.cad_path(base_dir), scale=spec.scale, name=spec.name)
+
+
+@dataclass
+class Station:
+    """A station's measuring set-up: stages and prepared parts."""
+
+    cfg: LineConfig
+    stages: Stages
+    parts: dict[str, PreparedPart]
+    keys: Keys = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.keys = Keys(self.cfg.line.name, self.cfg.zenoh.prefix)
+
+    @classmethod
+    def load(cls, cfg: LineConfig, stages: Stages | None = None) -> Station:
+        """Read the station's part specs and prepare (build) every tree: ready afterwards."""
+        stages = stages or default_stages()
+        parts = {}
+        for path in cfg.part_spec_paths():
+            spec = load_part_spec(path)
+            parts[spec.name] = prepare_part(spec, load_cad_for(spec, path.parent), stages)
+        return cls(cfg, stages, parts)
+
+    @property
+    def name(self) -> str:
+        return self.cfg.station.name
+
+    def pipeline(self) -> Pipeline:
+        return Pipeline(self.stages, self.parts, line=self.cfg.line.name, station=self.name)
+
+    def missed_part(self) -> str:
+        return next(iter(self.parts)) if len(self.parts) == 1 else "unknown"
+
+    def simulated_rig(self) -> SimulatedRig:
+        sim = self.cfg.simulator
+        return SimulatedRig(
+            self.stages,
+            [SimPart.from_cad(n, p.cad, flat=p.spec.is_generated) for n, p in self.parts.items()],
+            line=self.cfg.line.name,
+            station=self.name,
+            settings=SimulationSettings(defect_rate=sim.defect_rate, seed=sim.seed),
+        )
+
+    def metadata(self) -> dict[str, dict[str, str]]:
+        """MCAP metadata: effective config and hash, rig calibration, CAD and tree hashes."""
+        return {
+            "config": {"hash": self.cfg.hash(), "json": json.dumps(self.cfg.effective())},
+            "rig": {"stages": self.stages.name, "calibration_id": self.stages.calibration_id},
+            "cad": {
+                **{f"{n}.cad_hash": p.cad.hash for n, p in self.parts.items()},
+                **{f"{n}.tree_hash": p.tree_hash for n, p in self.parts.items()},
+                **{f"{n}.spec_version": p.spec.version for n, p in self.parts.items()},
+                **{f"{n}.spec": p.spec.model_dump_json() for n, p in self.parts.items()},
+            },
+            "software": {"version": software_version()},
+        }
+
+    def recorder(self, data_dir: Path | None = None) -> Recorder:
+        st = self.cfg.storage
+        mcap_dir = (data_dir / st.mcap_dir) if data_dir else st.mcap_path()
+        run_id = f"{self.cfg.line.name}-{self.name}-{time.strftime('%Y%m%dT%H%M%S')}"
+        return Recorder(
+            mcap_dir,
+            run_id,
+            metadata=self.metadata(),
+            calibrations=self.stages.calibrations(),
+            rotate_bytes=int(st.mcap_rotate_mb * 1e6),
+            retention=Retention.from_config(self.cfg.retention),
+        )
+
+
+def bus_settings(cfg: LineConfig, mode: str | None = None) -> bus.BusSettings:
+    z = cfg.zenoh
+    return bus.BusSettings(
+        mode=mode or str(z.mode.value),
+        listen=tuple(z.listen),
+        connect=tuple(z.connect),
+        multicast_scouting=z.multicast_scouting,
+    )
+
+
+def store_sink(store: ResultStore) -> Callable[[Outcome, FrameSet | None], None]:
+    def sink(outcome: Outcome, fs: FrameSet | None) -> None:
+        store.put(outcome.result)
+
+    return sink
+
+
+class ResultCounter:
+    """A sink that counts results and sets ``done`` after ``limit`` of them."""
+
+    def __init__(self, limit: int | None) -> None:
+        self.limit = limit
+        self.count = 0
+        self.done = threading.Event()
+        self._lock = threading.Lock()
+        self.last_seq = -1
+        self._seen = threading.Condition(self._lock)
+
+    def __call__(self, outcome: Outcome, fs: FrameSet | None) -> None:
+        with self._lock:
+            self.count += 1
+            self.last_seq = max(self.last_seq, outcome.result.seq)
+            self._seen.notify_all()
+            if self.limit is not None and self.count >= self.limit:
+                self.done.set()
+
+    def wait_seq(self, seq: int, timeout_s: float) -> bool:
+        """Wait until a result with seq >= ``seq`` has been seen."""
+        with self._lock:
+            return self._seen.wait_for(lambda: self.last_seq >= seq, timeout_s)
+
+
+# --------------------------------------------------------------------------- API
+
+
+class ApiServer:
+    """The FastAPI app on uvicorn, in a thread of this process."""
+
+    def __init__(self, api: Api, host: str, port: int) -> None:
+        import uvicorn
+
+        self.server = uvicorn.Server(
+            uvicorn.Config(api.app, host=host, port=port, log_level="warning", lifespan="on")
+        )
+        self.thread = threading.Thread(target=self.server.run, name="api", daemon=True)
+        self.thread.start()
+
+    def wait_started(self, timeout_s: float = 30.0) -> bool:
+        deadline = time.monotonic() + timeout_s
+        stop = threading.Event()
+        while not self.server.started and time.monotonic() < deadline:
+            if not self.thread.is_alive():
+                return False
+            stop.wait(0.05)
+        return bool(self.server.started)
+
+    @property
+    def port(self) -> int:
+        for server in getattr(self.server, "servers", []):
+            for sock in server.sockets:
+                return int(sock.getsockname()[1])
+        return int(self.server.config.port)
+
+    def close(self) -> None:
+        self.server.should_exit = True
+        self.thread.join(15.0)
+
+
+class Api:
+    """The REST API's app with the part registry it serves (closed together)."""
+
+    def __init__(self, app: Any, registry: Any) -> None:
+        self.app = app
+        self.registry = registry
+
+    def close(self) -> None:
+        if self.registry is not None:
+            self.registry.close()
+
+
+def make_app(
+    cfg: LineConfig,
+    *,
+    store: ResultStore,
+    hub: Any,
+    checks: dict[str, Callable[[], bool]],
+) -> Api | None:
+    """The app of :func:`service.api.create_app` with its part registry (trees built in the
+    background; readiness waits for them), or None when the API is not installed."""
+    try:
+        from .api import create_app
+        from .parts import PartRegistry
+    except ImportError as exc:
+        log.warning("REST API not available (%s); running without it", exc)
+        return None
+    registry = PartRegistry.from_config(cfg)
+    try:
+        registry.start()
+        app = create_app(cfg, store=store, parts=registry, bus=hub, checks=checks)
+    except Exception:
+        # The line measures without the API; say so loudly rather than stop it.
+        log.exception("the REST API could not be built; running without it")
+        registry.close()
+        return None
+    return Api(app, registry)
+
+
+def make_hub() -> Any:
+    try:
+        from .api.events import ResultHub
+    except ImportError:
+        return None
+    return ResultHub()
+
+
+def hub_sink(hub: Any) -> Callable[[Outcome, FrameSet | None], None]:
+    def sink(outcome: Outcome, fs: FrameSet | None) -> None:
+        hub.publish(outcome.result)
+
+    return sink
+
+
+# --------------------------------------------------------------------------- runs
+
+
+@dataclass
+class LineHandles:
+    """What :func:`start_line` started, for tests and for :func:`run_line`."""
+
+    session: zenoh.Session
+    station: Station
+    store: ResultStore
+    recorder: Recorder
+    worker: ZenohWorker
+    ingest: Ingest
+    counter: ResultCounter
+    api: ApiServer | None
+    hub: Any
+    app: Api | None = None
+
+    def close(self) -> None:
+        """Stop triggering, let the worker finish what was triggered, close everything."""
+        self.ingest.stop()
+        last = self.ingest.seq - 1
+        if last >= 0 and not self.counter.wait_seq(last, 60.0):
+            log.warning("stopping before the result of seq %d arrived", last)
+        self.worker.close()
+        self.recorder.close()
+        if self.api is not None:
+            self.api.close()
+        if self.app is not None:
+            self.app.close()
+        self.store.close()
+        if self.hub is not None and hasattr(self.hub, "close"):
+            self.hub.close()
+        bus.close_all([self.session])
+
+
+def start_line(
+    cfg: LineConfig,
+    *,
+    parts_limit: int | None = None,
+    stages: Stages | None = None,
+    http: bool = True,
+    extra_sinks: tuple[Callable[[Outcome, FrameSet | None], None], ...] = (),
+) -> LineHandles:
+    """Start the whole line in this process; see :func:`run_line`."""
+    log.info("line config %s: %s", cfg.hash()[:12], json.dumps(cfg.effective()))
+    station = Station.load(cfg, stages)
+    session = bus.open_session(bus_settings(cfg, "peer"))
+    opened: list[Any] = [session]
+    try:
+        store = ResultStore(cfg.storage.database_path())
+        opened.append(store)
+        recorder = station.recorder()
+        opened.append(recorder)
+        counter = ResultCounter(parts_limit)
+        hub = make_hub()
+        sinks = [store_sink(store), recorder.record, *extra_sinks]
+        if hub is not None:
+            sinks.append(hub_sink(hub))
+        sinks.append(counter)
+        worker = ZenohWorker(
+            session,
+            station.keys,
+            station.name,
+            station.pipeline(),
+            queue_size=cfg.station.queue_size,
+            sinks=sinks,
+            missed_part=station.missed_part(),
+        )
+        opened.append(worker)
+        api = None
+        made = None
+        if http:
+            made = make_app(
+                cfg, store=store, hub=hub, checks={"zenoh": lambda: not session.is_closed()}
+            )
+            if made is not None:
+                opened.append(made)
+                api = ApiServer(made, cfg.http.host, cfg.http.port)
+                opened.append(api)
+                if not api.wait_started():
+                    raise RuntimeError(f"the API did not start on {cfg.http.host}:{cfg.http.port}")
+        publisher = bus.frame_publisher(session, station.keys.frames(station.name))
+        ingest = Ingest(station.simulated_rig(), publisher.put, period_s=cfg.line.trigger_period_s)
+        ingest.start()
+    except BaseException:
+        bus.close_all(reversed(opened))
+        raise
+    return LineHandles(session, station, store, recorder, worker, ingest, counter, api, hub, made)
+
+
+def run_line(
+    cfg: LineConfig,
+    stop: threading.Event,
+    *,
+    parts_limit: int | None = None,
+    out: Callable[[str], None] = print,
+) -> int:
+    """Run the whole simulated line until ``stop`` is set or ``parts_limit`` results arrived."""
+    h = start_line(cfg, parts_limit=parts_limit)
+    try:
+        where = [f"zenoh: listening on {', '.join(cfg.zenoh.listen) or 'nothing'}"]
+        if h.api is not None:
+            where.insert(0, f"API docs: http://{cfg.http.host}:{h.api.port}/docs")
+        where.append(f"data: {cfg.storage.data_path().resolve()}")
+        where.append(f"results on zenoh: {h.station.keys.results()}")
+        out("the line is running (Ctrl-C stops it)\n  " + "\n  ".join(where))
+        while not stop.is_set() and not h.counter.done.is_set():
+            stop.wait(0.2) if parts_limit is None else h.counter.done.wait(0.2)
+    finally:
+        h.close()
+    out(
+        f"stopped after {h.counter.count} results; recordings: {', '.join(map(str, h.recorder.files))}"
+    )
+    return 0
+
+
+def run_router(settings: bus.BusSettings, stop: threading.Event) -> int:
+    """A zenoh router (a Python session in router mode) until ``stop``."""
+    with contextlib.closing(bus.open_session(settings)):
+        stop.wait()
+    return 0
+
+
+def run_ingest(cfg: LineConfig, stop: threading.Event, *, count: int | None = None) -> int:
+    """The ingest adapter alone, publishing to the bus until ``stop`` (or ``count`` triggers)."""
+    station = Station.load(cfg)
+    with contextlib.closing(bus.open_session(bus_settings(cfg))) as session:
+        publisher = bus.frame_publisher(session, station.keys.frames(station.name))
+        ingest = Ingest(station.simulated_rig(), publisher.put, period_s=cfg.line.trigger_period_s)
+        ingest.start(count)
+        while not stop.is_set() and ingest._thread is not None and ingest._thread.is_alive():
+            stop.wait(0.2)
+        ingest.stop()
+        publisher.undeclare()
+    return 0
+
+
+def run_worker(cfg: LineConfig, stop: threading.Event) -> int:
+    """A worker alone: measures, publishes, stores and records until ``stop``."""
+    station = Station.load(cfg)
+    with contextlib.closing(bus.open_session(bus_settings(cfg))) as session:
+        store = ResultStore(cfg.storage.database_path())
+        recorder = station.recorder()
+        worker = ZenohWorker(
+            session,
+            station.keys,
+            station.name,
+            station.pipeline(),
+            queue_size=cfg.station.queue_size,
+            sinks=[store_sink(store), recorder.record],
+            missed_part=station.missed_part(),
+        )
+        try:
+            stop.wait()
+        finally:
+            worker.close()
+            recorder.close()
+            store.close()
+    return 0
+
+
+def run_api(cfg: LineConfig, stop: threading.Event) -> int:
+    """The REST API alone: serves the store, streams results it receives on the bus."""
+    with contextlib.closing(bus.open_session(bus_settings(cfg))) as session:
+        store = ResultStore(cfg.storage.database_path())
+        hub = make_hub()
+        keys = Keys(cfg.line.name, cfg.zenoh.prefix)
+
+        def on_result(sample: zenoh.Sample) -> None:
+            result = result_from_json(sample.payload.to_bytes())
+            if hub is not None:
+                hub.publish(result)
+
+        sub = bus.RingSubscriber(
+            session, keys.results(), on_result, capacity=256, name="results-rx"
+        )
+        made = make_app(
+            cfg, store=store, hub=hub, checks={"zenoh": lambda: bus.is_connected(session)}
+        )
+        api = ApiServer(made, cfg.http.host, cfg.http.port) if made is not None else None
+        try:
+            if api is not None and not api.wait_started():
+                raise RuntimeError(f"the API did not start on {cfg.http.host}:{cfg.http.port}")
+            stop.wait()
+        finally:
+            if api is not None:
+                api.close()
+            if made is not None:
+                made.close()
+            sub.close()
+            store.close()
+    return 0
+
+
+@contextlib.contextmanager
+def result_listener(session: zenoh.Session, key: str) -> Iterator[list[InspectionResult]]:
+    """Collect results published under ``key`` (tests, tools) until the block ends."""
+    got: list[InspectionResult] = []
+    sub = bus.RingSubscriber(
+        session, key, lambda s: got.append(result_from_json(s.payload.to_bytes())), capacity=1024
+    )
+    try:
+        yield got
+    finally:
+        sub.close()

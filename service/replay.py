@@ -1,0 +1,247 @@
+"""Replay recorded runs: re-measure every recorded FrameSet, compare, or publish it again.
+
+The recording carries what replay needs: the FrameSets (header and images),
+the results, and in its metadata the part specs, CAD hashes and the stages
+the line measured with. :func:`replay` rebuilds the pipeline from these (the
+CAD is regenerated or read from the part's file and must hash the same), runs
+each FrameSet through :meth:`Pipeline.run`, the worker's own code path, and
+compares with the logged result:
+
+- the same status and the same verdict at every comparison point;
+- ``transform`` (T_cad_rig) within :attr:`Tolerances.transform` per element;
+- every deviation within :attr:`Tolerances.deviation_mm`.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .config import PartSpec
+from .models import InspectionResult
+from .pipeline import Pipeline, PreparedPart, Stages, default_stages, prepare_part
+from .protocol import FrameSet, encode_frameset
+from .recorder import RecordedTrigger, read_recording
+
+log = logging.getLogger(__name__)
+
+
+class ReplayError(RuntimeError):
+    """A recording that cannot be replayed (no specs, a CAD that changed, other stages)."""
+
+
+@dataclass(frozen=True)
+class Tolerances:
+    transform: float = 1e-9
+    deviation_mm: float = 1e-6
+
+
+@dataclass
+class Difference:
+    id: str
+    what: str
+
+
+@dataclass
+class ReplayReport:
+    triggers: int = 0
+    replayed: int = 0
+    not_replayable: int = 0
+    same: int = 0
+    differences: list[Difference] = field(default_factory=list)
+    max_transform_diff: float = 0.0
+    max_deviation_diff_mm: float = 0.0
+
+    @property
+    def ok(self) -> bool:
+        return not self.differences
+
+    def summary(self) -> str:
+        lines = [
+            f"{self.triggers} triggers, {self.replayed} replayed "
+            f"({self.not_replayable} without frames: missed or not kept), {self.same} identical",
+            f"max |transform difference| {self.max_transform_diff:.3g}, "
+            f"max |deviation difference| {self.max_deviation_diff_mm:.3g} mm",
+        ]
+        for d in self.differences[:50]:
+            lines.append(f"  DIFFERENT {d.id}: {d.what}")
+        if len(self.differences) > 50:
+            lines.append(f"  ... and {len(self.differences) - 50} more")
+        return "\n".join(lines)
+
+
+def parts_from_metadata(
+    metadata: dict[str, dict[str, str]], stages: Stages, parts_dir: Path
+) -> dict[str, PreparedPart]:
+    """Rebuild the recorded parts; the CAD must hash as recorded.
+
+    Raises
+    ------
+    ReplayError
+    """
+    from .line import load_cad_for
+
+    cad_meta = metadata.get("cad", {})
+    specs = {k[: -len(".spec")]: v for k, v in cad_meta.items() if k.endswith(".spec")}
+    if not specs:
+        raise ReplayError("the recording has no part specs in its metadata")
+    rig = metadata.get("rig", {})
+    if rig.get("stages") and rig["stages"] != stages.name:
+        raise ReplayError(
+            f"recorded with the {rig['stages']!r} stages, replaying with {stages.name!r}"
+        )
+    parts = {}
+    for name, spec_json in specs.items():
+        spec = PartSpec.model_validate_json(spec_json)
+        cad = load_cad_for(spec, parts_dir)
+        want = cad_meta.get(f"{name}.cad_hash")
+        if want and cad.hash != want:
+            raise ReplayError(
+                f"part {name}: the CAD changed since the recording ({cad.hash[:12]} vs {want[:12]})"
+            )
+        parts[name] = prepare_part(spec, cad, stages)
+        want_tree = cad_meta.get(f"{name}.tree_hash")
+        if want_tree and parts[name].tree_hash != want_tree:
+            raise ReplayError(f"part {name}: the tree differs from the recorded one")
+    return parts
+
+
+def compare(
+    new: InspectionResult, old: InspectionResult, tol: Tolerances
+) -> tuple[list[str], float, float]:
+    """Differences beyond tolerance between a replayed and a logged result."""
+    diffs = []
+    t_diff = dev_diff = 0.0
+    if new.status != old.status:
+        diffs.append(f"status {new.status.value} vs logged {old.status.value}")
+    if (new.transform is None) != (old.transform is None):
+        diffs.append("transform present in only one of them")
+    elif new.transform is not None and old.transform is not None:
+        t_diff = float(np.max(np.abs(np.asarray(new.transform) - np.asarray(old.transform))))
+        if t_diff > tol.transform:
+            diffs.append(f"transform differs by {t_diff:.3g}")
+    old_points = {c.name: c for c in old.comparison}
+    if {c.name for c in new.comparison} != set(old_points):
+        diffs.append("different comparison points")
+    for c in new.comparison:
+        o = old_points.get(c.name)
+        if o is None:
+            continue
+        if c.verdict != o.verdict:
+            diffs.append(f"{c.name}: verdict {c.verdict.value} vs logged {o.verdict.value}")
+        if (c.deviation_mm is None) != (o.deviation_mm is None):
+            diffs.append(f"{c.name}: deviation measured in only one of them")
+        elif c.deviation_mm is not None and o.deviation_mm is not None:
+            d = abs(c.deviation_mm - o.deviation_mm)
+            dev_diff = max(dev_diff, d)
+            if d > tol.deviation_mm:
+                diffs.append(f"{c.name}: deviation differs by {d:.3g} mm")
+    for name in ("mean_mm", "rms_mm", "min_mm", "max_mm"):
+        a = getattr(new.field, name, None) if new.field else None
+        b = getattr(old.field, name, None) if old.field else None
+        if a is not None and b is not None:
+            dev_diff = max(dev_diff, abs(a - b))
+            if abs(a - b) > tol.deviation_mm:
+                diffs.append(f"field {name} differs by {abs(a - b):.3g} mm")
+    return diffs, t_diff, dev_diff
+
+
+def replay(
+    paths: Sequence[str | Path],
+    *,
+    stages: Stages | None = None,
+    parts_dir: str | Path = "configs/parts",
+    tolerances: Tolerances | None = None,
+    on_result: Callable[[InspectionResult, InspectionResult], None] | None = None,
+) -> ReplayReport:
+    """Re-run every recorded FrameSet and compare with the logged results."""
+    tol = tolerances or Tolerances()
+    metadata, triggers = read_recording(paths)
+    stages = stages or default_stages()
+    parts = parts_from_metadata(metadata, stages, Path(parts_dir))
+    pipeline = Pipeline(stages, parts)
+    report = ReplayReport(triggers=len(triggers))
+    for t in triggers:
+        if t.frameset is None:
+            report.not_replayable += 1
+            continue
+        new = pipeline.run(t.frameset).result
+        report.replayed += 1
+        diffs, t_diff, d_diff = compare(new, t.result, tol)
+        report.max_transform_diff = max(report.max_transform_diff, t_diff)
+        report.max_deviation_diff_mm = max(report.max_deviation_diff_mm, d_diff)
+        if diffs:
+            report.differences.append(Difference(t.result.id, "; ".join(diffs)))
+        else:
+            report.same += 1
+        if on_result is not None:
+            on_result(new, t.result)
+    return report
+
+
+def framesets(triggers: Iterable[RecordedTrigger]) -> list[FrameSet]:
+    return [t.frameset for t in triggers if t.frameset is not None]
+
+
+def publish(
+    paths: Sequence[str | Path],
+    put: Callable[[bytes], None],
+    *,
+    speed: float = 1.0,
+    stop: threading.Event | None = None,
+    encoding: str = "raw",
+) -> int:
+    """Publish the recorded FrameSets again, spaced as recorded (divided by ``speed``).
+
+    ``speed`` 0 or below: as fast as the subscriber takes them (BLOCK congestion
+    control paces the publisher). Returns the number published.
+    """
+    _, triggers = read_recording(paths)
+    sets = framesets(triggers)
+    stop = stop or threading.Event()
+    t0_wall = time.monotonic()
+    t0_rec = sets[0].triggered_ns if sets else 0
+    n = 0
+    for fs in sets:
+        if speed > 0:
+            due = t0_wall + (fs.triggered_ns - t0_rec) / 1e9 / speed
+            delay = due - time.monotonic()
+            if delay > 0 and stop.wait(delay):
+                break
+        if stop.is_set():
+            break
+        put(encode_frameset(fs, encoding=encoding))
+        n += 1
+    return n
+
+
+def recording_files(path: str | Path) -> list[Path]:
+    """A file, or every ``.mcap`` of a directory in name order (rotated files of a run)."""
+    p = Path(path)
+    if p.is_dir():
+        return sorted(p.glob("*.mcap"))
+    return [p]
+
+
+def report_json(report: ReplayReport) -> dict[str, Any]:
+    return json.loads(
+        json.dumps(
+            {
+                "triggers": report.triggers,
+                "replayed": report.replayed,
+                "not_replayable": report.not_replayable,
+                "same": report.same,
+                "differences": [d.__dict__ for d in report.differences],
+                "max_transform_diff": report.max_transform_diff,
+                "max_deviation_diff_mm": report.max_deviation_diff_mm,
+            }
+        )
+    )
