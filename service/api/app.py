@@ -1,0 +1,150 @@
+"""The REST API's app factory.
+
+Nothing is created at import time: ``main`` builds the settings, the store
+and the part registry, and passes them to :func:`create_app`. Routes live in
+:mod:`service.api.routes`; errors are translated in :mod:`service.api.errors`.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import AsyncIterator, Callable, Mapping
+from contextlib import asynccontextmanager
+from typing import Any
+
+from fastapi import FastAPI, Request
+
+from ..config import LineConfig
+from ..models import software_version
+from ..parts import PartRegistry
+from ..store import DeviationArchive, ResultStore
+from .deps import Pipeline, Services
+from .errors import install_error_handlers
+from .events import ResultHub
+from .limits import BodySizeLimit
+from .metrics import Metrics
+from .routes import inspections as inspection_routes
+from .routes import parts as part_routes
+from .routes import system as system_routes
+
+
+def create_app(
+    settings: LineConfig,
+    *,
+    store: ResultStore,
+    parts: PartRegistry,
+    pipeline: Pipeline | None = None,
+    bus: ResultHub | None = None,
+    archive: DeviationArchive | None = None,
+    checks: Mapping[str, Callable[[], bool]] | None = None,
+) -> FastAPI:
+    """Build the API.
+
+    Parameters
+    ----------
+    settings : LineConfig
+    store : ResultStore
+        Where results are kept and read (the caller opens and closes it).
+    parts : PartRegistry
+        The parts and their trees (the caller preloads and closes it).
+    pipeline : callable, optional
+        ``pipeline(part, points, trigger, *, frame) -> Inspection``;
+        default :func:`service.inspect.inspect_cloud`.
+    bus : ResultHub, optional
+        Fan-out of new results to ``/v1/stream``. Pass the one the worker or
+        a zenoh subscriber publishes into; default: a new one, fed by the
+        API's own uploads.
+    archive : DeviationArchive, optional
+        Per-point deviations (for colour maps); default: under the data dir.
+    checks : mapping of name to callable() -> bool, optional
+        Extra readiness checks (e.g. ``{"zenoh": bus_connected}``); the
+        part registry's readiness is always checked.
+    """
+    if pipeline is None:
+        from ..inspect import inspect_cloud
+
+        pipeline = inspect_cloud
+    hub = bus if bus is not None else ResultHub()
+    if archive is None:
+        archive = DeviationArchive(settings.storage.deviations_path())
+    metrics = Metrics()
+    svc = Services(
+        settings=settings,
+        store=store,
+        parts=parts,
+        pipeline=pipeline,
+        hub=hub,
+        archive=archive,
+        metrics=metrics,
+        checks=dict(checks or {}),
+    )
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        yield
+        hub.close()  # ends open event streams so the server can stop
+
+    app = FastAPI(
+        title="Inspection",
+        summary="In-line shape inspection: parts, results, trends, live stream.",
+        version=software_version(),
+        lifespan=lifespan,
+    )
+    app.state.services = svc
+    install_error_handlers(app)
+    app.include_router(system_routes.router)
+    app.include_router(part_routes.router)
+    app.include_router(inspection_routes.router)
+    _register_gauges(svc)
+
+    @app.middleware("http")
+    async def count_requests(request: Request, call_next: Any) -> Any:
+        t0 = time.perf_counter()
+        response = await call_next(request)
+        route = request.scope.get("route")
+        path = getattr(route, "path", "unmatched")
+        svc.metrics.inc(
+            "http_requests_total", "HTTP requests answered.",
+            method=request.method, route=path, code=str(response.status_code),
+        )  # fmt: skip
+        svc.metrics.observe(
+            "http_request_duration_seconds", "Time to the response's start.",
+            time.perf_counter() - t0, route=path,
+        )  # fmt: skip
+        return response
+
+    # Outermost: refuses oversized bodies before any parser reads them.
+    app.add_middleware(BodySizeLimit, max_bytes=int(settings.http.max_upload_mb * 1e6))
+    return app
+
+
+def _register_gauges(svc: Services) -> None:
+    m = svc.metrics
+
+    def stored() -> list[tuple[dict[str, str], float]]:
+        return [({"status": s}, float(n)) for s, n in svc.store.status_counts().items()]
+
+    def parts_state() -> list[tuple[dict[str, str], float]]:
+        states = svc.parts.states()
+        return [({"part": p, "state": s}, 1.0) for p, s in states.items()]
+
+    m.gauge("inspection_results_stored", "Results in the store, by status.", stored)
+    m.gauge("inspection_parts", "Known parts and their tree state (1 per part).", parts_state)
+    m.gauge("inspection_ready", "1 when the service is ready.", lambda: [({}, float(_ready(svc)))])
+    m.gauge(
+        "inspection_stream_clients",
+        "Open /v1/stream connections.",
+        lambda: [({}, float(svc.hub.subscribers))],
+    )
+
+
+def _ready(svc: Services) -> bool:
+    if not svc.parts.ready():
+        return False
+    for check in svc.checks.values():
+        try:
+            if not check():
+                return False
+        except Exception:
+            return False
+    return True

@@ -1,0 +1,100 @@
+"""A top view of a part's deviations as a PNG picture (OpenCV).
+
+Points are drawn in the CAD frame seen from +z, the highest point of each
+pixel on top, coloured on a diverging scale: blue below the CAD, white on it,
+red above, saturated at ``limit_mm``; unmeasured points are grey. A colour bar
+with its scale is drawn on the right.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+_GREY = np.array([150, 150, 150], dtype=np.uint8)  # BGR
+_BACKGROUND = 40
+
+
+def diverging_lut() -> np.ndarray:
+    """(256, 3) uint8 BGR: blue (0) -> white (128) -> red (255)."""
+    t = np.linspace(-1.0, 1.0, 256)
+    b = np.where(t < 0, 1.0, 1.0 - t)
+    r = np.where(t > 0, 1.0, 1.0 + t)
+    g = 1.0 - np.abs(t)
+    # Keep the ends saturated but not black: mix toward pure blue/red.
+    lut = np.stack([b, g, r], axis=1)
+    return (lut * 255).round().astype(np.uint8)
+
+
+def render_top_view(
+    points: np.ndarray,
+    distances: np.ndarray,
+    *,
+    limit_mm: float,
+    size_px: int = 800,
+    dot_px: int = 2,
+    title: str = "",
+) -> bytes:
+    """PNG bytes of the deviation map.
+
+    Parameters
+    ----------
+    points : (N, 3) float, CAD frame, mm
+    distances : (N,) float, signed deviation, mm; NaN: not measured (grey)
+    limit_mm : float
+        Deviation at which the colours saturate (> 0).
+    size_px : int
+        Length of the map's longer side, pixels.
+    """
+    if not limit_mm > 0:
+        raise ValueError(f"limit_mm must be positive, got {limit_mm}")
+    pts = np.asarray(points, dtype=np.float64)
+    d = np.asarray(distances, dtype=np.float64)
+    margin, bar_w = 20, 90
+    if len(pts):
+        lo, hi = pts[:, :2].min(axis=0), pts[:, :2].max(axis=0)
+    else:
+        lo, hi = np.zeros(2), np.ones(2)
+    span = np.maximum(hi - lo, 1e-6)
+    scale = (size_px - 1) / float(span.max())
+    w = int(np.ceil(span[0] * scale)) + 1
+    h = int(np.ceil(span[1] * scale)) + 1
+    img = np.full((h + 2 * margin, w + 2 * margin + bar_w, 3), _BACKGROUND, dtype=np.uint8)
+    if len(pts):
+        # The highest point wins a pixel: draw from low to high z.
+        order = np.argsort(pts[:, 2], kind="stable")
+        u = ((pts[order, 0] - lo[0]) * scale).round().astype(np.int64) + margin
+        # Image rows grow downwards; y grows upwards in the view from +z.
+        v = ((hi[1] - pts[order, 1]) * scale).round().astype(np.int64) + margin
+        dd = d[order]
+        lut = diverging_lut()
+        idx = np.clip(((np.nan_to_num(dd) / limit_mm) + 1.0) * 127.5, 0, 255).astype(np.int64)
+        colours = lut[idx]
+        colours[~np.isfinite(dd)] = _GREY
+        for du in range(-(dot_px // 2), dot_px - dot_px // 2):
+            for dv in range(-(dot_px // 2), dot_px - dot_px // 2):
+                uu = np.clip(u + du, 0, img.shape[1] - 1)
+                vv = np.clip(v + dv, 0, img.shape[0] - 1)
+                img[vv, uu] = colours
+    _colour_bar(img, x0=w + 2 * margin + 10, y0=margin, height=max(h, 120), limit_mm=limit_mm)
+    if title:
+        cv2.putText(img, title, (margin, margin - 5), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
+                    (230, 230, 230), 1, cv2.LINE_AA)  # fmt: skip
+    ok, png = cv2.imencode(".png", img)
+    if not ok:  # pragma: no cover - OpenCV always encodes a uint8 BGR image
+        raise RuntimeError("PNG encoding failed")
+    return png.tobytes()
+
+
+def _colour_bar(img: np.ndarray, *, x0: int, y0: int, height: int, limit_mm: float) -> None:
+    height = min(height, img.shape[0] - y0 - 1)
+    if height < 20:
+        return
+    lut = diverging_lut()
+    rows = np.linspace(255, 0, height).round().astype(np.int64)
+    img[y0 : y0 + height, x0 : x0 + 16] = lut[rows][:, None, :]
+    font, colour = cv2.FONT_HERSHEY_SIMPLEX, (230, 230, 230)
+    for frac, value in ((0.0, limit_mm), (0.5, 0.0), (1.0, -limit_mm)):
+        y = y0 + int(frac * (height - 1))
+        cv2.putText(img, f"{value:+.2f}", (x0 + 20, y + 4), font, 0.4, colour, 1, cv2.LINE_AA)
+    cv2.putText(img, "mm", (x0 + 20, min(y0 + height + 14, img.shape[0] - 2)), font, 0.4, colour, 1)

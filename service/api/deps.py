@@ -1,0 +1,67 @@
+"""What the routes work with, gathered in one object on ``app.state``."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Annotated, Any
+
+from fastapi import Depends, Request
+
+from ..config import LineConfig
+from ..models import InspectionResult
+from ..parts import PartRegistry
+from ..store import DeviationArchive, ResultStore
+from .events import ResultHub
+from .metrics import Metrics
+
+log = logging.getLogger(__name__)
+
+Pipeline = Callable[..., Any]
+"""``pipeline(part, points, trigger, *, frame) -> Inspection`` (as ``inspect_cloud``)."""
+
+
+@dataclass(eq=False)
+class Services:
+    """Everything a request may need; built by ``create_app``."""
+
+    settings: LineConfig
+    store: ResultStore
+    parts: PartRegistry
+    pipeline: Pipeline
+    hub: ResultHub
+    archive: DeviationArchive | None
+    metrics: Metrics
+    checks: Mapping[str, Callable[[], bool]] = field(default_factory=dict)
+
+    def record(self, result: InspectionResult, points: Any = None, distances: Any = None) -> None:
+        """Keep a new result: per-point arrays first, then the row, then tell the streams.
+
+        The arrays go first so that a client reacting to the row or the event
+        finds the colour map already there.
+        """
+        if self.archive is not None and points is not None and distances is not None:
+            try:
+                self.archive.save(result.id, points, distances)
+            except OSError as exc:  # a full disk must not lose the result itself
+                log.error("deviations of %s not kept: %s", result.id, exc)
+        self.store.put(result)
+        self.metrics.inc(
+            "inspection_results_total", "Results produced through this API process.",
+            status=result.status.value, part=result.part,
+        )  # fmt: skip
+        total_ms = result.timings_ms.get("total")
+        if total_ms is not None:
+            self.metrics.observe(
+                "inspection_duration_seconds", "Time to inspect one cloud.", total_ms / 1e3
+            )
+        self.hub.publish(result)
+
+
+def services(request: Request) -> Services:
+    return request.app.state.services  # type: ignore[no-any-return]
+
+
+ServicesDep = Annotated[Services, Depends(services)]
+"""Route parameter type giving the :class:`Services`."""

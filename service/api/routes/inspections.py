@@ -1,0 +1,203 @@
+"""Inspections: measure an uploaded cloud, list and show results, draw their colour maps."""
+
+from __future__ import annotations
+
+import itertools
+import time
+from datetime import UTC, datetime
+
+from fastapi import APIRouter, Query, Request
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import Response
+
+from ...config import NAME_PATTERN, is_valid_name
+from ...inspect import CloudFrame, Trigger, validate_cloud
+from ...models import ErrorBody, InspectionResult, Page, Status, new_upload_id
+from ...store import Filters, InvalidCursor
+from ..clouds import UnsupportedCloudFormat, parse_cloud
+from ..colormap import render_top_view
+from ..deps import Services, ServicesDep
+from ..errors import ApiError
+from ..forms import file_field, read_multipart, text_field
+
+router = APIRouter(tags=["inspections"])
+
+UPLOAD_STATION = "api"
+"""The station recorded for clouds measured through the API (not from a trigger)."""
+
+_counter = itertools.count(1)
+
+_POST_BODY = {
+    "requestBody": {
+        "required": True,
+        "content": {
+            "multipart/form-data": {
+                "schema": {
+                    "type": "object",
+                    "required": ["file", "part"],
+                    "properties": {
+                        "file": {
+                            "type": "string",
+                            "format": "binary",
+                            "description": "The cloud: .npy (N, 3) float or PLY, mm",
+                        },
+                        "part": {"type": "string", "description": "Part name"},
+                        "frame": {
+                            "type": "string",
+                            "enum": ["rig", "cad"],
+                            "default": "rig",
+                            "description": "rig: anywhere (global alignment); cad: near CAD frame",
+                        },
+                        "serial": {"type": "string", "description": "Default: upload-<n>"},
+                    },
+                }
+            }
+        },
+    }
+}
+
+_ERRORS: dict[int | str, dict[str, object]] = {
+    400: {"model": ErrorBody},
+    404: {"model": ErrorBody, "description": "Unknown part or result"},
+    409: {"model": ErrorBody, "description": "The part's tree is not ready"},
+    413: {"model": ErrorBody},
+    415: {"model": ErrorBody},
+    422: {"model": ErrorBody},
+}
+
+
+def parse_since(value: str | None) -> int | None:
+    """``since`` as ns since the epoch: an integer (ns) or an ISO 8601 time (naive = UTC)."""
+    if value is None or value == "":
+        return None
+    if value.lstrip("-").isdigit():
+        ns = int(value)
+        if ns < 0:
+            raise ApiError(422, "validation_error", "since must not be negative")
+        return ns
+    try:
+        dt = datetime.fromisoformat(value.replace("Z", "+00:00"))
+    except ValueError as exc:
+        raise ApiError(
+            422, "validation_error", f"since must be ns since the epoch or ISO 8601, got {value!r}"
+        ) from exc
+    if dt.tzinfo is None:
+        dt = dt.replace(tzinfo=UTC)
+    return int(round(dt.timestamp() * 1e9))
+
+
+@router.post(
+    "/v1/inspections",
+    response_model=InspectionResult,
+    responses=_ERRORS,
+    openapi_extra=_POST_BODY,
+    summary="Inspect an uploaded point cloud of a part; answers with the result",
+)
+async def create_inspection(svc: ServicesDep, request: Request) -> InspectionResult:
+    form = await read_multipart(request)
+    try:
+        part_name = text_field(form, "part")
+        if part_name is None:
+            raise ApiError(422, "validation_error", "the form needs a 'part' field")
+        frame_raw = text_field(form, "frame", "rig") or "rig"
+        try:
+            frame = CloudFrame(frame_raw)
+        except ValueError as exc:
+            raise ApiError(
+                422, "validation_error", f"frame must be 'rig' or 'cad', got {frame_raw!r}"
+            ) from exc
+        serial = text_field(form, "serial") or f"upload-{next(_counter)}"
+        if not is_valid_name(serial):
+            raise ApiError(
+                422, "validation_error", f"serial must match {NAME_PATTERN}, got {serial!r}"
+            )
+        part = svc.parts.get(part_name)  # 404 unknown / 409 not ready, before reading the cloud
+        data, _ = await file_field(form, "file")
+        # InvalidInput (NaN, too few points, truncated file) goes to the 422
+        # handler: nothing is stored for a cloud that cannot be measured at all.
+        try:
+            points = validate_cloud(parse_cloud(data))
+        except UnsupportedCloudFormat as exc:
+            raise ApiError(415, "unsupported_cloud_format", str(exc)) from exc
+        trigger = Trigger(
+            id=new_upload_id(),
+            line=svc.settings.line.name,
+            station=UPLOAD_STATION,
+            serial=serial,
+            seq=0,
+            triggered_ns=time.time_ns(),
+        )
+    finally:
+        await form.close()
+    outcome = await run_in_threadpool(svc.pipeline, part, points, trigger, frame=frame)
+    await run_in_threadpool(svc.record, outcome.result, outcome.points_cad, outcome.distances)
+    return outcome.result
+
+
+@router.get(
+    "/v1/inspections",
+    response_model=Page[InspectionResult],
+    responses=_ERRORS,
+    summary="Results, newest first; pass `next` as `cursor` for the following page",
+)
+def list_inspections(
+    svc: ServicesDep,
+    part: str | None = Query(None, pattern=NAME_PATTERN),
+    status: Status | None = None,
+    since: str | None = Query(None, description="ns since the epoch, or ISO 8601 (naive: UTC)"),
+    limit: int = Query(50, ge=1, le=1000),
+    cursor: str | None = Query(None, max_length=512),
+) -> Page[InspectionResult]:
+    filters = Filters(part=part, status=status, since_ns=parse_since(since))
+    try:
+        items, nxt = svc.store.list(filters, limit=limit, cursor=cursor)
+    except InvalidCursor as exc:
+        raise ApiError(422, "invalid_cursor", str(exc)) from exc
+    return Page[InspectionResult](items=items, next=nxt)
+
+
+def _result(svc: Services, id_: str) -> InspectionResult:
+    result = svc.store.get(id_)
+    if result is None:
+        raise ApiError(404, "unknown_inspection", f"no inspection with id {id_!r}")
+    return result
+
+
+@router.get("/v1/inspections/{id}", response_model=InspectionResult, responses=_ERRORS)
+def get_inspection(svc: ServicesDep, id: str) -> InspectionResult:
+    return _result(svc, id)
+
+
+@router.get(
+    "/v1/inspections/{id}/colormap.png",
+    response_class=Response,
+    responses={**_ERRORS, 200: {"content": {"image/png": {}}}},
+    summary="Top view of the part coloured by deviation (CAD frame, seen from +z)",
+)
+def colormap(
+    svc: ServicesDep,
+    id: str,
+    limit_mm: float | None = Query(None, gt=0, le=1000, description="Colour saturation, mm"),
+    size_px: int = Query(800, ge=100, le=4000),
+) -> Response:
+    result = _result(svc, id)
+    arrays = None
+    if svc.archive is not None:
+        try:
+            arrays = svc.archive.load(id)
+        except ValueError:
+            arrays = None
+    if arrays is None:
+        raise ApiError(404, "no_deviations", f"no per-point deviations were kept for {id!r}")
+    points, distances = arrays
+    if limit_mm is None:
+        tol = [max(abs(c.lower_mm), abs(c.upper_mm)) for c in result.comparison]
+        limit_mm = max(tol) if tol else 1.0
+    png = render_top_view(
+        points,
+        distances,
+        limit_mm=limit_mm,
+        size_px=size_px,
+        title=f"{result.part} {result.serial} {result.status.value}",
+    )
+    return Response(png, media_type="image/png", headers={"Cache-Control": "max-age=3600"})

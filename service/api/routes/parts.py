@@ -1,0 +1,146 @@
+"""Part types: list, show, create from a CAD upload (tree built as a job), delete; trends; jobs."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from fastapi import APIRouter, Query, Request, Response
+from fastapi.concurrency import run_in_threadpool
+from pydantic import ValidationError
+
+from ...config import NAME_PATTERN
+from ...models import ErrorBody, Job, Page, PartCreate, PartPublic, Trend
+from ...parts import UPLOAD_SUFFIXES
+from ..deps import ServicesDep
+from ..errors import ApiError
+from ..forms import file_field, read_multipart, text_field
+
+router = APIRouter(tags=["parts"])
+
+
+_ERRORS: dict[int | str, dict[str, object]] = {
+    404: {"model": ErrorBody, "description": "Unknown part or job"},
+    409: {"model": ErrorBody, "description": "Conflicts with the part's state"},
+}
+
+_CREATE_BODY = {
+    "requestBody": {
+        "required": True,
+        "content": {
+            "multipart/form-data": {
+                "schema": {
+                    "type": "object",
+                    "required": ["cad", "spec"],
+                    "properties": {
+                        "cad": {
+                            "type": "string",
+                            "format": "binary",
+                            "description": "STL, OBJ, PLY or STEP",
+                        },
+                        "spec": {"type": "string", "description": "PartCreate as JSON"},
+                    },
+                }
+            }
+        },
+    }
+}
+
+
+@router.get("/v1/parts", response_model=Page[PartPublic], summary="Part types, by name")
+def list_parts(
+    svc: ServicesDep,
+    limit: int = Query(100, ge=1, le=1000),
+    cursor: str | None = Query(
+        None, pattern=NAME_PATTERN, description="`next` of the previous page"
+    ),
+) -> Page[PartPublic]:
+    names = [n for n in svc.parts.names() if cursor is None or n > cursor]
+    page = names[:limit]
+    items = []
+    for n in page:
+        try:
+            items.append(svc.parts.public(n))
+        except KeyError:  # deleted meanwhile
+            continue
+    return Page[PartPublic](items=items, next=page[-1] if len(names) > limit else None)
+
+
+@router.get("/v1/parts/{name}", response_model=PartPublic, responses=_ERRORS)
+def get_part(svc: ServicesDep, name: str) -> PartPublic:
+    return svc.parts.public(name)
+
+
+@router.post(
+    "/v1/parts",
+    response_model=PartPublic,
+    status_code=202,
+    responses={
+        **_ERRORS,
+        413: {"model": ErrorBody},
+        415: {"model": ErrorBody},
+        422: {"model": ErrorBody},
+    },
+    openapi_extra=_CREATE_BODY,
+    summary="Create a part from a CAD file and a spec; its tree is built in the background",
+)
+async def create_part(svc: ServicesDep, request: Request, response: Response) -> PartPublic:
+    form = await read_multipart(request)
+    try:
+        raw_spec = text_field(form, "spec")
+        if raw_spec is None:
+            raise ApiError(
+                422, "validation_error", "the form needs a 'spec' field (PartCreate as JSON)"
+            )
+        try:
+            spec = PartCreate.model_validate_json(raw_spec)
+        except ValidationError as exc:
+            where = "; ".join(
+                f"{'.'.join(str(x) for x in e['loc']) or 'spec'}: {e['msg']}" for e in exc.errors()
+            )
+            raise ApiError(422, "invalid_spec", f"invalid part spec: {where}") from exc
+        data, filename = await file_field(form, "cad")
+        suffix = Path(filename).suffix.lower()
+        if suffix not in UPLOAD_SUFFIXES:
+            raise ApiError(
+                415,
+                "unsupported_cad_format",
+                f"the CAD file must end in one of {', '.join(UPLOAD_SUFFIXES)}, got {filename!r}",
+            )
+    finally:
+        await form.close()
+    job = await run_in_threadpool(svc.parts.create, spec, data, filename)
+    response.headers["Location"] = f"/v1/jobs/{job.id}"
+    return svc.parts.public(spec.name)
+
+
+@router.delete(
+    "/v1/parts/{name}", status_code=204, responses=_ERRORS, summary="Delete an uploaded part"
+)
+def delete_part(svc: ServicesDep, name: str) -> Response:
+    svc.parts.delete(name)
+    return Response(status_code=204)
+
+
+@router.get(
+    "/v1/jobs/{job_id}", response_model=Job, responses=_ERRORS, summary="A tree build's progress"
+)
+def get_job(svc: ServicesDep, job_id: str) -> Job:
+    try:
+        return svc.parts.job(job_id)
+    except KeyError as exc:
+        raise ApiError(404, "unknown_job", f"no job {job_id!r}") from exc
+
+
+@router.get(
+    "/v1/parts/{name}/trends",
+    response_model=Trend,
+    responses=_ERRORS,
+    summary="Mean, sigma, Cp and Cpk per comparison point over the last parts",
+)
+def trends(
+    svc: ServicesDep,
+    name: str,
+    window: int | None = Query(None, ge=2, le=100_000, description="Parts (default: the config's)"),
+) -> Trend:
+    svc.parts.public(name)  # 404 for unknown parts
+    return svc.store.trend(name, window or svc.settings.http.trend_window)

@@ -1,0 +1,493 @@
+"""The part registry: specs, CAD models and their closest-point trees, ready to inspect with.
+
+A part comes from a spec file in ``configs/parts/`` (the station's parts) or
+from an upload through the API (kept under ``<data_dir>/parts/<name>/`` so it
+survives a restart). Its tree is built once and cached under the trees
+directory, keyed by the CAD geometry hash, the build parameters and the
+tree's format version; a cached tree that no longer matches is rebuilt.
+
+Trees are built in one background thread, each build reported as a
+:class:`~service.models.Job` with its progress. :meth:`PartRegistry.preload`
+builds or loads every configured part before the line reports itself ready.
+
+Errors::
+
+    PartError
+     ├── UnknownPart          no part of that name
+     ├── PartNotReady         its tree is still building, or the build failed
+     └── PartConflict         creating a part that exists / deleting a configured one
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from inspection.cad import CadModel, load_cad
+
+from .config import PartSpec, PartSpecBase, canonical_hash, load_part_spec
+from .models import Job, JobState, PartPublic, PartState
+
+log = logging.getLogger(__name__)
+
+UPLOAD_SUFFIXES = (".stl", ".obj", ".ply", ".step", ".stp")
+
+
+class PartError(Exception):
+    """Base of the registry's errors."""
+
+
+class UnknownPart(PartError, KeyError):
+    """No part of that name."""
+
+    def __str__(self) -> str:  # KeyError would quote the message
+        return str(self.args[0]) if self.args else "unknown part"
+
+
+class PartNotReady(PartError):
+    """The part exists but its tree is not usable (building, or the build failed)."""
+
+
+class PartConflict(PartError):
+    """The operation contradicts the registry's state."""
+
+
+@dataclass(frozen=True, eq=False)
+class LoadedPart:
+    """A part ready to inspect: its spec, CAD model, tree and comparison points.
+
+    Attributes
+    ----------
+    spec : PartSpec
+    cad : CadModel
+    tree : inspection.grid.GridTree
+    tree_hash : str
+        The tree's content hash (``GridTree.hash``): identifies exactly the tree used.
+    """
+
+    spec: PartSpec
+    cad: CadModel
+    tree: Any
+    tree_hash: str
+
+    @property
+    def name(self) -> str:
+        return self.spec.name
+
+
+@dataclass(eq=False)
+class _Entry:
+    spec: PartSpec
+    base_dir: Path
+    configured: bool
+    state: PartState = PartState.building
+    job: str | None = None
+    loaded: LoadedPart | None = None
+    error: str | None = None
+
+
+# --------------------------------------------------------------------------- building blocks
+
+
+def panel_spec(params: dict[str, Any]) -> Any:
+    """``inspection.panel.PanelSpec`` from TOML/JSON parameters (lists become tuples)."""
+    from inspection.panel import Hole, PanelSpec
+
+    kwargs: dict[str, Any] = {}
+    for key, value in params.items():
+        if key == "holes":
+            value = tuple(Hole(**h) if isinstance(h, dict) else Hole(*h) for h in value)
+        elif isinstance(value, list):
+            value = tuple(value)
+        kwargs[key] = value
+    try:
+        return PanelSpec(**kwargs)
+    except TypeError as exc:
+        raise ValueError(f"invalid panel parameters: {exc}") from exc
+
+
+def load_part_cad(spec: PartSpec, base_dir: Path) -> CadModel:
+    """The CAD model of a spec: its mesh file, or the generated panel."""
+    if spec.is_generated:
+        from inspection.panel import sheet_metal_panel
+
+        return sheet_metal_panel(panel_spec(spec.panel), name=spec.name)
+    return load_cad(spec.cad_path(base_dir), scale=spec.scale, name=spec.name)
+
+
+def _grid_tree_class() -> Any:
+    from inspection.grid import GridTree
+
+    return GridTree
+
+
+def tree_format_version() -> int:
+    """The tree file format version of the installed :mod:`inspection.grid`."""
+    from inspection.grid import FORMAT_VERSION
+
+    return int(FORMAT_VERSION)
+
+
+def tree_cache_path(trees_dir: Path, cad: CadModel, spec: PartSpec) -> Path:
+    """Where the tree of ``cad`` with ``spec``'s build parameters is cached.
+
+    The name holds the CAD hash, a hash of the build parameters and the
+    format version: any change of the three gives another file.
+    """
+    params = canonical_hash(spec.tree.build_kwargs())[:12]
+    return trees_dir / f"{cad.hash[:24]}-{params}-v{tree_format_version()}.npz"
+
+
+def build_or_load_tree(
+    cad: CadModel,
+    spec: PartSpec,
+    trees_dir: Path,
+    progress: Callable[[float, str], None] | None = None,
+) -> Any:
+    """The tree of ``cad``: loaded from the cache when it matches, built (and cached) otherwise.
+
+    Returns
+    -------
+    GridTree
+        Its ``hash`` identifies it (recorded in every result as ``tree_hash``).
+    """
+    from inspection.errors import InvalidInput, TreeMismatch
+    from inspection.grid import GridTree
+
+    report = progress or (lambda f, m: None)
+    path = tree_cache_path(trees_dir, cad, spec)
+    if path.is_file():
+        try:
+            tree = GridTree.load(path, cad=cad)
+            expected = _expected_params(spec)
+            if {k: tree.params.to_dict()[k] for k in expected} == expected:
+                log.info("part %s: tree %s loaded from %s", spec.name, tree.hash[:12], path)
+                return tree
+            log.warning("part %s: cached tree %s has other parameters; rebuilding", spec.name, path)
+        except (TreeMismatch, InvalidInput, OSError, ValueError, KeyError) as exc:
+            log.warning("part %s: cached tree %s unusable (%s); rebuilding", spec.name, path, exc)
+    report(0.1, "building tree")
+    t0 = time.perf_counter()
+    tree = GridTree.build(
+        cad,
+        **spec.tree.build_kwargs(),
+        progress=lambda f: report(0.1 + 0.8 * float(f), "building tree"),
+    )
+    log.info("part %s: tree built in %.1f s", spec.name, time.perf_counter() - t0)
+    report(0.9, "saving tree")
+    tree.save(path)  # atomic: written to a temporary file and renamed
+    return tree
+
+
+def _expected_params(spec: PartSpec) -> dict[str, float]:
+    """The build parameters a tree for ``spec`` has (the grid's defaults for unset ones).
+
+    Checked on load, so a change of the defaults rebuilds cached trees.
+    """
+    from inspection.grid import DEFAULT_BAND_MM, DEFAULT_SPACING_MM
+
+    return {"spacing_mm": DEFAULT_SPACING_MM, "band_mm": DEFAULT_BAND_MM} | spec.tree.build_kwargs()
+
+
+def load_part(
+    spec: PartSpec,
+    base_dir: Path,
+    trees_dir: Path,
+    progress: Callable[[float, str], None] | None = None,
+) -> LoadedPart:
+    """Load the CAD of a spec and build or load its tree."""
+    report = progress or (lambda f, m: None)
+    report(0.05, "loading CAD")
+    cad = load_part_cad(spec, base_dir)
+    tree = build_or_load_tree(cad, spec, trees_dir, report)
+    report(1.0, "ready")
+    return LoadedPart(spec=spec, cad=cad, tree=tree, tree_hash=tree.hash)
+
+
+# --------------------------------------------------------------------------- registry
+
+
+class PartRegistry:
+    """The parts a service knows, their trees and the jobs that build them.
+
+    Parameters
+    ----------
+    trees_dir : Path
+        The tree cache.
+    uploads_dir : Path
+        Where parts created through the API keep their spec and CAD file.
+    """
+
+    def __init__(self, trees_dir: str | Path, uploads_dir: str | Path) -> None:
+        self.trees_dir = Path(trees_dir)
+        self.uploads_dir = Path(uploads_dir)
+        self._lock = threading.RLock()
+        self._entries: dict[str, _Entry] = {}
+        self._jobs: dict[str, Job] = {}
+        self._futures: dict[str, Future[None]] = {}
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="tree-build")
+        self._job_counter = 0
+
+    @classmethod
+    def from_config(cls, cfg: Any) -> PartRegistry:
+        """A registry with the station's parts of a :class:`~service.config.LineConfig` and uploads.
+
+        Nothing is built yet: call :meth:`preload` (blocking) or :meth:`start`.
+        """
+        reg = cls(cfg.storage.trees_path(), Path(cfg.storage.data_dir) / "parts")
+        for path in cfg.part_spec_paths():
+            reg.add(load_part_spec(path), path.parent, configured=True)
+        reg.add_uploaded()
+        return reg
+
+    def close(self) -> None:
+        """Stop accepting builds and wait for the running one."""
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+    def __enter__(self) -> PartRegistry:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ adding
+
+    def add(self, spec: PartSpec, base_dir: Path, *, configured: bool) -> None:
+        """Register a spec (not yet loaded)."""
+        with self._lock:
+            if spec.name in self._entries:
+                raise PartConflict(f"part {spec.name!r} is defined twice")
+            self._entries[spec.name] = _Entry(
+                spec=spec, base_dir=Path(base_dir), configured=configured
+            )
+
+    def add_uploaded(self) -> None:
+        """Register the parts created through the API in an earlier run."""
+        if not self.uploads_dir.is_dir():
+            return
+        for spec_file in sorted(self.uploads_dir.glob("*/spec.json")):
+            try:
+                spec = PartSpec.model_validate_json(spec_file.read_text())
+            except ValueError as exc:
+                log.error("ignoring uploaded part %s: %s", spec_file.parent, exc)
+                continue
+            with self._lock:
+                if spec.name in self._entries:
+                    log.warning("uploaded part %s shadowed by a configured one", spec.name)
+                    continue
+            self.add(spec, spec_file.parent, configured=False)
+
+    def create(self, spec: PartSpecBase, cad_bytes: bytes, filename: str) -> Job:
+        """Create a part from an uploaded CAD file and start building its tree.
+
+        The CAD is checked (loaded) before anything is kept, so a bad upload
+        leaves no trace. Returns the build job.
+
+        Raises
+        ------
+        PartConflict
+            A part of that name exists.
+        inspection.CadLoadError
+            The upload is not a usable mesh.
+        """
+        suffix = Path(filename).suffix.lower()
+        with self._lock:
+            if spec.name in self._entries:
+                raise PartConflict(f"part {spec.name!r} exists; delete it first")
+            # Reserve the name while the upload is checked.
+            self._entries[spec.name] = _Entry(
+                spec=PartSpec(**spec.model_dump(), cad=f"cad{suffix}"),
+                base_dir=self.uploads_dir / spec.name,
+                configured=False,
+            )
+        target = self.uploads_dir / spec.name
+        try:
+            target.mkdir(parents=True, exist_ok=True)
+            (target / f"cad{suffix}").write_bytes(cad_bytes)
+            full = PartSpec(**spec.model_dump(), cad=f"cad{suffix}")
+            load_cad(target / f"cad{suffix}", scale=full.scale, name=full.name)  # fail fast
+            (target / "spec.json").write_text(full.model_dump_json(indent=2))
+        except BaseException:
+            with self._lock:
+                self._entries.pop(spec.name, None)
+            shutil.rmtree(target, ignore_errors=True)
+            raise
+        return self.start(spec.name)
+
+    def delete(self, name: str) -> None:
+        """Forget an uploaded part and remove its files (its cached tree stays, keyed by hash)."""
+        with self._lock:
+            entry = self._get_entry(name)
+            if entry.configured:
+                raise PartConflict(
+                    f"part {name!r} is defined in the line configuration; remove it there"
+                )
+            if entry.state == PartState.building:
+                raise PartConflict(f"part {name!r} is still being built; delete it when done")
+            del self._entries[name]
+        shutil.rmtree(self.uploads_dir / name, ignore_errors=True)
+
+    # ------------------------------------------------------------------ building
+
+    def start(self, name: str | None = None) -> Job:
+        """Queue the tree build of ``name`` (default: every part not loaded); return the job."""
+        names = (
+            [name]
+            if name is not None
+            else [n for n, e in self._entries.items() if e.loaded is None]
+        )
+        job: Job | None = None
+        for n in names:
+            job = self._submit(n)
+        if job is None:
+            raise PartConflict("nothing to build")
+        return job
+
+    def _submit(self, name: str) -> Job:
+        with self._lock:
+            entry = self._get_entry(name)
+            self._job_counter += 1
+            job = Job(
+                id=f"job-{self._job_counter}-{time.time_ns()}",
+                part=name,
+                state=JobState.queued,
+                progress=0.0,
+                message="queued",
+                created_ns=time.time_ns(),
+            )
+            self._jobs[job.id] = job
+            entry.state = PartState.building
+            entry.job = job.id
+            entry.error = None
+            self._futures[job.id] = self._pool.submit(self._build, name, job.id)
+            return job
+
+    def _update_job(self, job_id: str, **changes: Any) -> None:
+        with self._lock:
+            self._jobs[job_id] = self._jobs[job_id].model_copy(update=changes)
+
+    def _build(self, name: str, job_id: str) -> None:
+        with self._lock:
+            entry = self._entries.get(name)
+        if entry is None:
+            self._update_job(job_id, state=JobState.failed, message="the part was deleted")
+            return
+        self._update_job(job_id, state=JobState.running, message="starting")
+
+        def progress(fraction: float, message: str) -> None:
+            self._update_job(job_id, progress=min(max(fraction, 0.0), 1.0), message=message)
+
+        try:
+            loaded = load_part(entry.spec, entry.base_dir, self.trees_dir, progress)
+        except Exception as exc:
+            log.exception("part %s: tree build failed", name)
+            with self._lock:
+                entry.state = PartState.failed
+                entry.error = f"{type(exc).__name__}: {exc}"
+            self._update_job(
+                job_id, state=JobState.failed, message=entry.error, finished_ns=time.time_ns()
+            )
+            return
+        with self._lock:
+            entry.loaded = loaded
+            entry.state = PartState.ready
+        self._update_job(
+            job_id, state=JobState.done, progress=1.0, message="ready", finished_ns=time.time_ns()
+        )
+
+    def preload(self) -> None:
+        """Build or load every registered part's tree now, in this thread's time (blocking).
+
+        Failures are recorded per part (state ``failed``) and do not stop the
+        others; :meth:`ready` then stays False.
+        """
+        jobs = [self._submit(n) for n in self.names()]
+        for job in jobs:
+            self.wait(job.id)
+
+    def wait(self, job_id: str, timeout_s: float | None = None) -> Job:
+        """Block until job ``job_id`` has finished; returns its final state."""
+        with self._lock:
+            fut = self._futures.get(job_id)
+        if fut is None:
+            raise UnknownPart(f"no job {job_id!r}")
+        fut.result(timeout=timeout_s)
+        return self.job(job_id)
+
+    # ------------------------------------------------------------------ queries
+
+    def _get_entry(self, name: str) -> _Entry:
+        entry = self._entries.get(name)
+        if entry is None:
+            raise UnknownPart(f"no part named {name!r}")
+        return entry
+
+    def names(self) -> list[str]:
+        with self._lock:
+            return sorted(self._entries)
+
+    def get(self, name: str) -> LoadedPart:
+        """The loaded part ``name``.
+
+        Raises
+        ------
+        UnknownPart, PartNotReady
+        """
+        with self._lock:
+            entry = self._get_entry(name)
+            if entry.loaded is None:
+                why = entry.error if entry.state == PartState.failed else "its tree is being built"
+                raise PartNotReady(f"part {name!r} is not ready: {why}")
+            return entry.loaded
+
+    def job(self, job_id: str) -> Job:
+        with self._lock:
+            job = self._jobs.get(job_id)
+        if job is None:
+            raise UnknownPart(f"no job {job_id!r}")
+        return job
+
+    def public(self, name: str) -> PartPublic:
+        with self._lock:
+            e = self._get_entry(name)
+            loaded = e.loaded
+            return PartPublic(
+                name=e.spec.name,
+                version=e.spec.version,
+                description=e.spec.description,
+                cad=e.spec.cad,
+                scale=e.spec.scale,
+                cad_hash=loaded.cad.hash if loaded else None,
+                tree_hash=loaded.tree_hash if loaded else None,
+                state=e.state,
+                job=e.job,
+                points=list(e.spec.points),
+                faces=len(loaded.cad.faces) if loaded else None,
+                extents_mm=[float(x) for x in loaded.cad.extents] if loaded else None,
+            )
+
+    def ready(self) -> bool:
+        """True when every configured part is loaded (uploads being built do not block the line)."""
+        with self._lock:
+            configured = [e for e in self._entries.values() if e.configured]
+            return all(e.state == PartState.ready for e in configured)
+
+    def states(self) -> dict[str, str]:
+        with self._lock:
+            return {n: e.state.value for n, e in sorted(self._entries.items())}
+
+    def spec_hashes(self) -> dict[str, str]:
+        """A hash of each part's spec (for the recorded configuration)."""
+        with self._lock:
+            return {
+                n: canonical_hash(json.loads(e.spec.model_dump_json()))
+                for n, e in self._entries.items()
+            }

@@ -1,0 +1,540 @@
+"""The REST API, through the app factory (TestClient) and through a real uvicorn server.
+
+The parts are real: the project's generated panel (small, so its tree builds
+in about a second), a SQLite file, the deviation archive. Bad input of every
+kind must get a clear 4xx error body and leave earlier results intact.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import http.client
+import io
+import json
+import socket
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+import uvicorn
+from fastapi.testclient import TestClient
+
+from inspection.panel import PanelSpec, panel_height, sheet_metal_panel
+from service.api import ResultHub, create_app
+from service.config import load_line_config
+from service.models import InspectionResult, PointResult, make_result_id, software_version
+from service.parts import PartRegistry
+from service.store import DeviationArchive, ResultStore
+
+PART = "panel-s"
+SMALL = PanelSpec().scaled(150.0, 100.0)
+
+
+def _panel_params() -> dict:
+    d = dataclasses.asdict(SMALL)
+    d["holes"] = [dataclasses.asdict(h) for h in SMALL.holes]
+    d["emboss_center_mm"] = list(d["emboss_center_mm"])
+    d["emboss_size_mm"] = list(d["emboss_size_mm"])
+    return d
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, list):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{ " + ", ".join(f"{k} = {_toml_value(x)}" for k, x in v.items()) + " }"
+    return json.dumps(v)
+
+
+def surface_point(x: float, y: float) -> tuple[list[float], list[float]]:
+    """A point on the small panel's top surface and its upward normal."""
+    h = 1e-4
+    z = float(panel_height(SMALL, np.array([x]), np.array([y]))[0])
+    gx = (panel_height(SMALL, np.array([x + h]), np.array([y]))[0] - panel_height(SMALL, np.array([x - h]), np.array([y]))[0]) / (2 * h)  # fmt: skip
+    gy = (panel_height(SMALL, np.array([x]), np.array([y + h]))[0] - panel_height(SMALL, np.array([x]), np.array([y - h]))[0]) / (2 * h)  # fmt: skip
+    n = np.array([-gx, -gy, 1.0])
+    return [x, y, z], [float(c) for c in n / np.linalg.norm(n)]
+
+
+def write_line(root: Path) -> Path:
+    parts = root / "configs" / "parts"
+    parts.mkdir(parents=True)
+    lines = [f'name = "{PART}"', 'version = "3"', 'cad = "generated:panel"', "[panel]"]
+    lines += [f"{k} = {_toml_value(v)}" for k, v in _panel_params().items()]
+    lines += ["[tree]", "spacing_mm = 1.0"]
+    for name, (x, y) in {"c": (0.0, -10.0), "e": (30.0, 30.0), "w": (-40.0, -30.0)}.items():
+        pos, n = surface_point(x, y)
+        lines += [
+            "[[points]]",
+            f'name = "{name}"',
+            f"position_mm = {pos}",
+            f"normal = {n}",
+            "lower_mm = -0.3",
+            "upper_mm = 0.3",
+            "radius_mm = 6.0",
+        ]
+    (parts / f"{PART}.toml").write_text("\n".join(lines) + "\n")
+    line = root / "configs" / "line.toml"
+    line.write_text(
+        f"""
+[station]
+rig_calibration = "rig.toml"
+parts = ["{PART}"]
+[storage]
+data_dir = "{(root / "data").as_posix()}"
+[http]
+max_upload_mb = 1.0
+trend_window = 10
+"""
+    )
+    return line
+
+
+@pytest.fixture(scope="module")
+def line(tmp_path_factory):
+    root = tmp_path_factory.mktemp("line")
+    cfg = load_line_config(write_line(root))
+    with PartRegistry.from_config(cfg) as reg:
+        reg.preload()
+        assert reg.ready(), reg.states()
+        yield cfg, reg
+
+
+@pytest.fixture
+def app_parts(line, tmp_path):
+    """A fresh store, archive and app per test, sharing the module's built part."""
+    cfg, reg = line
+    store = ResultStore(tmp_path / "results.sqlite")
+    archive = DeviationArchive(tmp_path / "deviations")
+    hub = ResultHub()
+    zenoh_up = {"value": True}
+    app = create_app(
+        cfg,
+        store=store,
+        parts=reg,
+        bus=hub,
+        archive=archive,
+        checks={"zenoh": lambda: zenoh_up["value"]},
+    )
+    yield app, store, archive, hub, zenoh_up
+    store.close()
+
+
+@pytest.fixture
+def client(app_parts):
+    with TestClient(app_parts[0]) as c:
+        yield c
+
+
+def stored_result(seq: int, *, status="pass", dev=0.1) -> InspectionResult:
+    t = 1_700_000_000_000_000_000 + seq * 10**9
+    return InspectionResult(
+        id=make_result_id("line1", "st1", seq, t),
+        line="line1",
+        station="st1",
+        part=PART,
+        serial=f"SN{seq}",
+        seq=seq,
+        triggered_ns=t,
+        status=status,
+        comparison=[PointResult(name="c", deviation_mm=dev, lower_mm=-0.3, upper_mm=0.3, support=50, verdict="pass")],
+        software_version=software_version(),
+    )  # fmt: skip
+
+
+def npy_bytes(a: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, a)
+    return buf.getvalue()
+
+
+def assert_error(resp, status: int, code: str) -> dict:
+    assert resp.status_code == status, resp.text
+    body = resp.json()
+    assert set(body) == {"error"} and set(body["error"]) == {"code", "message"}, body
+    assert body["error"]["code"] == code, body
+    assert body["error"]["message"]
+    return body["error"]
+
+
+# ----------------------------------------------------------------------------- parts
+
+
+def test_parts_list_and_show(client):
+    page = client.get("/v1/parts").json()
+    assert page["next"] is None
+    assert [p["name"] for p in page["items"]] == [PART]
+    p = client.get(f"/v1/parts/{PART}").json()
+    assert p["state"] == "ready" and p["version"] == "3"
+    assert len(p["cad_hash"]) == 64 and p["tree_hash"]
+    assert [c["name"] for c in p["points"]] == ["c", "e", "w"]
+    assert_error(client.get("/v1/parts/nope"), 404, "unknown_part")
+
+
+def test_create_part_builds_tree_as_a_job_then_delete(client, line, tmp_path):
+    cad = sheet_metal_panel(PanelSpec().scaled(120.0, 80.0))
+    stl = tmp_path / "p.stl"
+    cad.to_trimesh().export(stl)
+    spec = {"name": "uploaded", "version": "1", "points": []}
+    r = client.post(
+        "/v1/parts",
+        files={"cad": ("p.stl", stl.read_bytes(), "model/stl")},
+        data={"spec": json.dumps(spec)},
+    )
+    assert r.status_code == 202, r.text
+    job_url = r.headers["location"]
+    assert r.json()["state"] in ("building", "ready")
+    _, reg = line
+    job_id = job_url.rsplit("/", 1)[1]
+    reg.wait(job_id, timeout_s=120)
+    job = client.get(job_url).json()
+    assert job["state"] == "done" and job["progress"] == 1.0
+    assert client.get("/v1/parts/uploaded").json()["state"] == "ready"
+    assert_error(client.post("/v1/parts", files={"cad": ("p.stl", stl.read_bytes())}, data={"spec": json.dumps(spec)}), 409, "part_conflict")  # fmt: skip
+    assert client.delete("/v1/parts/uploaded").status_code == 204
+    assert_error(client.get("/v1/parts/uploaded"), 404, "unknown_part")
+    assert_error(client.delete(f"/v1/parts/{PART}"), 409, "part_conflict")  # configured
+    assert_error(client.get("/v1/jobs/job-0"), 404, "unknown_job")
+
+
+@pytest.mark.parametrize(
+    "files, data, status, code",
+    [
+        (
+            {"cad": ("p.stl", b"solid x\nendsolid x\n")},
+            {"spec": '{"name": "bad1"}'},
+            422,
+            "invalid_cad",
+        ),
+        ({"cad": ("p.txt", b"hello")}, {"spec": '{"name": "bad2"}'}, 415, "unsupported_cad_format"),
+        ({"cad": ("p.stl", b"x")}, {"spec": '{"name": "bad name"}'}, 422, "invalid_spec"),
+        ({"cad": ("p.stl", b"x")}, {"spec": "{not json"}, 422, "invalid_spec"),
+        ({"cad": ("p.stl", b"x")}, {}, 422, "validation_error"),
+        ({}, {"spec": '{"name": "bad3"}'}, 415, "unsupported_media_type"),  # no file: not multipart
+    ],
+)
+def test_bad_part_uploads(client, files, data, status, code):
+    assert_error(client.post("/v1/parts", files=files or None, data=data), status, code)
+    assert [p["name"] for p in client.get("/v1/parts").json()["items"]] == [PART]
+
+
+# ----------------------------------------------------------------------------- inspections
+
+
+def test_list_filters_and_pagination(client, app_parts):
+    store = app_parts[1]
+    for i in range(7):
+        store.put(stored_result(i, status="fail" if i % 3 == 0 else "pass"))
+    seen, url = [], "/v1/inspections?limit=3"
+    while url:
+        page = client.get(url).json()
+        seen += page["items"]
+        url = f"/v1/inspections?limit=3&cursor={page['next']}" if page["next"] else None
+    assert [r["seq"] for r in seen] == [6, 5, 4, 3, 2, 1, 0]
+    fails = client.get("/v1/inspections", params={"status": "fail"}).json()["items"]
+    assert [r["seq"] for r in fails] == [6, 3, 0]
+    since = client.get(
+        "/v1/inspections", params={"since": str(1_700_000_000_000_000_000 + 5 * 10**9)}
+    )
+    assert [r["seq"] for r in since.json()["items"]] == [6, 5]
+    iso = client.get("/v1/inspections", params={"since": "2023-11-14T22:13:25Z"}).json()["items"]
+    assert [r["seq"] for r in iso] == [6, 5]
+    assert client.get("/v1/inspections", params={"part": "other"}).json() == {
+        "items": [],
+        "next": None,
+    }
+    one = client.get(f"/v1/inspections/{seen[0]['id']}").json()
+    assert InspectionResult.model_validate(one) == store.get(seen[0]["id"])
+
+
+@pytest.mark.parametrize(
+    "params, code",
+    [
+        ({"status": "great"}, "validation_error"),
+        ({"limit": 0}, "validation_error"),
+        ({"limit": 5000}, "validation_error"),
+        ({"since": "yesterday"}, "validation_error"),
+        ({"cursor": "garbage!"}, "invalid_cursor"),
+        ({"part": "a/b"}, "validation_error"),
+    ],
+)
+def test_list_bad_queries(client, params, code):
+    assert_error(client.get("/v1/inspections", params=params), 422, code)
+
+
+def test_unknown_ids_and_routes_are_404(client):
+    assert_error(client.get("/v1/inspections/nope"), 404, "unknown_inspection")
+    assert_error(client.get("/v1/inspections/nope/colormap.png"), 404, "unknown_inspection")
+    assert_error(client.get("/v1/nothing-here"), 404, "not_found")
+    assert_error(client.put("/v1/parts"), 405, "method_not_allowed")
+
+
+def test_colormap_renders_the_archived_deviations(client, app_parts):
+    _, store, archive, *_ = app_parts
+    r = stored_result(1)
+    store.put(r)
+    rng = np.random.default_rng(0)
+    pts = np.column_stack(
+        [rng.uniform(-75, 75, 5000), rng.uniform(-50, 50, 5000), rng.uniform(0, 30, 5000)]
+    )
+    d = pts[:, 0] / 100.0
+    d[:100] = np.nan
+    archive.save(r.id, pts, d)
+    resp = client.get(f"/v1/inspections/{r.id}/colormap.png", params={"size_px": 300})
+    assert resp.status_code == 200 and resp.headers["content-type"] == "image/png"
+    import cv2
+
+    img = cv2.imdecode(np.frombuffer(resp.content, np.uint8), cv2.IMREAD_COLOR)
+    assert img is not None and img.shape[1] >= 300
+    # Left (negative deviations) is blue, right (positive) is red: BGR.
+    def mean_colour(region):
+        px = region.reshape(-1, 3).astype(int)
+        drawn = px[(px != 40).any(axis=1) & (px != 150).any(axis=1)]
+        return drawn.mean(axis=0)
+
+    left, right = mean_colour(img[40:160, 25:60]), mean_colour(img[40:160, 260:300])
+    assert left[0] > left[2] + 100 and right[2] > right[0] + 100
+    store.put(stored_result(2))
+    assert_error(
+        client.get(f"/v1/inspections/{stored_result(2).id}/colormap.png"), 404, "no_deviations"
+    )
+
+
+def test_trends(client, app_parts):
+    store = app_parts[1]
+    devs = np.random.default_rng(3).normal(0.05, 0.02, 15)
+    for i, d in enumerate(devs):
+        store.put(stored_result(i, dev=float(d)))
+    t = client.get(f"/v1/parts/{PART}/trends").json()
+    assert t["window"] == 10 and t["parts"] == 10
+    (p,) = t["points"]
+    assert p["mean_mm"] == pytest.approx(devs[-10:].mean())
+    assert p["cpk"] == pytest.approx((0.3 - devs[-10:].mean()) / (3 * devs[-10:].std(ddof=1)))
+    assert client.get(f"/v1/parts/{PART}/trends", params={"window": 4}).json()["parts"] == 4
+    assert_error(client.get("/v1/parts/nope/trends"), 404, "unknown_part")
+
+
+# ----------------------------------------------------------------------------- bad uploads
+
+
+def post_cloud(
+    client, payload: bytes, *, part=PART, name="c.npy", ctype="application/octet-stream", **data
+):
+    return client.post(
+        "/v1/inspections", files={"file": (name, payload, ctype)}, data={"part": part, **data}
+    )
+
+
+@pytest.mark.parametrize(
+    "make, status, code",
+    [
+        (lambda: post_cloud_args(npy_bytes(np.full((100, 3), np.nan))), 422, "invalid_input"),
+        (lambda: post_cloud_args(npy_bytes(np.zeros((0, 3)))), 422, "invalid_input"),
+        (lambda: post_cloud_args(npy_bytes(np.zeros((100, 2)))), 422, "invalid_input"),
+        (lambda: post_cloud_args(npy_bytes(np.ones((1000, 3)))[:-500]), 422, "invalid_input"),
+        (
+            lambda: post_cloud_args(
+                b"ply\nformat binary_little_endian 1.0\nelement vertex 100\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+                + b"\0" * 600
+            ),
+            422,
+            "invalid_input",
+        ),  # fmt: skip
+        (lambda: post_cloud_args(b"GIF89a not a cloud"), 415, "unsupported_cloud_format"),
+        (lambda: post_cloud_args(b""), 422, "empty_file"),
+        (lambda: post_cloud_args(npy_bytes(np.ones((100, 3))), part="nope"), 404, "unknown_part"),
+        (
+            lambda: post_cloud_args(npy_bytes(np.ones((100, 3))), part="bad part"),
+            404,
+            "unknown_part",
+        ),
+        (
+            lambda: post_cloud_args(npy_bytes(np.ones((100, 3))), frame="world"),
+            422,
+            "validation_error",
+        ),
+        (
+            lambda: post_cloud_args(npy_bytes(np.ones((100, 3))), serial="a b"),
+            422,
+            "validation_error",
+        ),
+        (
+            lambda: post_cloud_args(npy_bytes(np.array([["a", "b", "c"]] * 20))),
+            422,
+            "invalid_input",
+        ),
+    ],
+)
+def test_bad_clouds_give_clear_errors_and_keep_results(client, app_parts, make, status, code):
+    store = app_parts[1]
+    earlier = stored_result(1)
+    store.put(earlier)
+    kwargs = make()
+    assert_error(post_cloud(client, **kwargs), status, code)
+    assert store.count() == 1 and store.get(earlier.id) == earlier
+
+
+def post_cloud_args(payload: bytes, **kw) -> dict:
+    return {"payload": payload, **kw}
+
+
+def test_wrong_content_types_are_415(client):
+    r = client.post("/v1/inspections", json={"part": PART, "points": [[0, 0, 0]]})
+    assert_error(r, 415, "unsupported_media_type")
+    r = client.post(
+        "/v1/parts", content=b"abc", headers={"content-type": "application/octet-stream"}
+    )
+    assert_error(r, 415, "unsupported_media_type")
+
+
+def test_oversized_upload_is_413_declared_or_streamed(client, app_parts):
+    big = npy_bytes(np.zeros((60_000, 3)))  # 1.44 MB > 1 MB limit
+    assert_error(post_cloud(client, big), 413, "payload_too_large")
+
+    def chunks():
+        for i in range(0, len(big), 65536):
+            yield big[i : i + 65536]
+
+    r = client.post(
+        "/v1/inspections",
+        content=chunks(),
+        headers={"content-type": "multipart/form-data; boundary=x"},
+    )
+    assert_error(r, 413, "payload_too_large")
+    assert app_parts[1].count() == 0
+
+
+def test_malformed_multipart_is_400(client):
+    body = b'--xyz\r\nContent-Disposition: form-data; name="part"\r\n\r\npanel-s\r\n--xyz\r\nContent-Disp'
+    r = client.post(
+        "/v1/inspections",
+        content=body,
+        headers={"content-type": "multipart/form-data; boundary=xyz"},
+    )
+    assert r.status_code in (400, 422), r.text
+    assert "error" in r.json()
+
+
+# ----------------------------------------------------------------------------- system
+
+
+def test_health_follows_the_checks(client, app_parts):
+    zenoh_up = app_parts[4]
+    r = client.get("/v1/health")
+    assert r.status_code == 200 and r.json()["checks"] == {"parts": True, "zenoh": True}
+    zenoh_up["value"] = False
+    r = client.get("/v1/health")
+    assert r.status_code == 503 and r.json()["ready"] is False and r.json()["alive"] is True
+    assert client.get("/v1/health/live").status_code == 200
+
+
+def test_metrics_in_prometheus_text_format(client, app_parts):
+    app_parts[1].put(stored_result(1))
+    client.get("/v1/parts")
+    text = client.get("/metrics")
+    assert text.headers["content-type"].startswith("text/plain; version=0.0.4")
+    body = text.text
+    assert 'inspection_results_stored{status="pass"} 1' in body
+    assert 'http_requests_total{code="200",method="GET",route="/v1/parts"} 1' in body
+    assert "# TYPE http_request_duration_seconds histogram" in body
+    assert f'inspection_parts{{part="{PART}",state="ready"}} 1' in body
+    for line_ in body.splitlines():
+        assert line_.startswith("#") or len(line_.rsplit(" ", 1)) == 2
+
+
+def test_openapi_documents_the_routes(client):
+    spec = client.get("/openapi.json").json()
+    for path in ("/v1/parts", "/v1/parts/{name}", "/v1/inspections", "/v1/inspections/{id}",
+                 "/v1/inspections/{id}/colormap.png", "/v1/parts/{name}/trends", "/v1/stream",
+                 "/v1/health", "/metrics", "/v1/jobs/{job_id}"):  # fmt: skip
+        assert path in spec["paths"], path
+    assert (
+        "multipart/form-data" in spec["paths"]["/v1/inspections"]["post"]["requestBody"]["content"]
+    )
+    assert client.get("/docs").status_code == 200
+
+
+# ----------------------------------------------------------------------------- real server
+
+
+@pytest.fixture
+def server(app_parts):
+    """The app on a real uvicorn server on a free loopback port."""
+    app = app_parts[0]
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    sock.bind(("127.0.0.1", 0))
+    sock.listen(64)  # connections queue here until uvicorn accepts: no waiting needed
+    port = sock.getsockname()[1]
+    srv = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="on"))
+    thread = threading.Thread(target=srv.run, kwargs={"sockets": [sock]}, daemon=True)
+    thread.start()
+    yield port
+    srv.should_exit = True
+    thread.join(30)
+    sock.close()
+    assert not thread.is_alive()
+
+
+def call(port: int, method: str, path: str, body: bytes | None = None, headers=None):
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=60)
+    try:
+        conn.request(method, path, body=body, headers=headers or {})
+        r = conn.getresponse()
+        return r.status, dict(r.getheaders()), r.read()
+    finally:
+        conn.close()
+
+
+def test_real_server_answers_and_streams(server, app_parts):
+    port = server
+    hub = app_parts[3]
+    status, _, body = call(port, "GET", "/v1/health")
+    assert status == 200 and json.loads(body)["ready"] is True
+    status, _, body = call(port, "GET", "/v1/inspections/none")
+    assert status == 404 and json.loads(body)["error"]["code"] == "unknown_inspection"
+
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=60)
+    conn.request("GET", f"/v1/stream?part={PART}")
+    resp = conn.getresponse()
+    assert resp.status == 200 and resp.getheader("content-type").startswith("text/event-stream")
+    assert resp.readline() == b"event: ready\n"  # subscribed from here on
+    resp.readline(), resp.readline()
+    other = stored_result(1).model_copy(update={"part": "other", "id": "x.1"})
+    hub.publish(other)  # filtered out
+    wanted = stored_result(2)
+    hub.publish(wanted)
+    event = [resp.readline() for _ in range(4)]
+    assert event[0] == b"event: result\n"
+    assert event[1] == f"id: {wanted.id}\n".encode()
+    assert InspectionResult.model_validate_json(event[2][len(b"data: ") :]) == wanted
+    conn.close()
+
+
+def test_real_server_refuses_a_truncated_upload(server, app_parts):
+    """A client that declares more bytes than it sends, then goes away, changes nothing."""
+    port = server
+    store = app_parts[1]
+    store.put(stored_result(1))
+    boundary = "b0undary"
+    payload = npy_bytes(np.ones((1000, 3)))
+    body = (
+        f'--{boundary}\r\nContent-Disposition: form-data; name="part"\r\n\r\n{PART}\r\n'
+        f'--{boundary}\r\nContent-Disposition: form-data; name="file"; filename="c.npy"\r\n\r\n'
+    ).encode() + payload
+    s = socket.create_connection(("127.0.0.1", port), timeout=60)
+    head = (
+        f"POST /v1/inspections HTTP/1.1\r\nHost: x\r\nContent-Type: multipart/form-data; boundary={boundary}\r\n"
+        f"Content-Length: {len(body) + 1000}\r\n\r\n"
+    ).encode()
+    s.sendall(head + body)
+    s.shutdown(socket.SHUT_WR)  # the rest never comes
+    reply = b""
+    while chunk := s.recv(65536):
+        reply += chunk
+    s.close()
+    assert not reply.startswith(b"HTTP/1.1 200")
+    # The server is still up, and the earlier result intact.
+    status, _, body_ = call(port, "GET", "/v1/inspections")
+    assert status == 200 and [r["seq"] for r in json.loads(body_)["items"]] == [1]
