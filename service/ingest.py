@@ -266,7 +266,10 @@ class Ingest:
         return fs
 
     def run(self, count: int | None = None) -> None:
-        """Trigger until :meth:`stop` (or ``count`` triggers). Capture errors are logged, counted as a trigger."""
+        """Trigger until :meth:`stop` (or ``count`` triggers).
+
+        A failed capture is logged and still uses up its seq (the worker sees a gap).
+        """
         t0 = time.monotonic()
         k = 0
         while not self.stop_event.is_set() and (count is None or k < count):

@@ -372,9 +372,8 @@ def run_line(
             stop.wait(0.2) if parts_limit is None else h.counter.done.wait(0.2)
     finally:
         h.close()
-    out(
-        f"stopped after {h.counter.count} results; recordings: {', '.join(map(str, h.recorder.files))}"
-    )
+    files = ", ".join(map(str, h.recorder.files))
+    out(f"stopped after {h.counter.count} results; recordings: {files}")
     return 0
 
 

@@ -117,6 +117,9 @@ class JobQueue:
         with self._cond:
             return self._jobs
 
+    def close(self) -> None:
+        """Nothing to release: the queue is fed by whoever holds it."""
+
 
 class ZenohFrameSource:
     """Jobs from a subscription to ``<prefix>/<line>/<station>/frames``.

@@ -1,4 +1,4 @@
-"""``inspection replay FILE.mcap [--compare] [--publish]``: re-measure or re-publish a recorded run."""
+"""``inspection replay FILE.mcap [--compare] [--publish]``: re-measure or re-publish a run."""
 
 from __future__ import annotations
 
