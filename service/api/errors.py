@@ -53,6 +53,7 @@ _HTTP_CODES = {
     404: "not_found",
     405: "method_not_allowed",
     413: "payload_too_large",
+    503: "unavailable",
     415: "unsupported_media_type",
 }
 

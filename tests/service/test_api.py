@@ -51,8 +51,12 @@ def surface_point(x: float, y: float) -> tuple[list[float], list[float]]:
     """A point on the small panel's top surface and its upward normal."""
     h = 1e-4
     z = float(panel_height(SMALL, np.array([x]), np.array([y]))[0])
-    gx = (panel_height(SMALL, np.array([x + h]), np.array([y]))[0] - panel_height(SMALL, np.array([x - h]), np.array([y]))[0]) / (2 * h)  # fmt: skip
-    gy = (panel_height(SMALL, np.array([x]), np.array([y + h]))[0] - panel_height(SMALL, np.array([x]), np.array([y - h]))[0]) / (2 * h)  # fmt: skip
+
+    def z_at(u: float, v: float) -> float:
+        return float(panel_height(SMALL, np.array([u]), np.array([v]))[0])
+
+    gx = (z_at(x + h, y) - z_at(x - h, y)) / (2 * h)
+    gy = (z_at(x, y + h) - z_at(x, y - h)) / (2 * h)
     n = np.array([-gx, -gy, 1.0])
     return [x, y, z], [float(c) for c in n / np.linalg.norm(n)]
 
@@ -138,7 +142,11 @@ def stored_result(seq: int, *, status="pass", dev=0.1) -> InspectionResult:
         seq=seq,
         triggered_ns=t,
         status=status,
-        comparison=[PointResult(name="c", deviation_mm=dev, lower_mm=-0.3, upper_mm=0.3, support=50, verdict="pass")],
+        comparison=[
+            PointResult(
+                name="c", deviation_mm=dev, lower_mm=-0.3, upper_mm=0.3, support=50, verdict="pass"
+            )
+        ],
         software_version=software_version(),
     )  # fmt: skip
 
@@ -191,7 +199,10 @@ def test_create_part_builds_tree_as_a_job_then_delete(client, line, tmp_path):
     job = client.get(job_url).json()
     assert job["state"] == "done" and job["progress"] == 1.0
     assert client.get("/v1/parts/uploaded").json()["state"] == "ready"
-    assert_error(client.post("/v1/parts", files={"cad": ("p.stl", stl.read_bytes())}, data={"spec": json.dumps(spec)}), 409, "part_conflict")  # fmt: skip
+    again = client.post(
+        "/v1/parts", files={"cad": ("p.stl", stl.read_bytes())}, data={"spec": json.dumps(spec)}
+    )
+    assert_error(again, 409, "part_conflict")
     assert client.delete("/v1/parts/uploaded").status_code == 204
     assert_error(client.get("/v1/parts/uploaded"), 404, "unknown_part")
     assert_error(client.delete(f"/v1/parts/{PART}"), 409, "part_conflict")  # configured
@@ -287,6 +298,7 @@ def test_colormap_renders_the_archived_deviations(client, app_parts):
 
     img = cv2.imdecode(np.frombuffer(resp.content, np.uint8), cv2.IMREAD_COLOR)
     assert img is not None and img.shape[1] >= 300
+
     # Left (negative deviations) is blue, right (positive) is red: BGR.
     def mean_colour(region):
         px = region.reshape(-1, 3).astype(int)
@@ -335,8 +347,8 @@ def post_cloud(
         (lambda: post_cloud_args(npy_bytes(np.ones((1000, 3)))[:-500]), 422, "invalid_input"),
         (
             lambda: post_cloud_args(
-                b"ply\nformat binary_little_endian 1.0\nelement vertex 100\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
-                + b"\0" * 600
+                b"ply\nformat binary_little_endian 1.0\nelement vertex 100\n"
+                b"property float x\nproperty float y\nproperty float z\nend_header\n" + b"\0" * 600
             ),
             422,
             "invalid_input",
@@ -406,7 +418,10 @@ def test_oversized_upload_is_413_declared_or_streamed(client, app_parts):
 
 
 def test_malformed_multipart_is_400(client):
-    body = b'--xyz\r\nContent-Disposition: form-data; name="part"\r\n\r\npanel-s\r\n--xyz\r\nContent-Disp'
+    body = (
+        b'--xyz\r\nContent-Disposition: form-data; name="part"\r\n\r\npanel-s\r\n'
+        b"--xyz\r\nContent-Disp"
+    )
     r = client.post(
         "/v1/inspections",
         content=body,
@@ -525,7 +540,8 @@ def test_real_server_refuses_a_truncated_upload(server, app_parts):
     ).encode() + payload
     s = socket.create_connection(("127.0.0.1", port), timeout=60)
     head = (
-        f"POST /v1/inspections HTTP/1.1\r\nHost: x\r\nContent-Type: multipart/form-data; boundary={boundary}\r\n"
+        "POST /v1/inspections HTTP/1.1\r\nHost: x\r\n"
+        f"Content-Type: multipart/form-data; boundary={boundary}\r\n"
         f"Content-Length: {len(body) + 1000}\r\n\r\n"
     ).encode()
     s.sendall(head + body)

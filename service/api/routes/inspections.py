@@ -129,7 +129,13 @@ async def create_inspection(svc: ServicesDep, request: Request) -> InspectionRes
         )
     finally:
         await form.close()
-    outcome = await run_in_threadpool(svc.pipeline, part, points, trigger, frame=frame)
+    try:
+        outcome = await run_in_threadpool(svc.pipeline, part, points, trigger, frame=frame)
+    except ModuleNotFoundError as exc:
+        # An installation without the alignment stage still serves results.
+        raise ApiError(
+            503, "pipeline_unavailable", f"inspection is not available here: {exc}"
+        ) from exc
     await run_in_threadpool(svc.record, outcome.result, outcome.points_cad, outcome.distances)
     return outcome.result
 

@@ -1,0 +1,129 @@
+"""The part registry: trees cached by CAD hash + build parameters + format version."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from inspection.errors import CadLoadError
+from inspection.panel import PanelSpec, sheet_metal_panel
+from service.config import PartSpec
+from service.models import JobState, PartState
+from service.parts import (
+    PartConflict,
+    PartNotReady,
+    PartRegistry,
+    UnknownPart,
+    load_part_cad,
+    panel_spec,
+    tree_cache_path,
+)
+
+SMALL = {"length_mm": 120.0, "width_mm": 80.0, "holes": [], "emboss_center_mm": [-20.0, -15.0],
+         "emboss_size_mm": [30.0, 20.0], "character_line_y_mm": 15.0}  # fmt: skip
+
+
+def spec(name="p", **tree) -> PartSpec:
+    return PartSpec(name=name, cad="generated:panel", panel=SMALL, tree=tree)
+
+
+def test_panel_parameters_map_onto_the_generator():
+    hole = {"x_mm": 1.0, "y_mm": 2.0, "radius_mm": 3.0}
+    ps = panel_spec({"length_mm": 100.0, "holes": [hole], "emboss_size_mm": [10, 5]})
+    assert ps.length_mm == 100.0 and ps.holes[0].radius_mm == 3.0 and ps.emboss_size_mm == (10, 5)
+    with pytest.raises(ValueError, match="panel parameters"):
+        panel_spec({"colour": "red"})
+
+
+def test_generated_cad_is_deterministic():
+    a = load_part_cad(spec(), Path("."))
+    b = load_part_cad(spec(), Path("."))
+    assert a.hash == b.hash and len(a.faces) > 1000
+
+
+def test_tree_is_built_once_then_loaded(tmp_path):
+    trees = tmp_path / "trees"
+    with PartRegistry(trees, tmp_path / "uploads") as reg:
+        reg.add(spec(spacing_mm=2.0), tmp_path, configured=True)
+        assert not reg.ready()
+        with pytest.raises(PartNotReady):
+            reg.get("p")
+        reg.preload()
+        assert reg.ready() and reg.states() == {"p": "ready"}
+        first = reg.get("p")
+    files = list(trees.glob("*.npz"))
+    assert len(files) == 1 and files[0] == tree_cache_path(trees, first.cad, spec(spacing_mm=2.0))
+    mtime = files[0].stat().st_mtime_ns
+    with PartRegistry(trees, tmp_path / "uploads") as reg:
+        reg.add(spec(spacing_mm=2.0), tmp_path, configured=True)
+        reg.preload()
+        again = reg.get("p")
+    assert files[0].stat().st_mtime_ns == mtime  # loaded, not rebuilt
+    assert again.tree_hash == first.tree_hash
+    # Other build parameters: another cache entry.
+    with PartRegistry(trees, tmp_path / "uploads") as reg:
+        reg.add(spec(spacing_mm=2.5), tmp_path, configured=True)
+        reg.preload()
+        other = reg.get("p")
+    assert other.tree_hash != first.tree_hash
+    assert len(list(trees.glob("*.npz"))) == 2
+
+
+def test_a_corrupt_cached_tree_is_rebuilt(tmp_path):
+    trees = tmp_path / "trees"
+    s = spec(spacing_mm=2.0)
+    cad = load_part_cad(s, tmp_path)
+    path = tree_cache_path(trees, cad, s)
+    trees.mkdir()
+    path.write_bytes(b"not a tree")
+    with PartRegistry(trees, tmp_path / "uploads") as reg:
+        reg.add(s, tmp_path, configured=True)
+        reg.preload()
+        assert reg.ready()
+    assert path.stat().st_size > 1000
+
+
+def test_a_failing_part_does_not_stop_the_others(tmp_path):
+    with PartRegistry(tmp_path / "trees", tmp_path / "uploads") as reg:
+        reg.add(spec("good", spacing_mm=2.0), tmp_path, configured=True)
+        reg.add(PartSpec(name="bad", cad="missing.stl"), tmp_path, configured=True)
+        reg.preload()
+        assert reg.states() == {"bad": "failed", "good": "ready"}
+        assert not reg.ready()
+        with pytest.raises(PartNotReady, match="no such file"):
+            reg.get("bad")
+        pub = reg.public("bad")
+        assert pub.state == PartState.failed
+        assert reg.job(pub.job).state == JobState.failed
+        with pytest.raises(UnknownPart):
+            reg.get("nope")
+
+
+def test_uploads_survive_a_restart_and_bad_ones_leave_nothing(tmp_path):
+    stl = tmp_path / "u.stl"
+    sheet_metal_panel(PanelSpec().scaled(100.0, 70.0)).to_trimesh().export(stl)
+    uploads = tmp_path / "uploads"
+    base = PartSpec(name="x", cad="generated:panel").model_dump()
+    del base["cad"], base["panel"]
+    from service.models import PartCreate
+
+    with PartRegistry(tmp_path / "trees", uploads) as reg:
+        job = reg.create(
+            PartCreate(**{**base, "name": "up", "tree": {"spacing_mm": 2.0}}),
+            stl.read_bytes(),
+            "u.stl",
+        )
+        assert reg.wait(job.id).state == JobState.done
+        with pytest.raises(CadLoadError):
+            reg.create(PartCreate(**{**base, "name": "broken"}), b"solid\nendsolid\n", "b.stl")
+        assert reg.names() == ["up"]
+        assert not (uploads / "broken").exists()
+        with pytest.raises(PartConflict):
+            reg.create(PartCreate(**{**base, "name": "up"}), stl.read_bytes(), "u.stl")
+    with PartRegistry(tmp_path / "trees", uploads) as reg:
+        reg.add_uploaded()
+        reg.preload()
+        assert reg.states() == {"up": "ready"}
+        reg.delete("up")
+        assert reg.names() == [] and not (uploads / "up").exists()
