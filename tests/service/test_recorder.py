@@ -1,0 +1,185 @@
+"""MCAP recording: Foxglove schemas read back, crash safety, rotation and retention."""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import os
+import sys
+
+import numpy as np
+import pytest
+from linekit import LINE, PART, STATION, pipeline, rig
+from mcap.exceptions import EndOfFile
+from mcap.reader import NonSeekingReader, make_reader
+from mcap_protobuf.decoder import DecoderFactory
+
+from service.models import InspectionResult, Status
+from service.pipeline import Outcome, missed_result
+from service.recorder import Recorder, Retention, read_recording, recover
+
+
+@pytest.fixture(scope="module")
+def outcomes():
+    r, p = rig(defect_rate=0.5, seed=3), pipeline()
+    out = []
+    for seq in range(4):
+        fs = r.capture(seq, 1_800_000_000_000_000_000 + seq * 10**9)
+        out.append((p.run(fs), fs))
+    return out
+
+
+def metadata():
+    return {"config": {"hash": "abc", "json": "{}"}, "cad": {f"{PART}.cad_hash": "123"}}
+
+
+CALS = [
+    {
+        "name": "cam0",
+        "width": 400,
+        "height": 250,
+        "K": [1, 0, 200, 0, 1, 125, 0, 0, 1],
+        "P": [1, 0, 200, 0, 0, 1, 125, 0, 0, 0, 1, 0],
+    }
+]
+
+
+def test_round_trip_with_foxglove_schemas(tmp_path, outcomes):
+    rec = Recorder(tmp_path, "run", metadata=metadata(), calibrations=CALS)
+    for o, fs in outcomes:
+        rec.record(o, fs)
+    rec.close()
+    (path,) = rec.files
+    with path.open("rb") as fh:
+        reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+        summary = reader.get_summary()
+        schemas = {s.name for s in summary.schemas.values()}
+        assert {
+            "foxglove.RawImage",
+            "foxglove.PointCloud",
+            "foxglove.FrameTransform",
+            "foxglove.CameraCalibration",
+            "InspectionResult",
+        } <= schemas
+        meta = {m.name: m.metadata for m in reader.iter_metadata()}
+        assert meta["config"]["hash"] == "abc"
+        by_topic: dict[str, list] = {}
+        for schema, channel, message, decoded in reader.iter_decoded_messages(
+            topics=["/cam0/image", "/cloud", "/part/pose", "/cam0/calibration"]
+        ):
+            by_topic.setdefault(channel.topic, []).append((message, decoded))
+    assert len(by_topic["/cam0/image"]) == 4 and len(by_topic["/cam0/calibration"]) == 1
+    msg, img = by_topic["/cam0/image"][0]
+    assert img.encoding == "mono8" and msg.log_time == outcomes[0][1].triggered_ns
+    np.testing.assert_array_equal(
+        np.frombuffer(img.data, np.uint8).reshape(img.height, img.width), outcomes[0][1].images[0]
+    )
+    _, cloud = by_topic["/cloud"][0]
+    assert [f.name for f in cloud.fields] == ["x", "y", "z", "deviation"]
+    arr = np.frombuffer(cloud.data, dtype="<f4").reshape(-1, 4)
+    np.testing.assert_allclose(arr[:, :3], outcomes[0][0].points_rig, atol=1e-3)
+    np.testing.assert_allclose(arr[:, 3], outcomes[0][0].distances, atol=1e-5)
+    _, pose = by_topic["/part/pose"][0]
+    T_rig_cad = np.linalg.inv(outcomes[0][0].T_cad_rig)
+    assert pose.parent_frame_id == "rig"
+    np.testing.assert_allclose(
+        [pose.translation.x, pose.translation.y, pose.translation.z], T_rig_cad[:3, 3], atol=1e-9
+    )
+    # Results: JSON validating against the pydantic model, schema recorded alongside.
+    with path.open("rb") as fh:
+        reader = make_reader(fh)
+        results = [(s, m) for s, _, m in reader.iter_messages(topics=["/result"])]
+    assert json.loads(results[0][0].data)["title"] == "InspectionResult"
+    assert [InspectionResult.model_validate_json(m.data) for _, m in results] == [
+        o.result for o, _ in outcomes
+    ]
+
+
+def test_png_images_are_lossless(tmp_path, outcomes):
+    rec = Recorder(tmp_path, "png", image_encoding="png")
+    rec.record(*outcomes[0])
+    rec.close()
+    _, trig = read_recording(rec.files)
+    for a, b in zip(trig[0].frameset.images, outcomes[0][1].images, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def _record_and_die(directory: str, n: int) -> None:
+    sys.path.insert(0, os.path.dirname(__file__))
+    from linekit import pipeline as make_pipeline
+    from linekit import rig as make_rig
+
+    r, p = make_rig(seed=5), make_pipeline()
+    rec = Recorder(directory, "killed")
+    for seq in range(n):
+        fs = r.capture(seq, 1_800_000_000_000_000_000 + seq)
+        rec.record(p.run(fs), fs)
+    os.kill(os.getpid(), 9)  # no finish(), no close: like a power cut
+
+
+def test_killed_recorder_leaves_a_readable_file_and_recover_repairs_it(tmp_path):
+    ctx = multiprocessing.get_context("spawn")
+    proc = ctx.Process(target=_record_and_die, args=(str(tmp_path), 3))
+    proc.start()
+    proc.join(120)
+    assert proc.exitcode == -9
+    (path,) = tmp_path.glob("*.mcap")
+    with path.open("rb") as fh:
+        with pytest.raises(Exception):  # noqa: B017 - no summary in a killed file
+            make_reader(fh).get_summary().statistics  # noqa: B018
+    got = []
+    with path.open("rb") as fh:
+        # The plain mcap reader, in file order, gets every result up to the torn end.
+        with pytest.raises(EndOfFile):
+            for _, c, m in NonSeekingReader(fh).iter_messages(log_time_order=False):
+                got += [m] if c.topic == "/result" else []
+    assert len(got) == 3
+    _, triggers = read_recording([path])
+    assert [t.result.seq for t in triggers] == [0, 1, 2] and all(t.frameset for t in triggers)
+    fixed = recover(path)
+    with fixed.path.open("rb") as fh:
+        summary = make_reader(fh).get_summary()
+    assert summary.statistics.message_count == fixed.messages > 0
+
+
+def test_rotation_by_size(tmp_path, outcomes):
+    rec = Recorder(tmp_path, "rot", rotate_bytes=1)
+    for o, fs in outcomes:
+        rec.record(o, fs)
+    rec.close()
+    assert len(rec.files) == len(outcomes) + 1
+    _, triggers = read_recording(rec.files)
+    assert [t.result for t in triggers] == [o.result for o, _ in outcomes]
+
+
+@pytest.mark.parametrize(
+    "policy, kept",
+    [("all", [0, 1, 2, 3]), ("failures", "failed"), ("every_nth", "nth")],
+)
+def test_retention_policy_decides_whose_frames_are_kept(tmp_path, outcomes, policy, kept):
+    rec = Recorder(tmp_path, policy, retention=Retention(record=policy, every_nth=2))
+    flags = [rec.record(o, fs) for o, fs in outcomes]
+    miss = missed_result(line=LINE, station=STATION, seq=9, triggered_ns=1, reason="x")
+    assert rec.record(Outcome(miss), None) is False
+    rec.close()
+    failed = [o.result.status is not Status.passed for o, _ in outcomes]
+    expect = {
+        "all": [True] * 4,
+        "failures": failed,
+        "every_nth": [f or i % 2 == 0 for i, f in enumerate(failed)],
+    }[policy]
+    assert flags == expect
+    _, triggers = read_recording(rec.files)
+    assert len(triggers) == 5  # results are always recorded
+
+
+def test_size_budget_deletes_oldest_files(tmp_path, outcomes):
+    rec = Recorder(
+        tmp_path, "budget", rotate_bytes=1, retention=Retention(max_total_bytes=3 * 1024 * 1024)
+    )
+    for o, fs in outcomes:
+        rec.record(o, fs)
+    rec.close()
+    left = sorted(tmp_path.glob("*.mcap"))
+    assert sum(p.stat().st_size for p in left) <= 3 * 1024 * 1024
+    assert left and left[-1] == rec.files[-1] and rec.files[0] not in left
