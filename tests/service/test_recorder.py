@@ -64,7 +64,7 @@ def test_round_trip_with_foxglove_schemas(tmp_path, outcomes):
         meta = {m.name: m.metadata for m in reader.iter_metadata()}
         assert meta["config"]["hash"] == "abc"
         by_topic: dict[str, list] = {}
-        for schema, channel, message, decoded in reader.iter_decoded_messages(
+        for _schema, channel, message, decoded in reader.iter_decoded_messages(
             topics=["/cam0/image", "/cloud", "/part/pose", "/cam0/calibration"]
         ):
             by_topic.setdefault(channel.topic, []).append((message, decoded))
