@@ -1,0 +1,899 @@
+"""The CAD tree: a precomputed closest-point grid over a CAD surface.
+
+Our take on the Distance Varying Grid tree (DVG tree) of the published
+in-line inspection system: answering "which point of the CAD surface is
+closest to p?" by index arithmetic instead of a search.
+
+Structure (two levels, sparse)::
+
+    coarse grid  (nbx, nby, nbz) int32        block id, or -1 far from the surface
+       │  only blocks within the band (plus their own size) exist
+       ▼
+    blocks of block^3 fine cells (spacing h)  per cell: the face closest to all
+                                              eight corners, or a short list of
+                                              candidate faces, or "unknown"
+
+A query finds its cell (two array reads), computes the exact point-to-triangle
+distance to the cell's face(s) and walks to a neighbouring face when the foot
+point lies on an edge or corner of the current one. Cells hold a face per
+*corner* of the cell rather than per centre, so a query inside the cell has
+the faces of all the regions around it to start from; the walk then makes the
+answer exact wherever the surface is connected. Signs come from the
+angle-weighted pseudo-normal of the closest feature (face, edge or corner).
+
+Points outside the band, outside the bounding box, or in cells whose corners
+lie outside the band take the exact slow path: a kd-tree on surface samples
+gives an upper bound, and every face that could beat it is tested exactly.
+
+Compilation: the kernels are numba functions cached on disk (``cache=True``).
+The first query of a fresh process loads (or, on a new machine, compiles) them;
+call :func:`warmup` at service start-up so that no part pays for it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+import os
+import tempfile
+import time
+import zipfile
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from . import _grid_kernels as K
+from .arrays import Faces, Indices, Points, Scalars, Vectors
+from .cad import CadModel
+from .errors import InvalidInput, TreeMismatch
+
+log = logging.getLogger(__name__)
+
+FORMAT_VERSION = 1
+"""Version of the saved file layout; bump when arrays or their meaning change."""
+
+DEFAULT_SPACING_MM = 1.0
+DEFAULT_BAND_MM = 4.0
+BLOCK = 8
+"""Fine cells per block edge (a block is BLOCK^3 cells)."""
+
+# Safety limit on the coarse grid and the fine cells, so a wrong unit (a
+# model in micrometres) fails with a message instead of exhausting memory.
+_MAX_COARSE_CELLS = 50_000_000
+_MAX_FINE_CELLS = 400_000_000
+# Blocks whose nodes are computed per kernel call: bounds the build's scratch
+# memory ((BLOCK+1)^3 int32 per block) and sets the progress granularity.
+_CHUNK_BLOCKS = 2048
+# Adjacent faces meeting at less than this dihedral angle count as one smooth
+# patch, whose cells store a single face. Where their regions overlap (the
+# concave side) picking the wrong one errs by at most distance * angle^2:
+# 5.7 mm * 0.02^2 = 2.3 um at the edge of the band, far less on average.
+_COS_SMOOTH = math.cos(0.02)
+
+ProgressFn = Callable[[float], None]
+
+
+@dataclass(frozen=True)
+class GridParams:
+    """Build parameters of a :class:`GridTree`.
+
+    Attributes
+    ----------
+    spacing_mm : float
+        Edge of a fine cell, mm.
+    band_mm : float
+        Queries within this distance of the surface take the fast path.
+    block : int
+        Fine cells per block edge.
+    sample_spacing_mm : float
+        Covering radius of the surface samples used by the slow path, mm.
+    """
+
+    spacing_mm: float
+    band_mm: float
+    block: int
+    sample_spacing_mm: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "spacing_mm": self.spacing_mm,
+            "band_mm": self.band_mm,
+            "block": self.block,
+            "sample_spacing_mm": self.sample_spacing_mm,
+        }
+
+
+@dataclass(frozen=True)
+class Closest:
+    """Closest points on the CAD surface, one row per query point.
+
+    Attributes
+    ----------
+    points : (N, 3) float64, mm, CAD frame
+        The closest point of the surface.
+    normals : (N, 3) float64
+        Unit normal of the face the closest point lies on.
+    distances : (N,) float64, mm
+        Signed distance: positive on the side the surface normals point to
+        (the outer side), negative behind it. Off an edge or corner the sign
+        follows the angle-weighted pseudo-normal of that edge or corner.
+    face : (N,) int64
+        Index of that face in the CAD model's ``faces``.
+    """
+
+    points: Points
+    normals: Vectors
+    distances: Scalars
+    face: Indices
+
+
+@dataclass(frozen=True)
+class _Mesh:
+    """Per-face and per-vertex arrays the kernels read (all C-contiguous)."""
+
+    vertices: Points
+    faces: Faces
+    face_normals: Vectors
+    tri: np.ndarray  # (F, 3, 3) float64
+    plane: np.ndarray  # (F, 12) float64: corner a, unit normal, dual basis U, V of the edges
+    face_adj: np.ndarray  # (F, 3) int32: face across edge e, or -1
+    smooth_adj: np.ndarray  # (F, 3) int32: face_adj where the dihedral angle is small, else -1
+    vf_ptr: np.ndarray  # (V+1,) int64
+    vf_idx: np.ndarray  # (sum,) int32: faces around each vertex
+    edge_pn: np.ndarray  # (F, 3, 3) float64: pseudo-normal of edge e of face f
+    vert_pn: np.ndarray  # (V, 3) float64: angle-weighted vertex pseudo-normal
+
+
+class GridTree:
+    """Precomputed closest-point structure of one CAD model.
+
+    Build with :meth:`build`, or read a saved one with :meth:`load`. The
+    object is immutable after construction.
+
+    Attributes
+    ----------
+    params : GridParams
+    cad_hash : str
+        :attr:`CadModel.hash` of the geometry the tree was built for.
+    hash : str
+        SHA-256 (hex) of the tree's content, its parameters and the format
+        version: identifies this tree in results (``tree_hash``).
+    cad : CadModel or None
+        The model, when the tree was built from it or loaded with it.
+    """
+
+    def __init__(
+        self,
+        *,
+        mesh: _Mesh,
+        params: GridParams,
+        cad_hash: str,
+        origin: np.ndarray,
+        dims: np.ndarray,
+        coarse: np.ndarray,
+        cells: np.ndarray,
+        mixed_ptr: np.ndarray,
+        mixed_faces: np.ndarray,
+        samples: np.ndarray,
+        sample_face: np.ndarray,
+        sample_radius: float,
+        name: str,
+        tree_hash: str | None = None,
+        cad: CadModel | None = None,
+    ) -> None:
+        self._mesh = mesh
+        self.params = params
+        self.cad_hash = cad_hash
+        self.name = name
+        self.cad = cad
+        self._origin = origin
+        self._dims = dims
+        self._coarse = coarse
+        self._cells = cells
+        self._mixed_ptr = mixed_ptr
+        self._mixed_faces = mixed_faces
+        self._samples = samples
+        self._sample_face = sample_face
+        self._sample_radius = float(sample_radius)
+        # The slow path's search structure; a balanced, compact tree builds in
+        # tens of ms for ~1e5 samples, so it is rebuilt on load instead of saved.
+        self._kd = cKDTree(samples, balanced_tree=False, compact_nodes=False)
+        self.hash = tree_hash if tree_hash is not None else self._content_hash()
+
+    # ------------------------------------------------------------------ build
+    @classmethod
+    def build(
+        cls,
+        cad: CadModel,
+        *,
+        spacing_mm: float = DEFAULT_SPACING_MM,
+        band_mm: float = DEFAULT_BAND_MM,
+        progress: ProgressFn | None = None,
+    ) -> GridTree:
+        """Precompute the closest faces of a CAD model on a sparse two-level grid.
+
+        Parameters
+        ----------
+        cad : CadModel
+            The part, in mm.
+        spacing_mm : float
+            Fine cell edge, mm. 1 mm suits parts of 100-1000 mm: the exact
+            local correction makes the answer independent of the spacing; a
+            finer grid only reduces the number of candidate faces per cell.
+        band_mm : float
+            Distance from the surface within which every query takes the fast
+            path, mm. Farther queries are exact too, through the slow path.
+        progress : callable, optional
+            Called with the completed fraction (0..1) as blocks are computed.
+
+        Returns
+        -------
+        GridTree
+
+        Raises
+        ------
+        InvalidInput
+            Non-positive spacing, negative band, or a grid too large for memory
+            (usually a model in the wrong unit).
+        """
+        if not isinstance(cad, CadModel):
+            raise InvalidInput(f"cad must be a CadModel, got {type(cad).__name__}")
+        if len(cad.faces) >= K.INTERIOR_FLAG:
+            raise InvalidInput(
+                f"{len(cad.faces)} faces: at most {K.INTERIOR_FLAG - 1} are supported"
+            )
+        spacing_mm = _positive("spacing_mm", spacing_mm)
+        band_mm = float(band_mm)
+        if not math.isfinite(band_mm) or band_mm < 0:
+            raise InvalidInput(f"band_mm must be a finite number >= 0, got {band_mm!r}")
+        t0 = time.perf_counter()
+        mesh = _mesh_arrays(cad.vertices, cad.faces, cad.face_normals)
+        h = spacing_mm
+        block_mm = BLOCK * h
+        # Nodes within `reach` of the surface get their exact closest face. A
+        # query within band_mm has all eight cell corners within band + the
+        # cell diagonal, so those corners are known.
+        reach = band_mm + math.sqrt(3.0) * h * 1.0001
+        lo_box = cad.vertices.min(axis=0) - reach - h
+        hi_box = cad.vertices.max(axis=0) + reach + h
+        dims = np.ceil((hi_box - lo_box) / block_mm).astype(np.int64)
+        n_coarse = int(np.prod(dims))
+        if n_coarse > _MAX_COARSE_CELLS:
+            raise InvalidInput(
+                f"a {spacing_mm} mm grid over a {cad.extents.round(1).tolist()} mm "
+                f"model needs {n_coarse} blocks; is the model in mm? (use a larger spacing_mm)"
+            )
+        origin = lo_box.astype(np.float64)
+
+        tri = mesh.tri
+        lo = tri.min(axis=1) - reach
+        hi = tri.max(axis=1) + reach
+        centre = tri.mean(axis=1)
+        radius = np.sqrt(((tri - centre[:, None, :]) ** 2).sum(axis=2)).max(axis=1)
+        ranges = K.face_block_ranges(lo, hi, origin, block_mm, dims)
+        coarse, coords, ptr, face_idx = K.block_face_lists(ranges, dims)
+        nblocks = len(coords)
+        if nblocks * BLOCK**3 > _MAX_FINE_CELLS:
+            raise InvalidInput(
+                f"the band needs {nblocks * BLOCK**3} fine cells; "
+                "use a larger spacing_mm or a smaller band_mm"
+            )
+        cells = np.empty(nblocks * BLOCK**3, dtype=np.int32)
+        counts_parts: list[np.ndarray] = []
+        faces_parts: list[np.ndarray] = []
+        n_mixed = 0
+        for b0 in range(0, nblocks, _CHUNK_BLOCKS):
+            b1 = min(nblocks, b0 + _CHUNK_BLOCKS)
+            nodes = K.block_nodes(
+                b0,
+                b1,
+                coords,
+                ptr,
+                face_idx,
+                lo,
+                hi,
+                centre,
+                radius,
+                tri,
+                origin,
+                h,
+                BLOCK,
+                reach * reach,
+            )
+            counts, mixed = K.cells_from_nodes(
+                nodes,
+                b0,
+                coords,
+                origin,
+                h,
+                BLOCK,
+                tri,
+                mesh.plane,
+                mesh.faces,
+                mesh.face_normals,
+                _COS_SMOOTH,
+                cells[b0 * BLOCK**3 : b1 * BLOCK**3],
+                n_mixed,
+            )
+            counts_parts.append(counts)
+            faces_parts.append(mixed)
+            n_mixed += len(counts)
+            if progress is not None:
+                progress(b1 / nblocks)
+        mixed_ptr = np.zeros(n_mixed + 1, dtype=np.int64)
+        if n_mixed:
+            np.cumsum(np.concatenate(counts_parts), out=mixed_ptr[1:])
+        mixed_faces = (
+            np.concatenate(faces_parts) if faces_parts else np.zeros(0, dtype=np.int32)
+        ).astype(np.int32, copy=False)
+
+        sample_spacing = 2.0 * h
+        samples, sample_face, sample_radius = _surface_samples(tri, sample_spacing)
+        params = GridParams(
+            spacing_mm=h, band_mm=band_mm, block=BLOCK, sample_spacing_mm=sample_spacing
+        )
+        tree = cls(
+            mesh=mesh,
+            params=params,
+            cad_hash=cad.hash,
+            origin=origin,
+            dims=dims,
+            coarse=coarse,
+            cells=cells,
+            mixed_ptr=mixed_ptr,
+            mixed_faces=mixed_faces,
+            samples=samples,
+            sample_face=sample_face,
+            sample_radius=sample_radius,
+            name=cad.name,
+            cad=cad,
+        )
+        log.debug(
+            "GridTree %s: %d faces, %d blocks, %d mixed cells, %.1f MB, %.2f s",
+            cad.name,
+            len(cad.faces),
+            nblocks,
+            n_mixed,
+            tree.nbytes / 1e6,
+            time.perf_counter() - t0,
+        )
+        return tree
+
+    # ------------------------------------------------------------------ query
+    def query(self, points: np.ndarray) -> Closest:
+        """Closest points on the CAD surface.
+
+        Parameters
+        ----------
+        points : (N, 3) float, mm, CAD frame
+            Query points; not modified.
+
+        Returns
+        -------
+        Closest
+            One row per query point, in the input order.
+
+        Raises
+        ------
+        InvalidInput
+            Not an (N, 3) array of finite numbers.
+        """
+        p = _as_points(points)
+        n = len(p)
+        m = self._mesh
+        out_pts = np.empty((n, 3))
+        out_nrm = np.empty((n, 3))
+        out_dist = np.empty(n)
+        out_face = np.empty(n, dtype=np.int64)
+        status = np.empty(n, dtype=np.uint8)
+        if n:
+            K.query_grid(
+                p,
+                self._origin,
+                1.0 / self.params.spacing_mm,
+                self.params.block,
+                self._dims,
+                self._coarse,
+                self._cells,
+                self._mixed_ptr,
+                self._mixed_faces,
+                m.tri,
+                m.plane,
+                m.smooth_adj,
+                m.faces,
+                m.face_adj,
+                m.vf_ptr,
+                m.vf_idx,
+                m.face_normals,
+                m.edge_pn,
+                m.vert_pn,
+                out_pts,
+                out_nrm,
+                out_dist,
+                out_face,
+                status,
+            )
+            slow = np.flatnonzero(status != K.STATUS_DONE)
+            if len(slow):
+                self._query_slow(p, slow, out_pts, out_nrm, out_dist, out_face)
+        return Closest(points=out_pts, normals=out_nrm, distances=out_dist, face=out_face)
+
+    def _query_slow(self, p, rows, out_pts, out_nrm, out_dist, out_face) -> None:
+        """Exact closest faces of p[rows] by a kd-tree bound on surface samples.
+
+        Every point of a face lies within ``sample_radius`` of one of its
+        samples, so a face closer than the bound U has a sample within
+        U + sample_radius: testing the faces of those samples is exact.
+        """
+        m = self._mesh
+        q = np.ascontiguousarray(p[rows])
+        _, nearest = self._kd.query(q, k=1, workers=-1)
+        bound = np.sqrt(K.exact_distance(q, self._sample_face[nearest], m.tri))
+        balls = self._kd.query_ball_point(
+            q, bound + self._sample_radius * (1.0 + 1e-9) + 1e-9, workers=-1, return_sorted=False
+        )
+        lens = np.fromiter((len(b) for b in balls), dtype=np.int64, count=len(balls))
+        cand_ptr = np.zeros(len(rows) + 1, dtype=np.int64)
+        np.cumsum(lens, out=cand_ptr[1:])
+        flat = np.fromiter((i for b in balls for i in b), dtype=np.int64, count=int(cand_ptr[-1]))
+        cand = self._sample_face[flat]
+        # Several samples of one face: test each face once per point.
+        owner = np.repeat(np.arange(len(rows)), lens)
+        key = np.unique(owner * np.int64(len(m.faces)) + cand)
+        owner_u, cand_u = np.divmod(key, np.int64(len(m.faces)))
+        cand_ptr = np.searchsorted(owner_u, np.arange(len(rows) + 1)).astype(np.int64)
+        K.query_candidates(
+            q,
+            rows.astype(np.int64),
+            cand_ptr,
+            cand_u.astype(np.int32),
+            m.tri,
+            m.faces,
+            m.face_adj,
+            m.vf_ptr,
+            m.vf_idx,
+            m.face_normals,
+            m.edge_pn,
+            m.vert_pn,
+            out_pts,
+            out_nrm,
+            out_dist,
+            out_face,
+        )
+
+    # ------------------------------------------------------------------ facts
+    @property
+    def vertices(self) -> Points:
+        """(V, 3) float64, mm: the CAD vertices (read-only)."""
+        return self._mesh.vertices
+
+    @property
+    def faces(self) -> Faces:
+        """(F, 3) int64: the CAD faces (read-only)."""
+        return self._mesh.faces
+
+    @property
+    def face_normals(self) -> Vectors:
+        """(F, 3) float64: unit face normals (read-only)."""
+        return self._mesh.face_normals
+
+    @property
+    def bounds(self) -> np.ndarray:
+        """(2, 3) float64, mm: bounding box of the CAD model, min row then max row."""
+        v = self._mesh.vertices
+        return np.stack([v.min(axis=0), v.max(axis=0)])
+
+    @property
+    def n_blocks(self) -> int:
+        """Fine blocks allocated near the surface."""
+        return int((self._coarse >= 0).sum())
+
+    @property
+    def n_mixed_cells(self) -> int:
+        """Fine cells whose corners have different closest faces."""
+        return len(self._mixed_ptr) - 1
+
+    @property
+    def nbytes(self) -> int:
+        """Memory held by the tree's arrays, bytes (mesh, grid, samples)."""
+        m = self._mesh
+        arrays = [
+            m.vertices,
+            m.faces,
+            m.face_normals,
+            m.tri,
+            m.plane,
+            m.smooth_adj,
+            m.face_adj,
+            m.vf_ptr,
+            m.vf_idx,
+            m.edge_pn,
+            m.vert_pn,
+            self._coarse,
+            self._cells,
+            self._mixed_ptr,
+            self._mixed_faces,
+            self._samples,
+            self._sample_face,
+        ]
+        return int(sum(a.nbytes for a in arrays))
+
+    def info(self) -> dict[str, Any]:
+        """A summary for people and logs: versions, hashes, parameters, sizes."""
+        return {
+            "format_version": FORMAT_VERSION,
+            "name": self.name,
+            "cad_hash": self.cad_hash,
+            "tree_hash": self.hash,
+            "params": self.params.to_dict(),
+            "faces": int(len(self._mesh.faces)),
+            "vertices": int(len(self._mesh.vertices)),
+            "bounds_mm": self.bounds.tolist(),
+            "coarse_dims": [int(d) for d in self._dims],
+            "blocks": self.n_blocks,
+            "fine_cells": int(len(self._cells)),
+            "mixed_cells": self.n_mixed_cells,
+            "unknown_cells": int((self._cells == K.CELL_UNKNOWN).sum()),
+            "samples": int(len(self._samples)),
+            "nbytes": self.nbytes,
+        }
+
+    def __repr__(self) -> str:
+        return (
+            f"GridTree({self.name!r}, faces={len(self._mesh.faces)}, blocks={self.n_blocks}, "
+            f"spacing_mm={self.params.spacing_mm}, band_mm={self.params.band_mm}, "
+            f"{self.nbytes / 1e6:.1f} MB)"
+        )
+
+    # ------------------------------------------------------------------ files
+    def _arrays(self) -> dict[str, np.ndarray]:
+        m = self._mesh
+        return {
+            "vertices": m.vertices,
+            "faces": m.faces,
+            "face_normals": m.face_normals,
+            "face_adj": m.face_adj,
+            "vf_ptr": m.vf_ptr,
+            "vf_idx": m.vf_idx,
+            "edge_pn": m.edge_pn,
+            "vert_pn": m.vert_pn,
+            "origin": self._origin,
+            "dims": self._dims,
+            "coarse": self._coarse,
+            "cells": self._cells,
+            "mixed_ptr": self._mixed_ptr,
+            "mixed_faces": self._mixed_faces,
+            "samples": self._samples,
+            "sample_face": self._sample_face,
+        }
+
+    def _content_hash(self) -> str:
+        h = hashlib.sha256()
+        h.update(
+            json.dumps(
+                {
+                    "format_version": FORMAT_VERSION,
+                    "cad_hash": self.cad_hash,
+                    "params": self.params.to_dict(),
+                    "sample_radius": self._sample_radius,
+                },
+                sort_keys=True,
+            ).encode()
+        )
+        for key, a in sorted(self._arrays().items()):
+            h.update(key.encode())
+            h.update(np.ascontiguousarray(a).tobytes())
+        return h.hexdigest()
+
+    def save(self, path: str | Path) -> Path:
+        """Write the tree to one uncompressed ``.npz`` file (fast to load).
+
+        The file holds the format version, the build parameters, the CAD
+        geometry hash, the tree hash, the mesh and the grid. It is written to
+        a temporary file first and renamed, so readers never see half a tree.
+
+        Returns
+        -------
+        Path
+            The path written.
+        """
+        path = Path(path)
+        meta = {
+            "format_version": FORMAT_VERSION,
+            "name": self.name,
+            "cad_hash": self.cad_hash,
+            "tree_hash": self.hash,
+            "params": self.params.to_dict(),
+            "sample_radius": self._sample_radius,
+        }
+        arrays = dict(self._arrays())
+        arrays["meta"] = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), dtype=np.uint8)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                np.savez(fh, **arrays)
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path, cad: CadModel | None = None) -> GridTree:
+        """Read a tree written by :meth:`save`.
+
+        Parameters
+        ----------
+        path : str or Path
+        cad : CadModel, optional
+            When given, the tree must have been built for this geometry.
+
+        Raises
+        ------
+        TreeMismatch
+            The file is of another format version, or (with ``cad``) was
+            built for another geometry.
+        InvalidInput
+            The file is missing or not a saved tree.
+        """
+        path = Path(path)
+        if not path.is_file():
+            raise InvalidInput(f"{path}: no such tree file")
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                meta = json.loads(z["meta"].tobytes().decode())
+                version = meta.get("format_version")
+                if version != FORMAT_VERSION:
+                    raise TreeMismatch(
+                        f"{path}: tree format version {version}, this software reads "
+                        f"{FORMAT_VERSION}; rebuild it with `inspection build-tree`"
+                    )
+                a = {k: z[k] for k in z.files if k != "meta"}
+        except (OSError, ValueError, KeyError, zipfile.BadZipFile, json.JSONDecodeError) as exc:
+            raise InvalidInput(f"{path}: not a saved GridTree ({exc})") from exc
+        if cad is not None:
+            if not isinstance(cad, CadModel):
+                raise InvalidInput(f"cad must be a CadModel, got {type(cad).__name__}")
+            if cad.hash != meta["cad_hash"]:
+                raise TreeMismatch(
+                    f"{path}: tree built for CAD {meta['cad_hash'][:12]}, "
+                    f"given CAD {cad.name!r} is {cad.hash[:12]}"
+                )
+        vertices, faces = a["vertices"], a["faces"]
+        tri = np.ascontiguousarray(vertices[faces])
+        plane = _plane_data(tri, a["face_normals"])
+        smooth_adj = _smooth_adjacency(a["face_adj"], a["face_normals"])
+        mesh = _Mesh(
+            vertices=vertices,
+            faces=faces,
+            face_normals=a["face_normals"],
+            tri=tri,
+            plane=plane,
+            smooth_adj=smooth_adj,
+            face_adj=a["face_adj"],
+            vf_ptr=a["vf_ptr"],
+            vf_idx=a["vf_idx"],
+            edge_pn=a["edge_pn"],
+            vert_pn=a["vert_pn"],
+        )
+        for arr in (*a.values(), tri, plane, smooth_adj):
+            arr.setflags(write=False)
+        return cls(
+            mesh=mesh,
+            params=GridParams(**meta["params"]),
+            cad_hash=meta["cad_hash"],
+            origin=a["origin"],
+            dims=a["dims"],
+            coarse=a["coarse"],
+            cells=a["cells"],
+            mixed_ptr=a["mixed_ptr"],
+            mixed_faces=a["mixed_faces"],
+            samples=a["samples"],
+            sample_face=a["sample_face"],
+            sample_radius=meta["sample_radius"],
+            name=meta["name"],
+            tree_hash=meta["tree_hash"],
+            cad=cad,
+        )
+
+
+def warmup() -> float:
+    """Load (or compile, on a new machine) every grid kernel; returns seconds spent.
+
+    Builds and queries a tiny tree, which exercises the build, the fast and
+    the slow path. Call it once at service start-up.
+    """
+    t0 = time.perf_counter()
+    v = np.array([[0, 0, 0], [10, 0, 0], [0, 10, 0], [0, 0, 10]], dtype=np.float64)
+    f = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    tree = GridTree.build(CadModel.from_arrays(v, f, name="warmup"), spacing_mm=1.0, band_mm=1.0)
+    tree.query(np.array([[1.0, 1.0, 0.5], [2.0, 2.0, 40.0]]))
+    return time.perf_counter() - t0
+
+
+# ---------------------------------------------------------------------- helpers
+def _positive(name: str, value: float) -> float:
+    try:
+        x = float(value)
+    except (TypeError, ValueError) as exc:
+        raise InvalidInput(f"{name} must be a number, got {value!r}") from exc
+    if not math.isfinite(x) or x <= 0:
+        raise InvalidInput(f"{name} must be a finite number > 0, got {value!r}")
+    return x
+
+
+def _as_points(points: Any) -> np.ndarray:
+    """(N, 3) C-contiguous float64 view or copy of finite points, else InvalidInput."""
+    try:
+        p = np.asarray(points, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InvalidInput(f"points must be an (N, 3) array of numbers: {exc}") from exc
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise InvalidInput(f"points must have shape (N, 3), got {p.shape}")
+    if not np.isfinite(p).all():
+        bad = int((~np.isfinite(p)).any(axis=1).sum())
+        raise InvalidInput(f"points: {bad} rows hold NaN or inf")
+    return np.ascontiguousarray(p)
+
+
+def _mesh_arrays(vertices: np.ndarray, faces: np.ndarray, face_normals: np.ndarray) -> _Mesh:
+    """Adjacency and pseudo-normals of a triangle mesh."""
+    v = np.ascontiguousarray(vertices, dtype=np.float64)
+    f = np.ascontiguousarray(faces, dtype=np.int64)
+    fn = np.ascontiguousarray(face_normals, dtype=np.float64)
+    nf, nv = len(f), len(v)
+    tri = np.ascontiguousarray(v[f])
+
+    # Edge e of face i joins corners e and e+1; faces sharing an undirected
+    # edge are neighbours (on a non-manifold edge, the next one in sort order).
+    a = f[:, [0, 1, 2]].ravel()
+    b = f[:, [1, 2, 0]].ravel()
+    key = np.minimum(a, b) * np.int64(nv) + np.maximum(a, b)
+    order = np.argsort(key, kind="stable")
+    ks = key[order]
+    face_adj = np.full(3 * nf, -1, dtype=np.int64)
+    start = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1]])
+    group_len = np.diff(np.r_[start, len(ks)])
+    group_of = np.repeat(np.arange(len(start)), group_len)
+    pos = np.arange(len(ks)) - start[group_of]
+    nxt = np.where(pos + 1 < group_len[group_of], np.arange(len(ks)) + 1, start[group_of])
+    multi = group_len[group_of] > 1
+    face_adj[order[multi]] = order[nxt[multi]] // 3
+    face_adj = face_adj.reshape(nf, 3).astype(np.int32)
+
+    # Edge pseudo-normal: sum of the two face normals (one on a border edge).
+    other = np.where(face_adj >= 0, face_adj, np.arange(nf)[:, None])
+    epn = fn[:, None, :] + fn[other]
+    epn /= np.maximum(np.linalg.norm(epn, axis=2, keepdims=True), 1e-300)
+    # Opposite normals (a folded sheet) sum to zero: fall back to the face's own.
+    flat = np.linalg.norm(fn[:, None, :] + fn[other], axis=2) < 1e-9
+    epn[flat] = np.broadcast_to(fn[:, None, :], epn.shape)[flat]
+
+    # Vertex pseudo-normal: normals weighted by the corner angles.
+    angles = np.empty((nf, 3))
+    for c in range(3):
+        e1 = tri[:, (c + 1) % 3] - tri[:, c]
+        e2 = tri[:, (c + 2) % 3] - tri[:, c]
+        cosang = (e1 * e2).sum(axis=1) / np.maximum(
+            np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1), 1e-300
+        )
+        angles[:, c] = np.arccos(np.clip(cosang, -1.0, 1.0))
+    vpn = np.zeros((nv, 3))
+    for c in range(3):
+        np.add.at(vpn, f[:, c], fn * angles[:, c : c + 1])
+    vpn /= np.maximum(np.linalg.norm(vpn, axis=1, keepdims=True), 1e-300)
+
+    # Faces around each vertex (CSR).
+    flat_v = f.ravel()
+    vorder = np.argsort(flat_v, kind="stable")
+    vf_idx = (vorder // 3).astype(np.int32)
+    vf_ptr = np.zeros(nv + 1, dtype=np.int64)
+    np.cumsum(np.bincount(flat_v, minlength=nv), out=vf_ptr[1:])
+
+    plane = _plane_data(tri, fn)
+    smooth_adj = _smooth_adjacency(face_adj, fn)
+    mesh = _Mesh(
+        vertices=v,
+        faces=f,
+        face_normals=fn,
+        tri=tri,
+        plane=plane,
+        face_adj=face_adj,
+        smooth_adj=smooth_adj,
+        vf_ptr=vf_ptr,
+        vf_idx=vf_idx,
+        edge_pn=np.ascontiguousarray(epn),
+        vert_pn=vpn,
+    )
+    for arr in (v, f, fn, tri, plane, face_adj, smooth_adj, vf_ptr, vf_idx, mesh.edge_pn, vpn):
+        arr.setflags(write=False)
+    return mesh
+
+
+def _smooth_adjacency(face_adj: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """(F, 3) int32: the face across each edge where the dihedral angle is below the
+    smooth-patch limit, else -1. The query walks plane feet only across these."""
+    other = np.where(face_adj >= 0, face_adj, 0)
+    cos = np.einsum("fk,fek->fe", normals, normals[other])
+    return np.ascontiguousarray(
+        np.where((face_adj >= 0) & (cos >= _COS_SMOOTH), face_adj, -1)
+    ).astype(np.int32)
+
+
+def _plane_data(tri: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """(F, 12) float64 rows [n, n.a, U, U.a, V, V.a] of each face.
+
+    n is the unit normal, U and V the dual basis of the edges ab and ac (both
+    in the plane), so for a point p: d = p.n - n.a is its signed plane
+    distance and u = p.U - U.a, v = p.V - V.a the barycentric coordinates of
+    its foot point. The normal comes first so a query that needs only the
+    plane reads one cache line.
+    """
+    a = tri[:, 0]
+    e1 = tri[:, 1] - a
+    e2 = tri[:, 2] - a
+    g11 = (e1 * e1).sum(axis=1)
+    g12 = (e1 * e2).sum(axis=1)
+    g22 = (e2 * e2).sum(axis=1)
+    det = g11 * g22 - g12 * g12
+    det = np.where(det > 0, det, np.inf)
+    U = (g22[:, None] * e1 - g12[:, None] * e2) / det[:, None]
+    V = (g11[:, None] * e2 - g12[:, None] * e1) / det[:, None]
+
+    def dot(x: np.ndarray) -> np.ndarray:
+        return (x * a).sum(axis=1, keepdims=True)
+
+    rows = [normals, dot(normals), U, dot(U), V, dot(V)]
+    return np.ascontiguousarray(np.concatenate(rows, axis=1))
+
+
+def _surface_samples(tri: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """Points on every face such that every surface point is near one of its face's samples.
+
+    Each face is split into n^2 similar sub-triangles (n from its longest edge)
+    and sampled at their centroids; every point of a triangle lies within
+    2/3 of its longest edge of the centroid (a median is at most that edge).
+
+    Returns
+    -------
+    samples : (S, 3) float64, mm
+    sample_face : (S,) int32
+    radius : float, mm
+        Largest distance from a surface point to its face's nearest sample.
+    """
+    edges = np.linalg.norm(tri - tri[:, [1, 2, 0]], axis=2)
+    longest = edges.max(axis=1)
+    cover = longest * (2.0 / 3.0)
+    n = np.maximum(1, np.ceil(cover / spacing)).astype(np.int64)
+    radius = float((cover / n).max())
+    out_pts = []
+    out_face = []
+    for level in np.unique(n):
+        ids = np.flatnonzero(n == level)
+        ij = []
+        for i in range(level):
+            for j in range(level - i):
+                ij.append((i + 1.0 / 3.0, j + 1.0 / 3.0))
+                if i + j <= level - 2:
+                    ij.append((i + 2.0 / 3.0, j + 2.0 / 3.0))
+        uv = np.array(ij) / level  # (n^2, 2) barycentric (u along ab, v along ac)
+        t = tri[ids]
+        ab = t[:, 1] - t[:, 0]
+        ac = t[:, 2] - t[:, 0]
+        pts = (
+            t[:, None, 0] + uv[None, :, 0, None] * ab[:, None] + uv[None, :, 1, None] * ac[:, None]
+        )
+        out_pts.append(pts.reshape(-1, 3))
+        out_face.append(np.repeat(ids, len(uv)).astype(np.int32))
+    samples = np.ascontiguousarray(np.concatenate(out_pts))
+    return samples, np.concatenate(out_face), radius
+
+
+__all__ = ["Closest", "GridParams", "GridTree", "warmup", "FORMAT_VERSION"]
