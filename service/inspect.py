@@ -234,9 +234,9 @@ def inspect_cloud(
     InvalidInput
         The cloud is not an (N, 3) array of finite numbers with enough points.
     """
-    from inspection.alignment import align
     from inspection.deviations import deviations
 
+    from inspection.alignment import align
     from inspection.registration import register
 
     frame = CloudFrame(frame)
@@ -244,7 +244,7 @@ def inspect_cloud(
     timings = dict(timings_ms or {})
     cloud = validate_cloud(points)
     spec = part.spec
-    base = dict(
+    base: dict[str, Any] = dict(
         id=trigger.id,
         line=trigger.line,
         station=trigger.station,
@@ -273,9 +273,13 @@ def inspect_cloud(
     # 1. Fit: global search + robust registration, or only the registration.
     t0 = time.perf_counter()
     fit_points = subsample(cloud, spec.registration.max_points)
+    reg: Any
     try:
         if frame == CloudFrame.rig:
-            reg = align(part.tree, fit_points, **_registration_kwargs(part))
+            reg = align(
+                part.tree, fit_points, model=part.alignment_model, cad=part.cad,
+                **_registration_kwargs(part),
+            )  # fmt: skip
         else:
             reg = register(part.tree, fit_points, init=np.eye(4), **_registration_kwargs(part))
     except InspectionError as exc:
@@ -283,7 +287,7 @@ def inspect_cloud(
         return error(f"alignment failed: {exc}")
     timings["align"] = (time.perf_counter() - t0) * 1e3
     T = np.asarray(reg.transform, dtype=np.float64)
-    fit = dict(
+    fit: dict[str, Any] = dict(
         transform=T.tolist(),
         rms_mm=finite_or_none(reg.rms_mm),
         inlier_fraction=finite_or_none(reg.inlier_fraction),

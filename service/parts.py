@@ -27,7 +27,7 @@ import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -71,12 +71,16 @@ class LoadedPart:
     tree : inspection.grid.GridTree
     tree_hash : str
         The tree's content hash (``GridTree.hash``): identifies exactly the tree used.
+    alignment_model : inspection.alignment.AlignmentModel or None
+        The resting poses and templates of the global alignment, computed once
+        per part (None where the alignment stage is not installed).
     """
 
     spec: PartSpec
     cad: CadModel
     tree: Any
     tree_hash: str
+    alignment_model: Any = field(default=None, repr=False)
 
     @property
     def name(self) -> str:
@@ -208,8 +212,23 @@ def load_part(
     report(0.05, "loading CAD")
     cad = load_part_cad(spec, base_dir)
     tree = build_or_load_tree(cad, spec, trees_dir, report)
+    report(0.95, "computing resting poses")
+    model = _alignment_model(cad)
     report(1.0, "ready")
-    return LoadedPart(spec=spec, cad=cad, tree=tree, tree_hash=tree.hash)
+    return LoadedPart(spec=spec, cad=cad, tree=tree, tree_hash=tree.hash, alignment_model=model)
+
+
+def _alignment_model(cad: CadModel) -> Any:
+    """The global alignment's per-part model (resting poses, templates); None if not installed."""
+    try:
+        from inspection.alignment import alignment_model
+    except ModuleNotFoundError:
+        log.warning("inspection.alignment is not installed: parts can be listed, not inspected")
+        return None
+    t0 = time.perf_counter()
+    model = alignment_model(cad)
+    log.info("%s: %d resting poses in %.1f s", cad.name, len(model.poses), time.perf_counter() - t0)
+    return model
 
 
 # --------------------------------------------------------------------------- registry

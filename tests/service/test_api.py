@@ -554,3 +554,71 @@ def test_real_server_refuses_a_truncated_upload(server, app_parts):
     # The server is still up, and the earlier result intact.
     status, _, body_ = call(port, "GET", "/v1/inspections")
     assert status == 200 and [r["seq"] for r in json.loads(body_)["items"]] == [1]
+
+
+# ----------------------------------------------------------------------------- measuring
+
+
+def visible_cloud(cad, n: int, seed: int) -> np.ndarray:
+    """Points on the faces that look up (what a rig above the conveyor sees), CAD frame."""
+    rng = np.random.default_rng(seed)
+    up = cad.face_normals[:, 2] > 0.3
+    tri = cad.vertices[cad.faces[up]]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    pick = rng.choice(len(tri), size=n, p=area / area.sum())
+    a, b = rng.random((2, n))
+    flip = a + b > 1
+    a[flip], b[flip] = 1 - a[flip], 1 - b[flip]
+    t = tri[pick]
+    return t[:, 0] + a[:, None] * (t[:, 1] - t[:, 0]) + b[:, None] * (t[:, 2] - t[:, 0])
+
+
+def rig_pose(theta_deg: float, x: float, y: float) -> np.ndarray:
+    c, s = np.cos(np.radians(theta_deg)), np.sin(np.radians(theta_deg))
+    T = np.eye(4)
+    T[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
+    T[:3, 3] = [x, y, 0.0]
+    return T
+
+
+def test_uploaded_clouds_are_measured_stored_and_streamed(client, app_parts, line):
+    pytest.importorskip("inspection.deviations", reason="the deviations stage is not installed")
+    _, reg = line
+    part = reg.get(PART)
+    store, archive = app_parts[1], app_parts[2]
+    T_rig_cad = rig_pose(37.0, 40.0, -25.0)
+    pts_cad = visible_cloud(part.cad, 20_000, seed=1)
+    pts_rig = pts_cad @ T_rig_cad[:3, :3].T + T_rig_cad[:3, 3]
+
+    r = post_cloud(client, payload=npy_bytes(pts_rig), serial="SN-1")
+    assert r.status_code == 200, r.text
+    res = InspectionResult.model_validate(r.json())
+    assert res.status == "pass", res
+    assert res.part == PART and res.serial == "SN-1" and res.spec_version == "3"
+    assert res.cad_hash == part.cad.hash and res.tree_hash == part.tree_hash
+    T = np.array(res.transform)
+    np.testing.assert_allclose(T @ T_rig_cad, np.eye(4), atol=1e-3)
+    assert [c.name for c in res.comparison] == ["c", "e", "w"]
+    assert all(abs(c.deviation_mm) < 0.05 for c in res.comparison)
+    assert {"align", "deviations", "total"} <= set(res.timings_ms)
+    assert store.get(res.id) == res
+    assert archive.load(res.id) is not None
+    assert client.get(f"/v1/inspections/{res.id}/colormap.png").status_code == 200
+
+    # A dent of +0.6 mm around comparison point "c" fails the part.
+    c = next(p for p in part.spec.points if p.name == "c")
+    near = np.linalg.norm(pts_cad - np.array(c.position_mm), axis=1) < 10.0
+    dented = pts_cad + np.where(near[:, None], 0.6 * np.array(c.normal), 0.0)
+    dented_rig = dented @ T_rig_cad[:3, :3].T + T_rig_cad[:3, 3]
+    r = post_cloud(client, payload=npy_bytes(dented_rig), serial="SN-2")
+    res2 = InspectionResult.model_validate(r.json())
+    assert res2.status == "fail"
+    verdicts = {p.name: p.verdict for p in res2.comparison}
+    assert verdicts["c"] == "fail" and verdicts["e"] == "pass"
+    assert store.count() == 2
+
+    # The same cloud, already in the CAD frame: only the fine registration.
+    r = post_cloud(client, payload=npy_bytes(pts_cad), frame="cad")
+    res3 = InspectionResult.model_validate(r.json())
+    assert res3.status == "pass"
+    np.testing.assert_allclose(np.array(res3.transform), np.eye(4), atol=1e-3)
