@@ -206,14 +206,16 @@ def load_part(
     base_dir: Path,
     trees_dir: Path,
     progress: Callable[[float, str], None] | None = None,
+    *,
+    alignment: bool = True,
 ) -> LoadedPart:
-    """Load the CAD of a spec and build or load its tree."""
+    """Load the CAD of a spec, build or load its tree and (``alignment``) its resting poses."""
     report = progress or (lambda f, m: None)
     report(0.05, "loading CAD")
     cad = load_part_cad(spec, base_dir)
     tree = build_or_load_tree(cad, spec, trees_dir, report)
     report(0.95, "computing resting poses")
-    model = _alignment_model(cad)
+    model = _alignment_model(cad) if alignment else None
     report(1.0, "ready")
     return LoadedPart(spec=spec, cad=cad, tree=tree, tree_hash=tree.hash, alignment_model=model)
 
@@ -243,9 +245,15 @@ class PartRegistry:
         The tree cache.
     uploads_dir : Path
         Where parts created through the API keep their spec and CAD file.
+    alignment : bool
+        Compute each part's global-alignment model (needed to inspect clouds
+        in the rig frame; a registry that only lists parts can skip it).
     """
 
-    def __init__(self, trees_dir: str | Path, uploads_dir: str | Path) -> None:
+    def __init__(
+        self, trees_dir: str | Path, uploads_dir: str | Path, *, alignment: bool = True
+    ) -> None:
+        self.alignment = alignment
         self.trees_dir = Path(trees_dir)
         self.uploads_dir = Path(uploads_dir)
         self._lock = threading.RLock()
@@ -405,7 +413,9 @@ class PartRegistry:
             self._update_job(job_id, progress=min(max(fraction, 0.0), 1.0), message=message)
 
         try:
-            loaded = load_part(entry.spec, entry.base_dir, self.trees_dir, progress)
+            loaded = load_part(
+                entry.spec, entry.base_dir, self.trees_dir, progress, alignment=self.alignment
+            )
         except Exception as exc:
             log.exception("part %s: tree build failed", name)
             with self._lock:

@@ -102,6 +102,7 @@ def line(tmp_path_factory):
     with PartRegistry.from_config(cfg) as reg:
         reg.preload()
         assert reg.ready(), reg.states()
+        assert reg.get(PART).alignment_model is not None  # computed at load, not per upload
         yield cfg, reg
 
 

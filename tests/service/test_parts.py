@@ -44,7 +44,7 @@ def test_generated_cad_is_deterministic():
 
 def test_tree_is_built_once_then_loaded(tmp_path):
     trees = tmp_path / "trees"
-    with PartRegistry(trees, tmp_path / "uploads") as reg:
+    with PartRegistry(trees, tmp_path / "uploads", alignment=False) as reg:
         reg.add(spec(spacing_mm=2.0), tmp_path, configured=True)
         assert not reg.ready()
         with pytest.raises(PartNotReady):
@@ -55,14 +55,14 @@ def test_tree_is_built_once_then_loaded(tmp_path):
     files = list(trees.glob("*.npz"))
     assert len(files) == 1 and files[0] == tree_cache_path(trees, first.cad, spec(spacing_mm=2.0))
     mtime = files[0].stat().st_mtime_ns
-    with PartRegistry(trees, tmp_path / "uploads") as reg:
+    with PartRegistry(trees, tmp_path / "uploads", alignment=False) as reg:
         reg.add(spec(spacing_mm=2.0), tmp_path, configured=True)
         reg.preload()
         again = reg.get("p")
     assert files[0].stat().st_mtime_ns == mtime  # loaded, not rebuilt
     assert again.tree_hash == first.tree_hash
     # Other build parameters: another cache entry.
-    with PartRegistry(trees, tmp_path / "uploads") as reg:
+    with PartRegistry(trees, tmp_path / "uploads", alignment=False) as reg:
         reg.add(spec(spacing_mm=2.5), tmp_path, configured=True)
         reg.preload()
         other = reg.get("p")
@@ -77,7 +77,7 @@ def test_a_corrupt_cached_tree_is_rebuilt(tmp_path):
     path = tree_cache_path(trees, cad, s)
     trees.mkdir()
     path.write_bytes(b"not a tree")
-    with PartRegistry(trees, tmp_path / "uploads") as reg:
+    with PartRegistry(trees, tmp_path / "uploads", alignment=False) as reg:
         reg.add(s, tmp_path, configured=True)
         reg.preload()
         assert reg.ready()
@@ -85,7 +85,7 @@ def test_a_corrupt_cached_tree_is_rebuilt(tmp_path):
 
 
 def test_a_failing_part_does_not_stop_the_others(tmp_path):
-    with PartRegistry(tmp_path / "trees", tmp_path / "uploads") as reg:
+    with PartRegistry(tmp_path / "trees", tmp_path / "uploads", alignment=False) as reg:
         reg.add(spec("good", spacing_mm=2.0), tmp_path, configured=True)
         reg.add(PartSpec(name="bad", cad="missing.stl"), tmp_path, configured=True)
         reg.preload()
@@ -108,7 +108,7 @@ def test_uploads_survive_a_restart_and_bad_ones_leave_nothing(tmp_path):
     del base["cad"], base["panel"]
     from service.models import PartCreate
 
-    with PartRegistry(tmp_path / "trees", uploads) as reg:
+    with PartRegistry(tmp_path / "trees", uploads, alignment=False) as reg:
         job = reg.create(
             PartCreate(**{**base, "name": "up", "tree": {"spacing_mm": 2.0}}),
             stl.read_bytes(),
@@ -121,7 +121,7 @@ def test_uploads_survive_a_restart_and_bad_ones_leave_nothing(tmp_path):
         assert not (uploads / "broken").exists()
         with pytest.raises(PartConflict):
             reg.create(PartCreate(**{**base, "name": "up"}), stl.read_bytes(), "u.stl")
-    with PartRegistry(tmp_path / "trees", uploads) as reg:
+    with PartRegistry(tmp_path / "trees", uploads, alignment=False) as reg:
         reg.add_uploaded()
         reg.preload()
         assert reg.states() == {"up": "ready"}
