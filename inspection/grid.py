@@ -333,7 +333,7 @@ class GridTree:
             np.concatenate(faces_parts) if faces_parts else np.zeros(0, dtype=np.int32)
         ).astype(np.int32, copy=False)
 
-        sample_spacing = 2.0 * h
+        sample_spacing = 4.0 * h
         samples, sample_face, sample_radius = _surface_samples(tri, sample_spacing)
         params = GridParams(
             spacing_mm=h, band_mm=band_mm, block=BLOCK, sample_spacing_mm=sample_spacing
@@ -559,6 +559,8 @@ class GridTree:
             "faces": m.faces,
             "face_normals": m.face_normals,
             "face_adj": m.face_adj,
+            "smooth_adj": m.smooth_adj,
+            "plane": m.plane,
             "vf_ptr": m.vf_ptr,
             "vf_idx": m.vf_idx,
             "edge_pn": m.edge_pn,
@@ -668,22 +670,20 @@ class GridTree:
                 )
         vertices, faces = a["vertices"], a["faces"]
         tri = np.ascontiguousarray(vertices[faces])
-        plane = _plane_data(tri, a["face_normals"])
-        smooth_adj = _smooth_adjacency(a["face_adj"], a["face_normals"])
         mesh = _Mesh(
             vertices=vertices,
             faces=faces,
             face_normals=a["face_normals"],
             tri=tri,
-            plane=plane,
-            smooth_adj=smooth_adj,
+            plane=a["plane"],
+            smooth_adj=a["smooth_adj"],
             face_adj=a["face_adj"],
             vf_ptr=a["vf_ptr"],
             vf_idx=a["vf_idx"],
             edge_pn=a["edge_pn"],
             vert_pn=a["vert_pn"],
         )
-        for arr in (*a.values(), tri, plane, smooth_adj):
+        for arr in (*a.values(), tri):
             arr.setflags(write=False)
         return cls(
             mesh=mesh,
