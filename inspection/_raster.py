@@ -111,6 +111,26 @@ def _bilinear(img, u, v):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _inside(sx, sy, faces, f, pu, pv):  # pragma: no cover - compiled
+    """Is the point (pu, pv) inside projected face f (either winding, 1e-9 tolerance)?"""
+    a = faces[f, 0]
+    b = faces[f, 1]
+    c = faces[f, 2]
+    x0 = sx[a]
+    y0 = sy[a]
+    x1 = sx[b]
+    y1 = sy[b]
+    x2 = sx[c]
+    y2 = sy[c]
+    area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
+    if area == 0.0:
+        return False
+    w0 = ((x1 - pu) * (y2 - pv) - (x2 - pu) * (y1 - pv)) / area
+    w1 = ((x2 - pu) * (y0 - pv) - (x0 - pu) * (y2 - pv)) / area
+    return w0 >= -1e-9 and w1 >= -1e-9 and 1.0 - w0 - w1 >= -1e-9
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _belt_albedo(x, y, tex, texel_mm, belt_half_width, floor_albedo):  # pragma: no cover
     """Belt albedo at rig (x, y): periodic texture along x, dark floor beyond the belt."""
     if abs(y) > belt_half_width:
@@ -130,7 +150,7 @@ def _belt_albedo(x, y, tex, texel_mm, belt_half_width, floor_albedo):  # pragma:
 
 @njit(cache=True, parallel=True, fastmath=_FAST)
 def shade_scene(  # pragma: no cover - compiled
-    rays, kcam, ox, oy, fbuf, planes, normals_rig, Rcr, C,
+    rays, kcam, ox, oy, fbuf, sx, sy, faces, planes, normals_rig, Rcr, C,
     Rp, tp, kproj, pattern, smap_z, smap_f, P, power, r0, ambient,
     albedo, ks_sharp, n_sharp, ks_broad, n_broad,
     dirt_c, dirt_r, dirt_k,
@@ -149,6 +169,9 @@ def shade_scene(  # pragma: no cover - compiled
         Offset of the ideal buffer: buffer pixel (i, j) is ideal pixel (j + ox, i + oy).
     fbuf : (Hb, Wb) int32
         Face index per ideal pixel (-1: no face).
+    sx, sy : (V,) float64; faces : (F, 3) int64
+        The projected vertices in buffer pixels, and the faces (for the exact
+        point-in-triangle test at edges).
     planes : (F, 4) float64
         Face planes in the camera frame: n . X = d, as (nx, ny, nz, d).
     normals_rig : (F, 3) float64
@@ -211,9 +234,38 @@ def shade_scene(  # pragma: no cover - compiled
             v = fy * yn + cy
             bj = int(math.floor(u - ox + 0.5))
             bi = int(math.floor(v - oy + 0.5))
+            # Which face does the ray hit? The buffer's nearest pixel is right
+            # inside faces; near edges the exact point-in-triangle test in the
+            # ideal image decides among the faces of the 3 x 3 neighbourhood.
+            pu = u - ox
+            pv = v - oy
             f = -1
             if bi >= 0 and bi < Hb and bj >= 0 and bj < Wb:
                 f = fbuf[bi, bj]
+            if f < 0 or not _inside(sx, sy, faces, f, pu, pv):
+                f0 = f
+                f = -1
+                best = np.inf
+                edge = False
+                for di in range(-1, 2):
+                    for dj in range(-1, 2):
+                        ii = bi + di
+                        jj = bj + dj
+                        if ii < 0 or ii >= Hb or jj < 0 or jj >= Wb:
+                            edge = True
+                            continue
+                        g = fbuf[ii, jj]
+                        if g < 0:
+                            edge = True
+                            continue
+                        if g != f0 and g != f and _inside(sx, sy, faces, g, pu, pv):
+                            den = planes[g, 0] * xn + planes[g, 1] * yn + planes[g, 2]
+                            zg = planes[g, 3] / den if abs(den) > 1e-12 else np.inf
+                            if zg > 0.0 and zg < best:
+                                best = zg
+                                f = g
+                if f < 0 and not edge:
+                    f = f0  # inside a surface, on a shared edge: no gap
             den_c = ncx * xn + ncy * yn + ncz
             zc = ndc / den_c if den_c != 0.0 else np.inf
             if zc <= 0.0:
@@ -222,7 +274,7 @@ def shade_scene(  # pragma: no cover - compiled
             if f >= 0:
                 den = planes[f, 0] * xn + planes[f, 1] * yn + planes[f, 2]
                 zf = planes[f, 3] / den if abs(den) > 1e-12 else -1.0
-                if zf > 0.0 and zf <= zc + 1e-6:
+                if zf > 0.0 and zf <= zc + 1e-3:  # a face lying on the belt wins the tie
                     z = zf
                 else:
                     f = -1
@@ -416,7 +468,7 @@ def shade_board(  # pragma: no cover - compiled
                     zb = plane[3] / den if abs(den) > 1e-12 else -1.0
                     value = 0.0
                     hit = False
-                    if zb > 0.0 and zb <= zc:
+                    if zb > 0.0 and zb <= zc + 1e-3:  # a board lying on the belt wins the tie
                         xc = xn * zb
                         yc = yn * zb
                         bx = Rbc[0, 0] * xc + Rbc[0, 1] * yc + Rbc[0, 2] * zb + tbc[0]

@@ -232,7 +232,7 @@ class Simulator:
 
         rig = self.rig
         p = rig.projector
-        smap_z, smap_f = _rasterize_view(V, faces, p.R, p.t, _kvec(p.K), 0, 0, (p.height, p.width))
+        smap_z, smap_f, _, _ = _rasterize_view(V, faces, p.R, p.t, _kvec(p.K), 0, 0, (p.height, p.width))
         dirt_c, dirt_r, dirt_k = _part_dirt(V, faces, norm, opts.part_dirt_spots, streams[0])
         P = p.centre
         r0 = float(np.linalg.norm(P))
@@ -241,7 +241,8 @@ class Simulator:
         truths: list[CameraTruth] = []
         for setup, stream in zip(self._cams, streams[1:], strict=True):
             cam = setup.camera
-            zb, fb = _rasterize_view(V, faces, cam.R, cam.t, setup.kvec, setup.ox, setup.oy, setup.buf_shape)
+            zb, fb, sx, sy = _rasterize_view(V, faces, cam.R, cam.t, setup.kvec, setup.ox, setup.oy,
+                                             setup.buf_shape)
             n_c = normals @ cam.R.T
             planes = np.empty((len(faces), 4))
             planes[:, :3] = n_c
@@ -254,7 +255,7 @@ class Simulator:
                 points = np.empty((1, 1, 3), np.float32)
                 flags = np.empty((1, 1), np.uint8)
             _raster.shade_scene(
-                setup.rays, setup.kvec, setup.ox, setup.oy, fb, planes, normals,
+                setup.rays, setup.kvec, setup.ox, setup.oy, fb, sx, sy, faces, planes, normals,
                 np.ascontiguousarray(cam.R.T), cam.centre,
                 p.R, p.t, _kvec(p.K), self._pattern, smap_z, smap_f, P, p.power, r0, opts.ambient,
                 opts.part_albedo, opts.specular_sharp, opts.shininess_sharp,
@@ -478,7 +479,8 @@ def _mesh_arrays(mesh: Any) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.int
 
 
 def _rasterize_view(V, faces, R, t, kvec, ox, oy, shape):  # type: ignore[no-untyped-def]
-    """Depth and face buffers of a mesh seen by a pinhole (R, t, K) in a buffer at (ox, oy)."""
+    """Depth and face buffers of a mesh seen by a pinhole (R, t, K) in a buffer at (ox, oy),
+    and the projected vertices (buffer pixels)."""
     q = V @ R.T + t
     z = q[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -491,7 +493,7 @@ def _rasterize_view(V, faces, R, t, kvec, ox, oy, shape):  # type: ignore[no-unt
     zbuf = np.full(shape, np.inf, np.float32)
     fbuf = np.full(shape, -1, np.int32)
     _raster.rasterize(sx, sy, z, faces, zbuf, fbuf)
-    return zbuf, fbuf
+    return zbuf, fbuf, sx, sy
 
 
 def _part_dirt(V, faces, double_area, count, stream):  # type: ignore[no-untyped-def]
