@@ -7,12 +7,10 @@ and the part registry, and passes them to :func:`create_app`. Routes live in
 
 from __future__ import annotations
 
-import time
 from collections.abc import AsyncIterator, Callable, Mapping
 from contextlib import asynccontextmanager
-from typing import Any
 
-from fastapi import FastAPI, Request
+from fastapi import FastAPI
 
 from ..config import LineConfig
 from ..models import software_version
@@ -22,7 +20,7 @@ from .deps import Pipeline, Services
 from .errors import install_error_handlers
 from .events import ResultHub
 from .limits import BodySizeLimit
-from .metrics import Metrics
+from .metrics import Metrics, RequestMetrics
 from .routes import inspections as inspection_routes
 from .routes import parts as part_routes
 from .routes import system as system_routes
@@ -97,22 +95,9 @@ def create_app(
     app.include_router(inspection_routes.router)
     _register_gauges(svc)
 
-    @app.middleware("http")
-    async def count_requests(request: Request, call_next: Any) -> Any:
-        t0 = time.perf_counter()
-        response = await call_next(request)
-        route = request.scope.get("route")
-        path = getattr(route, "path", "unmatched")
-        svc.metrics.inc(
-            "http_requests_total", "HTTP requests answered.",
-            method=request.method, route=path, code=str(response.status_code),
-        )  # fmt: skip
-        svc.metrics.observe(
-            "http_request_duration_seconds", "Time to the response's start.",
-            time.perf_counter() - t0, route=path,
-        )  # fmt: skip
-        return response
-
+    # A plain ASGI middleware (not BaseHTTPMiddleware): it does not buffer
+    # streamed responses such as /v1/stream.
+    app.add_middleware(RequestMetrics, metrics=svc.metrics)
     # Outermost: refuses oversized bodies before any parser reads them.
     app.add_middleware(BodySizeLimit, max_bytes=int(settings.http.max_upload_mb * 1e6))
     return app

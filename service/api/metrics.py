@@ -8,8 +8,11 @@ units: seconds, ``_total`` for counters).
 from __future__ import annotations
 
 import threading
+import time
 from collections import defaultdict
 from collections.abc import Callable, Iterable
+
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
 
@@ -92,3 +95,39 @@ class Metrics:
             for labels, v in read():
                 lines.append(f"{name}{_labels(sorted(labels.items()))} {_num(v)}")
         return "\n".join(lines) + "\n"
+
+
+class RequestMetrics:
+    """ASGI middleware counting requests by method, route template and status code."""
+
+    def __init__(self, app: ASGIApp, metrics: Metrics) -> None:
+        self.app = app
+        self.metrics = metrics
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        t0 = time.perf_counter()
+        status = 500
+
+        async def tracking_send(message: Message) -> None:
+            nonlocal status
+            if message["type"] == "http.response.start":
+                status = int(message["status"])
+                # The router has put the matched route into the scope by now.
+                route = getattr(scope.get("route"), "path", "unmatched")
+                self.metrics.observe(
+                    "http_request_duration_seconds", "Time to the response's start.",
+                    time.perf_counter() - t0, route=route,
+                )  # fmt: skip
+            await send(message)
+
+        try:
+            await self.app(scope, receive, tracking_send)
+        finally:
+            route = getattr(scope.get("route"), "path", "unmatched")
+            self.metrics.inc(
+                "http_requests_total", "HTTP requests answered.",
+                method=scope["method"], route=route, code=str(status),
+            )  # fmt: skip
