@@ -1,0 +1,494 @@
+"""Rectified stereo pairs of the rig: geometry, coarse matching and sub-pixel refinement.
+
+Internal module of :mod:`inspection.reconstruct`; callers are trusted.
+
+Rectification is chosen for this rig, not left to ``cv2.stereoRectify``: both
+rectified cameras of a pair look straight down at the belt (the rectified z
+axis is the rig's -z made orthogonal to the baseline). A horizontal surface
+then has one disparity everywhere in the image, so the disparity range that
+SGBM must search is set by the heights in the measurement volume alone
+(``d = f B / Z``) and does not grow with the convergence of the cameras. The
+principal points of the two rectified images are shifted so that the volume
+fills both and its disparities are small numbers.
+
+Refinement is a Lucas-Kanade (Gauss-Newton) fit of each pixel's own window,
+with a gain and an offset, on images normalised by their local mean and
+contrast, so that the different brightness of the metal seen from two sides
+does not bias the match. A dense variant that aggregates per-pixel updates
+with box filters (one ``cv2.remap`` per iteration for the whole field) was
+tried first: it is not a consistent model (neighbours shift by different
+amounts) and its iteration amplifies the frequencies where the box filter's
+response is negative, so it did not converge below ~0.1 px.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+from numba import njit, prange
+import numpy as np
+import numpy.typing as npt
+
+from .rig import Camera
+
+F32 = npt.NDArray[np.float32]
+F64 = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True, eq=False)
+class RectifiedPair:
+    """One stereo pair rectified to a common, belt-facing orientation.
+
+    Attributes
+    ----------
+    left, right : int
+        Camera indices in the rig.
+    R_rect_rig : (3, 3) float64
+        Rotation rig -> rectified frame (rows: x along the baseline, y, z down).
+    centre_left : (3,) float64, mm
+        Optical centre of the left camera in the rig frame (the rectified frame's origin).
+    baseline_mm : float
+        Distance between the two optical centres.
+    f_px : float
+        Focal length of both rectified images.
+    cx_left, cx_right, cy : float
+        Principal points of the rectified images (pixels).
+    size : (int, int)
+        (width, height) of both rectified images.
+    maps_left, maps_right : tuple of two (H, W) float32
+        ``cv2.remap`` maps from rectified pixels to the original (distorted) image.
+    """
+
+    left: int
+    right: int
+    R_rect_rig: F64
+    centre_left: F64
+    baseline_mm: float
+    f_px: float
+    cx_left: float
+    cx_right: float
+    cy: float
+    size: tuple[int, int]
+    maps_left: tuple[F32, F32]
+    maps_right: tuple[F32, F32]
+
+    @property
+    def name(self) -> str:
+        return f"{self.left}-{self.right}"
+
+    @property
+    def fb(self) -> float:
+        """f * B (px mm): disparity times depth."""
+        return self.f_px * self.baseline_mm
+
+    @property
+    def offset_px(self) -> float:
+        """Disparity of a point at infinite depth (the principal point shift)."""
+        return self.cx_left - self.cx_right
+
+    # -- geometry -----------------------------------------------------------
+    def to_rect(self, points_rig: F64) -> F64:
+        """Rig-frame points (N, 3) -> rectified left-camera frame (N, 3), mm."""
+        return (points_rig - self.centre_left) @ self.R_rect_rig.T
+
+    def project(self, points_rig: F64) -> tuple[F64, F64, F64]:
+        """Rig-frame points -> rectified left pixel (x, y) and depth Z (mm)."""
+        p = self.to_rect(points_rig)
+        z = p[:, 2]
+        return self.f_px * p[:, 0] / z + self.cx_left, self.f_px * p[:, 1] / z + self.cy, z
+
+    def disparity_of_depth(self, z: F64 | float) -> F64 | float:
+        """Rectified disparity (px) of a point at depth ``z`` (mm) along the rectified axis."""
+        return self.fb / z + self.offset_px
+
+    def triangulate(self, x: F64, y: F64, d: F64) -> F64:
+        """Rectified left pixels and disparities (N,) -> rig-frame points (N, 3), mm."""
+        z = self.fb / (d - self.offset_px)
+        p = np.empty((len(x), 3))
+        p[:, 0] = (x - self.cx_left) * z / self.f_px
+        p[:, 1] = (y - self.cy) * z / self.f_px
+        p[:, 2] = z
+        return p @ self.R_rect_rig + self.centre_left
+
+    def disparity_range(self, lo: F64, hi: F64) -> tuple[float, float]:
+        """Disparities spanned by the box ``lo``..``hi`` (rig frame, mm)."""
+        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        z = self.to_rect(corners)[:, 2]
+        d = self.fb / z + self.offset_px
+        return float(d.min()), float(d.max())
+
+
+def rectify_pair(cam_l: Camera, cam_r: Camera, left: int, right: int, lo: F64, hi: F64,
+                 margin_px: int = 8) -> RectifiedPair:
+    """Build the belt-facing rectification of one pair (see the module docstring).
+
+    Parameters
+    ----------
+    cam_l, cam_r : Camera
+        Left (lower x) and right camera.
+    left, right : int
+        Their indices in the rig.
+    lo, hi : (3,) float64, mm
+        The measurement volume (rig frame) that the rectified images must cover.
+    margin_px : int
+        Extra pixels around the projected volume.
+    """
+    c_l = cam_l.centre
+    c_r = cam_r.centre
+    base = c_r - c_l
+    baseline = float(np.linalg.norm(base))
+    ex = base / baseline
+    down = np.array([0.0, 0.0, -1.0])
+    ez = down - ex * (ex @ down)
+    ez /= np.linalg.norm(ez)
+    ey = np.cross(ez, ex)
+    R = np.stack([ex, ey, ez])
+    f = float(np.mean([cam_l.K[0, 0], cam_l.K[1, 1], cam_r.K[0, 0], cam_r.K[1, 1]]))
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    # Ideal (principal-point-free) rectified coordinates of the volume in both views.
+    xs, ys = [], []
+    for c in (c_l, c_r):
+        p = (corners - c) @ R.T
+        xs.append(f * p[:, 0] / p[:, 2])
+        ys.append(f * p[:, 1] / p[:, 2])
+    cx_l = margin_px - float(xs[0].min())
+    cx_r = margin_px - float(xs[1].min())
+    width = int(math.ceil(max(xs[0].max() - xs[0].min(), xs[1].max() - xs[1].min()))) + 2 * margin_px
+    y_all = np.concatenate(ys)
+    cy = margin_px - float(y_all.min())
+    height = int(math.ceil(y_all.max() - y_all.min())) + 2 * margin_px
+    maps = []
+    for cam, cx in ((cam_l, cx_l), (cam_r, cx_r)):
+        K_new = np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
+        R_cam_rect = R @ cam.R.T  # camera -> rectified (OpenCV's R argument)
+        m1, m2 = cv2.initUndistortRectifyMap(cam.K, cam.dist, R_cam_rect, K_new, (width, height), cv2.CV_32FC1)
+        maps.append((m1, m2))
+    R.setflags(write=False)
+    return RectifiedPair(left, right, R, c_l.copy(), baseline, f, cx_l, cx_r, cy, (width, height),
+                         maps[0], maps[1])
+
+
+def local_normalise(img: F32, window: int) -> F32:
+    """Subtract the local mean and divide by the local standard deviation (box window)."""
+    k = (window, window)
+    mean = cv2.boxFilter(img, cv2.CV_32F, k, borderType=cv2.BORDER_REFLECT)
+    sq = cv2.boxFilter(img * img, cv2.CV_32F, k, borderType=cv2.BORDER_REFLECT)
+    var = np.maximum(sq - mean * mean, 0.0)
+    # The floor keeps flat, dark regions (shadows) from being amplified into noise.
+    return ((img - mean) / np.sqrt(var + 4.0)).astype(np.float32)
+
+
+def coarse_disparity(left_u8: npt.NDArray[np.uint8], right_u8: npt.NDArray[np.uint8], d_min: float,
+                     d_max: float, block: int) -> F32:
+    """SGBM (3-way) disparity at half resolution, returned at full resolution in pixels (NaN = none).
+
+    Parameters
+    ----------
+    left_u8, right_u8 : (H, W) uint8
+        Rectified images at full resolution.
+    d_min, d_max : float
+        Disparity range to search, full-resolution pixels.
+    block : int
+        SGBM block size at half resolution (odd).
+    """
+    h, w = left_u8.shape
+    lh = cv2.pyrDown(left_u8)
+    rh = cv2.pyrDown(right_u8)
+    lo = int(math.floor(d_min / 2.0)) - 2
+    num = int(math.ceil((d_max / 2.0 - lo + 2) / 16.0)) * 16
+    sgbm = cv2.StereoSGBM_create(
+        minDisparity=lo, numDisparities=num, blockSize=block,
+        P1=8 * block * block, P2=32 * block * block, disp12MaxDiff=1, preFilterCap=31,
+        uniquenessRatio=10, speckleWindowSize=40, speckleRange=2, mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+    )
+    raw = sgbm.compute(lh, rh)
+    disp = raw.astype(np.float32) * np.float32(2.0 / 16.0)
+    disp[raw <= (lo - 1) * 16] = np.nan
+    # Half-resolution pixel i sits at full-resolution pixel 2i (pyrDown's sampling).
+    return cv2.resize(disp, (w, h), interpolation=cv2.INTER_NEAREST)
+
+
+@njit(cache=True, nogil=True, parallel=True, fastmath=False)
+def refine_pixels(left, right, wl, wr, px, py, d0, radius, iterations, out_d, out_score, out_step):  # pragma: no cover
+    """Sub-pixel disparity of each listed pixel: Gauss-Newton on its own window.
+
+    For each pixel the window of the left image is matched against the right
+    image shifted by a constant disparity ``d`` (Catmull-Rom interpolation,
+    whose small pixel-locking bias is why it is used rather than linear),
+    with a gain and an offset: ``L ≈ g R(x - d) + o``. Three unknowns, normal
+    equations solved in closed form; samples are weighted by ``wl`` and ``wr``
+    (0 where saturated).
+
+    Parameters
+    ----------
+    left, right : (H, W) float32
+        Locally normalised rectified images.
+    wl, wr : (H, W) float32
+        Sample weights (0: saturated or outside).
+    px, py : (N,) int64
+        Pixels to refine (left image).
+    d0 : (N,) float32
+        Initial disparities.
+    radius : int
+        Half window (window = 2 radius + 1).
+    iterations : int
+    out_d, out_score, out_step : (N,) float32
+        Refined disparity, weighted normalised correlation, last step (written).
+    """
+    H, W = left.shape
+    n = px.shape[0]
+    for i in prange(n):
+        x = px[i]
+        y = py[i]
+        d = float(d0[i])
+        g = 1.0
+        o = 0.0
+        score = -1.0
+        step = 99.0
+        ok = True
+        for _ in range(iterations):
+            xr = x - d
+            xi = int(math.floor(xr))
+            a = xr - xi
+            if xi - radius - 1 < 0 or xi + radius + 2 >= W or y - radius < 0 or y + radius >= H:
+                ok = False
+                break
+            # Catmull-Rom weights for samples xi-1 .. xi+2 and their derivatives in a.
+            a2 = a * a
+            a3 = a2 * a
+            w0 = -0.5 * a3 + a2 - 0.5 * a
+            w1 = 1.5 * a3 - 2.5 * a2 + 1.0
+            w2 = -1.5 * a3 + 2.0 * a2 + 0.5 * a
+            w3 = 0.5 * a3 - 0.5 * a2
+            g0 = -1.5 * a2 + 2.0 * a - 0.5
+            g1 = 4.5 * a2 - 5.0 * a
+            g2 = -4.5 * a2 + 4.0 * a + 0.5
+            g3 = 1.5 * a2 - a
+            s1 = 0.0
+            sw = 0.0
+            sg = 0.0
+            sww = 0.0
+            sgg = 0.0
+            sgw = 0.0
+            st = 0.0
+            stt = 0.0
+            stw = 0.0
+            stg = 0.0
+            for v in range(-radius, radius + 1):
+                yy = y + v
+                for u in range(-radius, radius + 1):
+                    xl = x + u
+                    xb = xi + u
+                    wt = wl[yy, xl] * wr[yy, xb] * wr[yy, xb + 1]
+                    if wt == 0.0:
+                        continue
+                    r0 = right[yy, xb - 1]
+                    r1 = right[yy, xb]
+                    r2 = right[yy, xb + 1]
+                    r3 = right[yy, xb + 2]
+                    rv = w0 * r0 + w1 * r1 + w2 * r2 + w3 * r3
+                    gv = g0 * r0 + g1 * r1 + g2 * r2 + g3 * r3
+                    t = left[yy, xl]
+                    s1 += wt
+                    sw += wt * rv
+                    sg += wt * gv
+                    sww += wt * rv * rv
+                    sgg += wt * gv * gv
+                    sgw += wt * gv * rv
+                    st += wt * t
+                    stt += wt * t * t
+                    stw += wt * t * rv
+                    stg += wt * t * gv
+            if s1 < 0.5 * (2 * radius + 1) ** 2:
+                ok = False
+                break
+            # Weighted normalised cross-correlation at the current shift.
+            mt = st / s1
+            mw = sw / s1
+            ctw = stw / s1 - mt * mw
+            ctt = stt / s1 - mt * mt
+            cww = sww / s1 - mw * mw
+            score = ctw / math.sqrt(max(ctt * cww, 1e-12))
+            # Gauss-Newton for (Δ, g, o) with residual e = t - g r - o and
+            # d(g r)/dΔ = -g dr/dx (the image moves left when d grows).
+            # Normal matrix A = J^T J, J = [-g gv, rv, 1]; rhs b = J^T e.
+            a11 = g * g * sgg
+            a12 = -g * sgw
+            a13 = -g * sg
+            a22 = sww
+            a23 = sw
+            a33 = s1
+            se = st - g * sw - o * s1
+            b1 = -g * (stg - g * sgw - o * sg)
+            b2 = stw - g * sww - o * sw
+            b3 = se
+            # Solve the symmetric 3x3 system by Cramer's rule.
+            c11 = a22 * a33 - a23 * a23
+            c12 = a13 * a23 - a12 * a33
+            c13 = a12 * a23 - a13 * a22
+            det = a11 * c11 + a12 * c12 + a13 * c13
+            if abs(det) < 1e-12:
+                ok = False
+                break
+            c22 = a11 * a33 - a13 * a13
+            c23 = a12 * a13 - a11 * a23
+            c33 = a11 * a22 - a12 * a12
+            dd = (c11 * b1 + c12 * b2 + c13 * b3) / det
+            dg = (c12 * b1 + c22 * b2 + c23 * b3) / det
+            do = (c13 * b1 + c23 * b2 + c33 * b3) / det
+            if dd > 1.0:
+                dd = 1.0
+            elif dd < -1.0:
+                dd = -1.0
+            d += dd
+            g += dg
+            o += do
+            step = dd
+            if abs(dd) < 0.002:
+                break
+        if ok:
+            out_d[i] = d
+            out_score[i] = score
+            out_step[i] = step
+        else:
+            out_d[i] = np.nan
+            out_score[i] = -1.0
+            out_step[i] = 99.0
+
+
+@njit(cache=True, nogil=True)
+def _solve5(A, b):  # pragma: no cover - compiled
+    """Solve the 5x5 symmetric system A x = b in place by Gaussian elimination (b is overwritten)."""
+    n = 5
+    for k in range(n):
+        piv = A[k, k]
+        if abs(piv) < 1e-12:
+            return False
+        for i in range(k + 1, n):
+            f = A[i, k] / piv
+            for j in range(k, n):
+                A[i, j] -= f * A[k, j]
+            b[i] -= f * b[k]
+    for k in range(n - 1, -1, -1):
+        s = b[k]
+        for j in range(k + 1, n):
+            s -= A[k, j] * b[j]
+        b[k] = s / A[k, k]
+    return True
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def refine_pixels_affine(left, right, wl, wr, px, py, d0, radius, iterations, out_d, out_score, out_step):  # pragma: no cover
+    """As :func:`refine_pixels`, with a disparity that varies linearly across the window.
+
+    The window's disparity is ``d + a u + b v`` (u, v: offsets from the
+    centre), so that slanted and curved surfaces (flanges, rounded feature
+    edges) are not averaged into the centre pixel. Five unknowns
+    (d, a, b, gain, offset) by Gauss-Newton.
+    """
+    H, W = left.shape
+    n = px.shape[0]
+    for i in prange(n):
+        x = px[i]
+        y = py[i]
+        d = float(d0[i])
+        sa = 0.0
+        sb = 0.0
+        g = 1.0
+        o = 0.0
+        score = -1.0
+        step = 99.0
+        ok = True
+        A = np.empty((5, 5))
+        rhs = np.empty(5)
+        if y - radius < 0 or y + radius >= H:
+            ok = False
+        for _ in range(iterations):
+            if not ok:
+                break
+            A[:] = 0.0
+            rhs[:] = 0.0
+            s1 = 0.0
+            st = 0.0
+            sr = 0.0
+            stt = 0.0
+            srr = 0.0
+            str_ = 0.0
+            for v in range(-radius, radius + 1):
+                yy = y + v
+                base = x - d - sb * v
+                for u in range(-radius, radius + 1):
+                    xl = x + u
+                    xr = base + (1.0 - sa) * u
+                    xi = int(math.floor(xr))
+                    if xi < 1 or xi + 2 >= W:
+                        continue
+                    wt = wl[yy, xl] * wr[yy, xi] * wr[yy, xi + 1]
+                    if wt == 0.0:
+                        continue
+                    a = xr - xi
+                    a2 = a * a
+                    a3 = a2 * a
+                    r0 = right[yy, xi - 1]
+                    r1 = right[yy, xi]
+                    r2 = right[yy, xi + 1]
+                    r3 = right[yy, xi + 2]
+                    rv = ((-0.5 * a3 + a2 - 0.5 * a) * r0 + (1.5 * a3 - 2.5 * a2 + 1.0) * r1
+                          + (-1.5 * a3 + 2.0 * a2 + 0.5 * a) * r2 + (0.5 * a3 - 0.5 * a2) * r3)
+                    gv = ((-1.5 * a2 + 2.0 * a - 0.5) * r0 + (4.5 * a2 - 5.0 * a) * r1
+                          + (-4.5 * a2 + 4.0 * a + 0.5) * r2 + (1.5 * a2 - a) * r3)
+                    t = left[yy, xl]
+                    e = t - g * rv - o
+                    j0 = -g * gv
+                    j1 = j0 * u
+                    j2 = j0 * v
+                    J = (j0, j1, j2, rv, 1.0)
+                    for p in range(5):
+                        wp = wt * J[p]
+                        rhs[p] += wp * e
+                        for q in range(p, 5):
+                            A[p, q] += wp * J[q]
+                    s1 += wt
+                    st += wt * t
+                    sr += wt * rv
+                    stt += wt * t * t
+                    srr += wt * rv * rv
+                    str_ += wt * t * rv
+            if s1 < 0.5 * (2 * radius + 1) ** 2:
+                ok = False
+                break
+            mt = st / s1
+            mr = sr / s1
+            score = (str_ / s1 - mt * mr) / math.sqrt(max((stt / s1 - mt * mt) * (srr / s1 - mr * mr), 1e-12))
+            for p in range(5):
+                for q in range(p):
+                    A[p, q] = A[q, p]
+            if not _solve5(A, rhs):
+                ok = False
+                break
+            dd = rhs[0]
+            if dd > 1.0:
+                dd = 1.0
+            elif dd < -1.0:
+                dd = -1.0
+            d += dd
+            sa += rhs[1]
+            sb += rhs[2]
+            g += rhs[3]
+            o += rhs[4]
+            step = dd
+            if abs(sa) > 0.5 or abs(sb) > 0.5:
+                ok = False
+                break
+            if abs(dd) < 0.002:
+                break
+        if ok:
+            out_d[i] = d
+            out_score[i] = score
+            out_step[i] = step
+        else:
+            out_d[i] = np.nan
+            out_score[i] = -1.0
+            out_step[i] = 99.0

@@ -1,0 +1,768 @@
+"""Point clouds from the rig's four flash frames.
+
+The algorithm, per stereo pair of :attr:`Rig.stereo_pairs` (cam0-cam1, cam2-cam3):
+
+1. **Rectify** both frames to a common orientation that looks straight down at
+   the belt (maps precomputed once per rig by :meth:`Reconstructor.build`), so
+   that a horizontal surface has one disparity across the image and the search
+   range follows from the heights of the measurement volume (or the part).
+2. **Coarse matching**: OpenCV's StereoSGBM (3-way mode, left-right check) at
+   half resolution over the predicted disparity range. Cheap, robust, but its
+   1/16 px (here 1/8 px at full resolution, ~0.25 mm) is far from 0.1 mm.
+3. **Region of the part**: coarse points more than ``z_min_mm`` above the belt;
+   the conveyor background is dropped here, before the expensive steps.
+4. **Sub-pixel refinement** at full resolution: dense Lucas-Kanade on locally
+   normalised images, windowed by box filters, with saturated pixels (the
+   flash's mirror reflections) masked out of every window. Pixels whose
+   windows do not correlate (score below ``min_score``), move too far, or do
+   not converge are dropped.
+5. **Triangulation** in the rectified frame (``Z = f B / d``), back to the rig frame.
+
+Then the two pairs are **fused**: each point is looked up in the other pair's
+refined disparity map. A point seen by both within ``consistency_mm`` is
+confirmed (full weight); a point that lies in front of the surface the other
+pair sees (a free-space violation: typically a wrong match at a reflection or
+dirt) is dropped; a point the other pair cannot see keeps a reduced weight.
+
+Weights in [0, 1] combine the match score and this cross-pair confirmation, so
+that registration can down-weight doubtful points.
+
+When a prior is given (:class:`Prior`, e.g. from the part's CAD model), the
+disparity search covers only the heights the part can occupy, which makes the
+coarse matching faster and less ambiguous.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from . import _stereo
+from .arrays import Points, Scalars
+from .errors import InvalidInput, ReconstructionError
+from .rig import VOLUME_MM, Rig
+
+log = logging.getLogger(__name__)
+
+FLAG_TOO_DARK = "too_dark"
+FLAG_SATURATED = "saturated"
+FLAG_LOW_TEXTURE = "low_texture"
+FLAG_EMPTY = "empty"
+FLAG_PAIR_SKIPPED = "pair_skipped"
+
+# Grey values at or above this are treated as saturated (the sensor clips at
+# 255, and noise pulls clipped pixels a few DN down).
+_SATURATION_DN = 250
+
+
+@dataclass(frozen=True)
+class ReconstructParams:
+    """Parameters of :func:`reconstruct` (lengths in mm, image sizes in pixels).
+
+    Attributes
+    ----------
+    z_min_mm : float
+        Points lower than this above the belt are background and dropped.
+    z_max_mm : float
+        Top of the measurement volume searched without a prior.
+    volume_margin_mm : float
+        Margin added around the rig's measurement volume in x and y.
+    coarse_block : int
+        SGBM block size at half resolution (odd).
+    norm_window : int
+        Window of the local mean and contrast normalisation (odd).
+    window : int
+        Lucas-Kanade window at full resolution (odd).
+    iterations : int
+        Most Lucas-Kanade iterations per pixel (it stops earlier when converged).
+    affine : bool
+        Let the disparity vary linearly across each window (slanted and
+        rounded surfaces); else constant per window (faster, biased there).
+    stride : int
+        Refine every ``stride``-th column of the rectified left image (1: every pixel).
+    max_shift_px : float
+        Largest accepted change of a disparity during refinement.
+    min_score : float
+        Smallest accepted normalised cross-correlation of a refined match.
+    consistency_mm : float
+        Depth tolerance of the cross-pair check.
+    dark_dn : float
+        A frame whose 99th percentile is below this is too dark.
+    saturated_fraction : float
+        A frame with more saturated pixels than this fraction is flagged (and
+        not used when above twice the fraction).
+    min_contrast_dn : float
+        A frame whose local contrast (median absolute Laplacian-free
+        deviation) is below this has too little texture to match.
+    """
+
+    z_min_mm: float = 3.0
+    z_max_mm: float = 200.0
+    volume_margin_mm: float = 20.0
+    coarse_block: int = 5
+    norm_window: int = 15
+    window: int = 9
+    iterations: int = 5
+    stride: int = 1
+    affine: bool = True
+    max_shift_px: float = 1.5
+    min_score: float = 0.6
+    consistency_mm: float = 1.0
+    dark_dn: float = 25.0
+    saturated_fraction: float = 0.25
+    min_contrast_dn: float = 2.0
+
+    def __post_init__(self) -> None:
+        for name in ("coarse_block", "norm_window", "window"):
+            v = getattr(self, name)
+            if not (isinstance(v, int) and v >= 3 and v % 2 == 1):
+                raise InvalidInput(f"ReconstructParams.{name} must be an odd int >= 3, got {v!r}")
+        if not (isinstance(self.stride, int) and 1 <= self.stride <= 8):
+            raise InvalidInput("ReconstructParams.stride must be an int in [1, 8]")
+        if not (isinstance(self.iterations, int) and 1 <= self.iterations <= 50):
+            raise InvalidInput("ReconstructParams.iterations must be an int in [1, 50]")
+        if not (0.0 <= self.z_min_mm < self.z_max_mm and math.isfinite(self.z_max_mm)):
+            raise InvalidInput("ReconstructParams needs 0 <= z_min_mm < z_max_mm (finite)")
+        for name in ("volume_margin_mm", "max_shift_px", "consistency_mm", "dark_dn", "min_contrast_dn"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise InvalidInput(f"ReconstructParams.{name} must be finite and >= 0")
+        if not (-1.0 <= self.min_score < 1.0 and 0.0 < self.saturated_fraction <= 1.0):
+            raise InvalidInput("ReconstructParams needs -1 <= min_score < 1 and 0 < saturated_fraction <= 1")
+
+
+@dataclass(frozen=True)
+class Prior:
+    """What is known about the part before matching: the band of heights it can occupy.
+
+    Attributes
+    ----------
+    z_max_mm : float
+        Highest point of the part above the belt (mm), with margin.
+    """
+
+    z_max_mm: float
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.z_max_mm) and self.z_max_mm > 0):
+            raise InvalidInput(f"Prior.z_max_mm must be finite and > 0, got {self.z_max_mm!r}")
+
+    @classmethod
+    def from_cad(cls, cad: Any, *, margin_mm: float = 10.0) -> Prior:
+        """The height band of a part lying on the belt on one of its large faces.
+
+        The part's height is bounded by the smallest extent of its principal
+        (inertia) box: a sheet-metal part rests on its flange or its face,
+        never on an edge. Parts that may stand upright need an explicit
+        :class:`Prior` (or none).
+
+        Parameters
+        ----------
+        cad : CadModel or trimesh.Trimesh or (V, 3) array of vertices (mm)
+        margin_mm : float
+            Added to the height (tilt, warp, tolerance).
+        """
+        vertices = getattr(cad, "vertices", cad)
+        v = np.asarray(vertices, dtype=np.float64)
+        if v.ndim != 2 or v.shape[1] != 3 or len(v) < 3 or not np.all(np.isfinite(v)):
+            raise InvalidInput("Prior.from_cad needs a mesh or an (N, 3) array of finite vertices")
+        c = v - v.mean(axis=0)
+        _, _, vt = np.linalg.svd(c, full_matrices=False)
+        extent = np.ptp(c @ vt.T, axis=0)
+        return cls(float(extent.min()) + margin_mm)
+
+
+@dataclass(frozen=True)
+class PairReport:
+    """Counts of one stereo pair through the stages of :func:`reconstruct`.
+
+    Attributes
+    ----------
+    pair : str
+        "left-right" camera indices.
+    coarse : int
+        Full-resolution pixels with a coarse (SGBM) disparity.
+    foreground : int
+        Of those, pixels above the belt (the part's region).
+    refined : int
+        Pixels that passed refinement (score, shift, convergence).
+    in_volume : int
+        Triangulated points inside the measurement volume, above ``z_min_mm``.
+    confirmed, unconfirmed, dropped : int
+        Cross-pair check: seen by the other pair consistently, not seen by it,
+        dropped as inconsistent.
+    disparity_range : (float, float)
+        Disparities searched (full-resolution pixels).
+    skipped : str
+        Why the pair was not used ("" when it was).
+    """
+
+    pair: str
+    coarse: int = 0
+    foreground: int = 0
+    refined: int = 0
+    in_volume: int = 0
+    confirmed: int = 0
+    unconfirmed: int = 0
+    dropped: int = 0
+    disparity_range: tuple[float, float] = (0.0, 0.0)
+    skipped: str = ""
+
+
+@dataclass(frozen=True)
+class ReconstructionReport:
+    """What happened in :func:`reconstruct`.
+
+    Attributes
+    ----------
+    flags : tuple of str
+        Sorted, e.g. ``"too_dark"``, ``"saturated"``, ``"low_texture"``,
+        ``"empty"``, ``"pair_skipped"``.
+    frame_flags : tuple of tuple of str
+        Per camera, the flags of its frame.
+    pairs : tuple of PairReport
+    points : int
+        Points in the cloud.
+    timings_ms : dict of str to float
+        Wall time per stage.
+    """
+
+    flags: tuple[str, ...]
+    frame_flags: tuple[tuple[str, ...], ...]
+    pairs: tuple[PairReport, ...]
+    points: int
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, Any]:
+        """A JSON-ready summary."""
+        return {
+            "flags": list(self.flags),
+            "frame_flags": [list(f) for f in self.frame_flags],
+            "pairs": [vars(p) | {"disparity_range": list(p.disparity_range)} for p in self.pairs],
+            "points": self.points,
+            "timings_ms": dict(self.timings_ms),
+        }
+
+
+@dataclass(frozen=True, eq=False)
+class Cloud:
+    """A reconstructed point cloud in the rig frame.
+
+    Attributes
+    ----------
+    points : (N, 3) float64, mm, rig frame
+    weights : (N,) float64 in [0, 1]
+        Per-point quality: match score times cross-pair confirmation.
+    pair : (N,) int8
+        Index into :attr:`Rig.stereo_pairs` of the pair that measured each point.
+    report : ReconstructionReport
+    rig_id : str
+        Calibration id of the rig used.
+    """
+
+    points: Points
+    weights: Scalars
+    pair: npt.NDArray[np.int8]
+    report: ReconstructionReport
+    rig_id: str = ""
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    @property
+    def empty(self) -> bool:
+        return len(self.points) == 0
+
+
+@dataclass(frozen=True, eq=False)
+class Reconstructor:
+    """The per-rig state of :func:`reconstruct`: rectification maps of every stereo pair.
+
+    Build once per rig with :meth:`build` (~0.1 s) and pass it to every call.
+
+    Attributes
+    ----------
+    rig : Rig
+    params : ReconstructParams
+    pairs : tuple of _stereo.RectifiedPair
+    volume_lo, volume_hi : (3,) float64, mm
+        The box searched without a prior (rig frame).
+    """
+
+    rig: Rig
+    params: ReconstructParams
+    pairs: tuple[_stereo.RectifiedPair, ...]
+    volume_lo: npt.NDArray[np.float64]
+    volume_hi: npt.NDArray[np.float64]
+
+    @classmethod
+    def build(cls, rig: Rig, params: ReconstructParams | None = None) -> Reconstructor:
+        """Precompute the rectification of each of ``rig.stereo_pairs``."""
+        if not isinstance(rig, Rig):
+            raise InvalidInput(f"rig must be a Rig, got {type(rig).__name__}")
+        params = params or ReconstructParams()
+        if not isinstance(params, ReconstructParams):
+            raise InvalidInput("params must be a ReconstructParams")
+        m = params.volume_margin_mm
+        lo = np.array([-VOLUME_MM[0] / 2 - m, -VOLUME_MM[1] / 2 - m, 0.0])
+        hi = np.array([VOLUME_MM[0] / 2 + m, VOLUME_MM[1] / 2 + m, params.z_max_mm])
+        pairs = []
+        for a, b in rig.stereo_pairs:
+            ca, cb = rig.cameras[a], rig.cameras[b]
+            # The left camera of a rectified pair is the one at lower x (x grows to the right).
+            if ca.centre[0] > cb.centre[0]:
+                a, b, ca, cb = b, a, cb, ca
+            pairs.append(_stereo.rectify_pair(ca, cb, a, b, lo, hi))
+        log.debug("reconstructor built for rig %s: %s", rig.id,
+                  [(p.name, p.size, round(p.baseline_mm, 1)) for p in pairs])
+        return cls(rig, params, tuple(pairs), lo, hi)
+
+    def __call__(self, frames: Sequence[npt.NDArray[np.uint8]], *, prior: Prior | None = None) -> Cloud:
+        """Reconstruct one frame set; see :func:`reconstruct`."""
+        return _run(self, frames, prior)
+
+
+def reconstruct(rig: Rig, frames: Sequence[npt.NDArray[np.uint8]], *, prior: Prior | Any | None = None,
+                params: ReconstructParams | None = None, reconstructor: Reconstructor | None = None) -> Cloud:
+    """Reconstruct a point cloud of the part from the four flash frames.
+
+    Parameters
+    ----------
+    rig : Rig
+        The calibrated rig that took the frames (:meth:`Rig.default` on the line).
+    frames : sequence of four (H, W) uint8
+        One grey image per camera, in the rig's camera order, each of its
+        camera's size.
+    prior : Prior or CadModel or trimesh.Trimesh, optional
+        What is known of the part: a mesh is turned into a :class:`Prior` with
+        :meth:`Prior.from_cad` (the band of heights it can occupy).
+    params : ReconstructParams, optional
+        Only used when ``reconstructor`` is not given.
+    reconstructor : Reconstructor, optional
+        Precomputed per-rig state (build it once per rig; built here otherwise).
+
+    Returns
+    -------
+    Cloud
+        Points in the rig frame (mm) with weights and a report. Frames that
+        cannot give points (all dark, all saturated, no texture, no part)
+        give an empty cloud flagged ``"empty"`` with the reason in its flags.
+
+    Raises
+    ------
+    InvalidInput
+        Wrong number of frames, wrong size, dtype or dimensions, or a
+        reconstructor built for another rig.
+    """
+    if not isinstance(rig, Rig):
+        raise InvalidInput(f"rig must be a Rig, got {type(rig).__name__}")
+    if reconstructor is None:
+        reconstructor = Reconstructor.build(rig, params)
+    elif not isinstance(reconstructor, Reconstructor):
+        raise InvalidInput("reconstructor must be a Reconstructor")
+    elif reconstructor.rig.id != rig.id:
+        raise InvalidInput(f"reconstructor was built for rig {reconstructor.rig.id}, not {rig.id}")
+    if prior is not None and not isinstance(prior, Prior):
+        prior = Prior.from_cad(prior)
+    return _run(reconstructor, frames, prior)
+
+
+# -- the pipeline -------------------------------------------------------------
+
+def _check_frames(rig: Rig, frames: Any) -> list[npt.NDArray[np.uint8]]:
+    if isinstance(frames, np.ndarray) and frames.ndim == 3:
+        frames = list(frames)
+    if not isinstance(frames, (list, tuple)):
+        raise InvalidInput(f"frames must be a sequence of {len(rig.cameras)} images, got {type(frames).__name__}")
+    if len(frames) != len(rig.cameras):
+        raise InvalidInput(f"need {len(rig.cameras)} frames (one per camera), got {len(frames)}")
+    out = []
+    for i, (img, cam) in enumerate(zip(frames, rig.cameras, strict=True)):
+        if not isinstance(img, np.ndarray):
+            raise InvalidInput(f"frame {i} must be a numpy array, got {type(img).__name__}")
+        if img.dtype != np.uint8:
+            raise InvalidInput(f"frame {i} must be uint8 (8-bit grey), got {img.dtype}")
+        if img.ndim != 2:
+            raise InvalidInput(f"frame {i} must be a 2-D grey image, got shape {img.shape}")
+        if img.shape != cam.shape:
+            raise InvalidInput(f"frame {i} has shape {img.shape}, camera {cam.name} takes {cam.shape} (H, W)")
+        out.append(np.ascontiguousarray(img))
+    return out
+
+
+def _frame_flags(img: npt.NDArray[np.uint8], p: ReconstructParams) -> tuple[set[str], bool]:
+    """Flags of one frame, and whether it is usable at all."""
+    flags: set[str] = set()
+    usable = True
+    small = img[::4, ::4]
+    if np.percentile(small, 99) < p.dark_dn:
+        flags.add(FLAG_TOO_DARK)
+        usable = False
+    sat = float(np.mean(small >= _SATURATION_DN))
+    if sat > p.saturated_fraction:
+        flags.add(FLAG_SATURATED)
+        usable = usable and sat <= min(1.0, 2 * p.saturated_fraction) and sat < 0.99
+    if usable:
+        # Texture: median absolute difference of horizontal neighbours among
+        # unsaturated pixels (the speckle gives tens of DN).
+        row = small.astype(np.int16)
+        diff = np.abs(np.diff(row, axis=1))[(small[:, 1:] < _SATURATION_DN)]
+        if diff.size == 0 or float(np.median(diff)) < p.min_contrast_dn:
+            flags.add(FLAG_LOW_TEXTURE)
+            usable = False
+    return flags, usable
+
+
+@dataclass
+class _PairResult:
+    report: PairReport
+    points: npt.NDArray[np.float64]
+    score: npt.NDArray[np.float32]
+    disparity: npt.NDArray[np.float32] | None = None  # full rectified size, NaN where none
+
+
+def _run(rec: Reconstructor, frames: Any, prior: Prior | None) -> Cloud:
+    p = rec.params
+    rig = rec.rig
+    imgs = _check_frames(rig, frames)
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+
+    frame_flags = []
+    usable = []
+    for img in imgs:
+        f, ok = _frame_flags(img, p)
+        frame_flags.append(tuple(sorted(f)))
+        usable.append(ok)
+    all_flags = set().union(*[set(f) for f in frame_flags])
+    timings["check"] = (time.perf_counter() - t0) * 1e3
+
+    z_hi = min(p.z_max_mm, prior.z_max_mm) if prior is not None else p.z_max_mm
+    lo = rec.volume_lo.copy()
+    hi = rec.volume_hi.copy()
+    hi[2] = max(z_hi, p.z_min_mm + 1.0)
+
+    results: list[_PairResult] = []
+    for k, pair in enumerate(rec.pairs):
+        t1 = time.perf_counter()
+        if not (usable[pair.left] and usable[pair.right]):
+            bad = [rig.cameras[i].name for i in (pair.left, pair.right) if not usable[i]]
+            results.append(_PairResult(PairReport(pair.name, skipped=f"unusable frame(s): {', '.join(bad)}"),
+                                       np.zeros((0, 3)), np.zeros(0, np.float32)))
+            all_flags.add(FLAG_PAIR_SKIPPED)
+            continue
+        results.append(_match_pair(pair, imgs[pair.left], imgs[pair.right], lo, hi, p, timings, k))
+        timings[f"pair{pair.name}"] = (time.perf_counter() - t1) * 1e3
+
+    t2 = time.perf_counter()
+    points, weights, which, reports = _fuse(rec, results, p)
+    timings["fuse"] = (time.perf_counter() - t2) * 1e3
+    timings["total"] = (time.perf_counter() - t0) * 1e3
+    if len(points) == 0:
+        all_flags.add(FLAG_EMPTY)
+    report = ReconstructionReport(tuple(sorted(all_flags)), tuple(frame_flags), tuple(reports), len(points), timings)
+    log.debug("reconstructed %d points in %.0f ms, flags %s", len(points), timings["total"], report.flags)
+    return Cloud(points, weights, which, report, rig.id)
+
+
+def _match_pair(pair: _stereo.RectifiedPair, img_l: npt.NDArray[np.uint8], img_r: npt.NDArray[np.uint8],
+                lo: npt.NDArray[np.float64], hi: npt.NDArray[np.float64], p: ReconstructParams,
+                timings: dict[str, float], k: int) -> _PairResult:
+    t = time.perf_counter()
+    # Rectify in float32 so that the refinement sees no second quantisation.
+    left = cv2.remap(img_l.astype(np.float32), *pair.maps_left, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+    right = cv2.remap(img_r.astype(np.float32), *pair.maps_right, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+    sat_l = left >= _SATURATION_DN - 0.5
+    sat_r = right >= _SATURATION_DN - 0.5
+    left_u8 = np.clip(left + 0.5, 0, 255).astype(np.uint8)
+    right_u8 = np.clip(right + 0.5, 0, 255).astype(np.uint8)
+    timings[f"rectify{k}"] = (time.perf_counter() - t) * 1e3
+
+    t = time.perf_counter()
+    d_min, d_max = pair.disparity_range(lo, hi)
+    d_coarse = _stereo.coarse_disparity(left_u8, right_u8, d_min, d_max, p.coarse_block)
+    coarse_ok = np.isfinite(d_coarse)
+    n_coarse = int(coarse_ok.sum())
+    timings[f"sgbm{k}"] = (time.perf_counter() - t) * 1e3
+    rep = PairReport(pair.name, coarse=n_coarse, disparity_range=(d_min, d_max))
+    empty = _PairResult(rep, np.zeros((0, 3)), np.zeros(0, np.float32))
+    if n_coarse == 0:
+        return empty
+
+    t = time.perf_counter()
+    # The part's region: coarse depth above the belt. The belt at depth Z_belt(x, y)
+    # would have the disparity of that depth; instead of triangulating every
+    # pixel, compare with the disparity of the plane z = z_min (minus the
+    # coarse matching's own uncertainty, ~1 mm).
+    fg = coarse_ok & (d_coarse > _belt_disparity(pair, max(p.z_min_mm - 1.5, 0.0)))
+    n_fg = int(fg.sum())
+    if n_fg == 0:
+        return _PairResult(PairReport(pair.name, coarse=n_coarse, disparity_range=(d_min, d_max)),
+                           np.zeros((0, 3)), np.zeros(0, np.float32))
+    ys, xs = np.nonzero(fg)
+    pad = p.window + p.norm_window
+    h_img, w_img = fg.shape
+    y0 = max(int(ys.min()) - pad, 0)
+    y1 = min(int(ys.max()) + pad + 1, h_img)
+    x0 = max(int(xs.min()) - pad, 0)
+    x1 = min(int(xs.max()) + pad + 1, w_img)
+    roi = (slice(y0, y1), slice(x0, x1))
+    left_n = _stereo.local_normalise(left[roi], p.norm_window)
+    # The right image is needed where the region's disparities send it.
+    rx0 = max(int(math.floor(x0 - d_max)) - pad, 0)
+    rx1 = min(int(math.ceil(x1 - d_min)) + pad, w_img)
+    right_n = _stereo.local_normalise(right[y0:y1, rx0:rx1], p.norm_window)
+    wl = (~sat_l[roi]).astype(np.float32)
+    wr = (~sat_r[y0:y1, rx0:rx1]).astype(np.float32)
+    todo = fg[roi] & ~sat_l[roi]
+    if p.stride > 1:
+        # Refine every stride-th column only (the windows overlap anyway).
+        todo[:, (np.arange(todo.shape[1]) + x0) % p.stride != 0] = False
+    py, px = np.nonzero(todo)
+    d_init = d_coarse[roi][py, px]
+    # In the crops, a left pixel x matches right x - d', with d' = d - x0 + rx0.
+    shift = float(rx0 - x0)
+    n = len(px)
+    d_ref = np.empty(n, np.float32)
+    score = np.empty(n, np.float32)
+    step = np.empty(n, np.float32)
+    kernel = _stereo.refine_pixels_affine if p.affine else _stereo.refine_pixels
+    kernel(left_n, right_n, wl, wr, px.astype(np.int64), py.astype(np.int64),
+                          (d_init + shift).astype(np.float32), p.window // 2, p.iterations, d_ref, score, step)
+    d_ref -= shift
+    good = (np.isfinite(d_ref) & (score >= p.min_score) & (np.abs(d_ref - d_init) <= p.max_shift_px)
+            & (np.abs(step) < 0.05))
+    timings[f"refine{k}"] = (time.perf_counter() - t) * 1e3
+
+    t = time.perf_counter()
+    vx = px[good]
+    vy = py[good]
+    d = d_ref[good].astype(np.float64)
+    pts = pair.triangulate((vx + x0).astype(np.float64), (vy + y0).astype(np.float64), d)
+    inside = np.all((pts >= lo) & (pts <= hi), axis=1) & (pts[:, 2] >= p.z_min_mm)
+    pts = pts[inside]
+    score = score[good][inside]
+    full = np.full(fg.shape, np.nan, np.float32)
+    full[vy[inside] + y0, vx[inside] + x0] = d[inside]
+    timings[f"triangulate{k}"] = (time.perf_counter() - t) * 1e3
+    rep = PairReport(pair.name, coarse=n_coarse, foreground=n_fg, refined=len(vx), in_volume=len(pts),
+                     disparity_range=(d_min, d_max))
+    return _PairResult(rep, pts, score, full)
+
+
+def _belt_disparity(pair: _stereo.RectifiedPair, z_mm: float) -> npt.NDArray[np.float32]:
+    """Disparity of the plane z = ``z_mm`` (rig frame) at every rectified left pixel."""
+    w, h = pair.size
+    # Rectified ray through pixel (x, y): r = R^T [(x - cx)/f, (y - cy)/f, 1]; it meets
+    # z = z_mm at depth Z = (z_mm - C_z) / r_z along the rectified axis.
+    R = pair.R_rect_rig
+    xn = (np.arange(w, dtype=np.float64) - pair.cx_left) / pair.f_px
+    yn = (np.arange(h, dtype=np.float64) - pair.cy) / pair.f_px
+    rz = R[0, 2] * xn[None, :] + R[1, 2] * yn[:, None] + R[2, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        depth = (z_mm - pair.centre_left[2]) / rz
+        d = pair.fb / depth + pair.offset_px
+    return np.where(depth > 0, d, np.inf).astype(np.float32)
+
+
+def _fuse(rec: Reconstructor, results: list[_PairResult], p: ReconstructParams
+          ) -> tuple[Points, Scalars, npt.NDArray[np.int8], list[PairReport]]:
+    """Cross-pair check, averaging and weights (see the module docstring).
+
+    A point confirmed by the other pair is replaced by the mean of itself and
+    the other pair's surface point on the same viewing ray of the other pair:
+    the two pairs' matching errors are independent, so this halves their
+    variance where both see the part.
+    """
+    pts_out, w_out, which_out, reports = [], [], [], []
+    for k, res in enumerate(results):
+        if len(res.points) == 0:
+            reports.append(res.report)
+            continue
+        quality = np.clip((res.score.astype(np.float64) - p.min_score) / (0.95 - p.min_score), 0.0, 1.0)
+        factor = np.full(len(res.points), 0.6)
+        drop = np.zeros(len(res.points), bool)
+        confirmed = np.zeros(len(res.points), bool)
+        fused = res.points.copy()
+        for j, other in enumerate(results):
+            if j == k or other.disparity is None:
+                continue
+            pair = rec.pairs[j]
+            z, z_other = _depth_in_other(pair, other.disparity, res.points)
+            seen = np.isfinite(z_other)
+            dz = np.where(seen, z_other - z, 0.0)
+            ok = seen & (np.abs(dz) <= p.consistency_mm) & ~confirmed
+            # The other pair's surface point on the ray from its left centre
+            # through this point: scale the ray by the depth ratio.
+            ratio = z_other[ok] / z[ok]
+            other_pt = pair.centre_left + (res.points[ok] - pair.centre_left) * ratio[:, None]
+            fused[ok] = 0.5 * (res.points[ok] + other_pt)
+            confirmed |= ok
+            # dz > 0: the point lies in front of (nearer the camera than) the
+            # surface the other pair sees through it, which would have hidden that surface.
+            drop |= seen & (dz > p.consistency_mm)
+        factor[confirmed] = 1.0
+        drop &= ~confirmed
+        keep = ~drop
+        pts_out.append(fused[keep])
+        w_out.append((quality * factor)[keep])
+        which_out.append(np.full(int(keep.sum()), k, np.int8))
+        r = res.report
+        reports.append(PairReport(r.pair, r.coarse, r.foreground, r.refined, r.in_volume,
+                                  int(confirmed.sum()), int((~confirmed & keep).sum()), int(drop.sum()),
+                                  r.disparity_range, r.skipped))
+    if not pts_out:
+        return np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int8), reports
+    return np.concatenate(pts_out), np.concatenate(w_out), np.concatenate(which_out), reports
+
+
+def _depth_in_other(pair: _stereo.RectifiedPair, disparity: npt.NDArray[np.float32], points: Points
+                    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    """Depth of points, and of the other pair's surface on the same rays, in the other pair's frame.
+
+    The other pair's disparity map is interpolated bilinearly where the four
+    neighbours are measured, else taken from the nearest pixel.
+
+    Returns
+    -------
+    z : (N,) float64, mm
+        Depth of each point along the other pair's rectified axis.
+    z_other : (N,) float64, mm
+        Depth of the other pair's surface through the same pixel (NaN: not measured there).
+    """
+    x, y, z = pair.project(points)
+    h, w = disparity.shape
+    x0 = np.floor(x).astype(np.int64)
+    y0 = np.floor(y).astype(np.int64)
+    inside = (x0 >= 0) & (x0 < w - 1) & (y0 >= 0) & (y0 < h - 1) & (z > 0)
+    d = np.full(len(points), np.nan)
+    xi, yi = x0[inside], y0[inside]
+    fx, fy = x[inside] - xi, y[inside] - yi
+    q00 = disparity[yi, xi]
+    q01 = disparity[yi, xi + 1]
+    q10 = disparity[yi + 1, xi]
+    q11 = disparity[yi + 1, xi + 1]
+    bil = (q00 * (1 - fx) * (1 - fy) + q01 * fx * (1 - fy) + q10 * (1 - fx) * fy + q11 * fx * fy)
+    near = disparity[yi + np.rint(fy).astype(np.int64), xi + np.rint(fx).astype(np.int64)]
+    d[inside] = np.where(np.isfinite(bil), bil, near)
+    z_other = np.full(len(points), np.nan)
+    seen = np.isfinite(d)
+    z_other[seen] = pair.fb / (d[seen] - pair.offset_px)
+    return z, z_other
+
+
+# -- pictures -----------------------------------------------------------------
+
+def deviation_colours(values: npt.ArrayLike, limit_mm: float) -> npt.NDArray[np.uint8]:
+    """Diverging colours for signed deviations: blue (-limit) - white (0) - red (+limit).
+
+    Parameters
+    ----------
+    values : (N,) float64, mm
+        NaN gives grey.
+    limit_mm : float
+        Deviation shown at full saturation.
+
+    Returns
+    -------
+    (N, 3) uint8 RGB
+    """
+    v = np.asarray(values, dtype=np.float64)
+    t = np.clip(v / limit_mm, -1.0, 1.0)
+    rgb = np.empty((len(v), 3))
+    pos = t >= 0
+    # Towards red: keep R, lower G and B; towards blue: keep B, lower R and G.
+    rgb[:, 0] = np.where(pos, 1.0, 1.0 + t)
+    rgb[:, 1] = 1.0 - np.abs(t)
+    rgb[:, 2] = np.where(pos, 1.0 - t, 1.0)
+    rgb[~np.isfinite(v)] = 0.5
+    return np.rint(rgb * 255).astype(np.uint8)
+
+
+def write_ply(path: str | os.PathLike[str], points: npt.ArrayLike | Cloud,
+              deviations: npt.ArrayLike | None = None, *, limit_mm: float = 0.5) -> Path:
+    """Write a point cloud as binary PLY, coloured by deviation when given.
+
+    Any PLY viewer (MeshLab, CloudCompare, Open3D) shows it. Each vertex has
+    x, y, z (float32, mm), red, green, blue (uint8), and, with deviations, a
+    ``deviation`` scalar (float32, mm) that viewers can map themselves.
+
+    Parameters
+    ----------
+    path : path-like
+    points : (N, 3) float64, mm, or Cloud
+        Points in any frame (the caller's choice: rig or CAD).
+    deviations : (N,) float64, mm, optional
+        Signed deviation of each point; without it, points are coloured by
+        their weight (dark = doubtful) when ``points`` is a Cloud, else grey.
+    limit_mm : float
+        Deviation at full colour (blue below -limit, red above +limit).
+
+    Returns
+    -------
+    Path
+    """
+    weights = None
+    if isinstance(points, Cloud):
+        weights = points.weights
+        pts = points.points
+    else:
+        pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise InvalidInput(f"points must have shape (N, 3), got {pts.shape}")
+    if not (math.isfinite(limit_mm) and limit_mm > 0):
+        raise InvalidInput("limit_mm must be finite and > 0")
+    n = len(pts)
+    dev = None
+    if deviations is not None:
+        dev = np.asarray(deviations, dtype=np.float64)
+        if dev.shape != (n,):
+            raise InvalidInput(f"deviations must have shape ({n},), got {dev.shape}")
+        rgb = deviation_colours(dev, limit_mm)
+    elif weights is not None:
+        g = np.rint(60 + 195 * np.clip(weights, 0, 1)).astype(np.uint8)
+        rgb = np.stack([g, g, g], axis=1)
+    else:
+        rgb = np.full((n, 3), 200, np.uint8)
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    if dev is not None:
+        fields.append(("deviation", "<f4"))
+    rec = np.empty(n, dtype=fields)
+    rec["x"], rec["y"], rec["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
+    rec["red"], rec["green"], rec["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
+    if dev is not None:
+        rec["deviation"] = dev
+    ply_types = {"<f4": "float", "u1": "uchar"}
+    header = ["ply", "format binary_little_endian 1.0", "comment units mm", f"element vertex {n}"]
+    header += [f"property {ply_types[t]} {name}" for name, t in fields]
+    header.append("end_header")
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with open(out, "wb") as fh:
+        fh.write(("\n".join(header) + "\n").encode("ascii"))
+        fh.write(rec.tobytes())
+    return out
+
+
+__all__ = [
+    "Cloud",
+    "PairReport",
+    "Prior",
+    "ReconstructParams",
+    "ReconstructionError",
+    "ReconstructionReport",
+    "Reconstructor",
+    "deviation_colours",
+    "reconstruct",
+    "write_ply",
+]
