@@ -127,6 +127,11 @@ class RegistrationSettings(_Strict):
     max_rms_mm: float = Field(
         default=1.0, gt=0, le=100, description="Above this the fit is an error."
     )
+    ambiguous_is_error: bool = Field(
+        default=False,
+        description="A pose the global alignment calls ambiguous makes the result an error "
+        "(else it is measured and the reason says so).",
+    )
     max_points: int = Field(
         default=50_000,
         ge=100,

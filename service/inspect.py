@@ -194,6 +194,20 @@ def _point_results(part: LoadedPart, devs: Any) -> list[PointResult]:
     return out
 
 
+def _reason(status: Status, comparison: list[PointResult], note: str | None) -> str | None:
+    """Which points made the status, and any note of the fit."""
+    parts = []
+    if status == Status.fail:
+        names = [c.name for c in comparison if c.verdict == Verdict.fail]
+        parts.append("out of tolerance at " + ", ".join(names))
+    elif status == Status.not_measurable:
+        names = [c.name for c in comparison if c.verdict == Verdict.not_measurable]
+        parts.append("not enough support at " + ", ".join(names))
+    if note:
+        parts.append(note)
+    return "; ".join(parts) or None
+
+
 def part_status(points: list[PointResult]) -> Status:
     """The part's status: any point failed, else any not measurable, else pass."""
     verdicts = {p.verdict for p in points}
@@ -234,9 +248,8 @@ def inspect_cloud(
     InvalidInput
         The cloud is not an (N, 3) array of finite numbers with enough points.
     """
-    from inspection.deviations import deviations
-
     from inspection.alignment import align
+    from inspection.deviations import deviations
     from inspection.registration import register
 
     frame = CloudFrame(frame)
@@ -292,8 +305,11 @@ def inspect_cloud(
         rms_mm=finite_or_none(reg.rms_mm),
         inlier_fraction=finite_or_none(reg.inlier_fraction),
     )
+    note = None
     if getattr(reg, "ambiguous", False):
-        return error("ambiguous fit: the part looks alike in several poses", **fit)
+        note = "pose ambiguous: another pose fits almost as well (a symmetric-looking part)"
+        if spec.registration.ambiguous_is_error:
+            return error(note, **fit)
     if not reg.inlier_fraction >= spec.registration.min_inlier_fraction:
         return error(
             f"fit kept {reg.inlier_fraction:.0%} of the points, "
@@ -327,7 +343,7 @@ def inspect_cloud(
     result = InspectionResult(
         **base,
         status=status,
-        reason=None,
+        reason=_reason(status, comparison, note),
         comparison=comparison,
         field=_field_stats(distances, inliers),
         timings_ms=timings,
