@@ -72,13 +72,23 @@ class Station:
         self.keys = Keys(self.cfg.line.name, self.cfg.zenoh.prefix)
 
     @classmethod
-    def load(cls, cfg: LineConfig, stages: Stages | None = None) -> Station:
-        """Read the station's part specs and prepare (build) every tree: ready afterwards."""
+    def load(
+        cls, cfg: LineConfig, stages: Stages | None = None, *, build_trees: bool = True
+    ) -> Station:
+        """Read the station's part specs and prepare (build) every tree: ready afterwards.
+
+        ``build_trees=False`` loads the CAD only (enough for the ingest's simulator).
+        """
         stages = stages or default_stages()
         parts = {}
         for path in cfg.part_spec_paths():
             spec = load_part_spec(path)
-            parts[spec.name] = prepare_part(spec, load_cad_for(spec, path.parent), stages)
+            cad = load_cad_for(spec, path.parent)
+            parts[spec.name] = (
+                prepare_part(spec, cad, stages)
+                if build_trees
+                else PreparedPart(spec, cad, None, "")
+            )
         return cls(cfg, stages, parts)
 
     @property
@@ -377,16 +387,19 @@ def run_line(
     return 0
 
 
-def run_router(settings: bus.BusSettings, stop: threading.Event) -> int:
+def run_router(
+    settings: bus.BusSettings, stop: threading.Event, *, out: Callable[[str], None] = print
+) -> int:
     """A zenoh router (a Python session in router mode) until ``stop``."""
     with contextlib.closing(bus.open_session(settings)):
+        out(f"zenoh router listening on {', '.join(settings.listen)}")
         stop.wait()
     return 0
 
 
 def run_ingest(cfg: LineConfig, stop: threading.Event, *, count: int | None = None) -> int:
     """The ingest adapter alone, publishing to the bus until ``stop`` (or ``count`` triggers)."""
-    station = Station.load(cfg)
+    station = Station.load(cfg, build_trees=False)
     with contextlib.closing(bus.open_session(bus_settings(cfg))) as session:
         publisher = bus.frame_publisher(session, station.keys.frames(station.name))
         ingest = Ingest(station.simulated_rig(), publisher.put, period_s=cfg.line.trigger_period_s)

@@ -372,7 +372,9 @@ class ZenohWorker:
         self.worker = Worker(
             pipeline,
             self.source,
-            [zenoh_result_sink(session, keys), *sinks],
+            # Store and record first: whoever sees the result on zenoh can
+            # then fetch it over REST or find it in the recording.
+            [*sinks, zenoh_result_sink(session, keys)],
             line=keys.line,
             station=station,
             missed_part=missed_part,

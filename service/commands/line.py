@@ -66,8 +66,7 @@ def cmd_router(args: argparse.Namespace) -> int:
 
     settings = BusSettings(mode="router", listen=tuple(args.zenoh_listen))
     stop = _stop_on_signals()
-    print(f"zenoh router listening on {', '.join(args.zenoh_listen)}", flush=True)
-    return run_router(settings, stop)
+    return run_router(settings, stop, out=lambda text: print(text, flush=True))
 
 
 def cmd_piece(args: argparse.Namespace) -> int:
