@@ -34,7 +34,7 @@ def main() -> int:
     from inspection.simulate import RenderOptions, simulate, simulator_for
 
     rig = Rig.nominal()
-    cad = sheet_metal_panel(PanelSpec(length_mm=400.0, width_mm=260.0))
+    cad = sheet_metal_panel(PanelSpec().scaled(400.0, 260.0))
     mesh = cad.to_trimesh()
     a = np.deg2rad(30.0)
     T = np.eye(4)

@@ -131,6 +131,38 @@ def _inside(sx, sy, faces, f, pu, pv):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _shadow(smap_z, smap_f, up, vp, qz, f, bias):  # pragma: no cover - compiled
+    """Fraction of the projector's light reaching a point (percentage-closer filtering).
+
+    The four shadow-map texels around the point's slide position (up, vp) each
+    vote lit when they see nothing, the point's own face f, or a surface no
+    nearer to the projector than the point's depth qz minus ``bias``; the votes
+    are weighted bilinearly, so shadow edges are soft like a real flash's.
+    """
+    Hs, Ws = smap_z.shape
+    j0 = int(math.floor(up))
+    i0 = int(math.floor(vp))
+    fu = up - j0
+    fv = vp - i0
+    lit = 0.0
+    for di in range(2):
+        for dj in range(2):
+            ii = min(max(i0 + di, 0), Hs - 1)
+            jj = min(max(j0 + dj, 0), Ws - 1)
+            sf = smap_f[ii, jj]
+            if sf < 0 or (f >= 0 and sf == f) or qz <= smap_z[ii, jj] + bias:
+                lit += (fu if dj == 1 else 1.0 - fu) * (fv if di == 1 else 1.0 - fv)
+    return lit
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _bias(qz, fpx, cos_l):  # pragma: no cover - compiled
+    """Shadow-map depth bias, mm: grows with the slope seen from the projector (acne otherwise)."""
+    tan_l = math.sqrt(max(1.0 - cos_l * cos_l, 0.0)) / max(cos_l, 0.05)
+    return 0.3 + 1.5 * (qz / fpx) * min(tan_l, 10.0)
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _belt_albedo(x, y, tex, texel_mm, belt_half_width, floor_albedo):  # pragma: no cover
     """Belt albedo at rig (x, y): periodic texture along x, dark floor beyond the belt."""
     if abs(y) > belt_half_width:
@@ -154,7 +186,7 @@ def shade_scene(  # pragma: no cover - compiled
     Rp, tp, kproj, pattern, smap_z, smap_f, P, power, r0, ambient,
     albedo, ks_sharp, n_sharp, ks_broad, n_broad,
     dirt_c, dirt_r, dirt_k,
-    tex, texel_mm, belt_shift_mm, belt_half_width, floor_albedo,
+    tex, texel_mm, belt_shift_mm, belt_half_width, floor_albedo, belt_irr, belt_q, belt_alb,
     gain, out, points, flags, want_truth,
 ):
     """Radiance of every real pixel of one camera, under the pattern flash.
@@ -202,6 +234,8 @@ def shade_scene(  # pragma: no cover - compiled
     tex : (Ty, Tx) float32
         Belt albedo texture, texel_mm per texel, periodic along x.
     belt_shift_mm, belt_half_width, floor_albedo : float
+    belt_irr, belt_q, belt_alb
+        The static part of the belt's shading, from :func:`belt_static`.
     gain : (H, W) float32
         Exposure times vignetting per pixel (radiance -> DN).
     out : (H, W) float32
@@ -281,6 +315,28 @@ def shade_scene(  # pragma: no cover - compiled
             if not (z < np.inf):
                 out[i, j] = 0.0
                 continue
+            if f < 0:
+                # The belt: everything but the part's shadow is static per
+                # camera and precomputed (belt_static).
+                irr = belt_irr[i, j]
+                if irr > 0.0:
+                    irr *= _shadow(smap_z, smap_f, belt_q[i, j, 0], belt_q[i, j, 1], belt_q[i, j, 2], -1,
+                                   belt_q[i, j, 3])
+                xc = xn * z
+                yc = yn * z
+                X0 = Rcr[0, 0] * xc + Rcr[0, 1] * yc + Rcr[0, 2] * z + C[0]
+                X1 = Rcr[1, 0] * xc + Rcr[1, 1] * yc + Rcr[1, 2] * z + C[1]
+                if belt_shift_mm == 0.0:
+                    a = belt_alb[i, j]
+                else:
+                    a = _belt_albedo(X0 + belt_shift_mm, X1, tex, texel_mm, belt_half_width, floor_albedo)
+                out[i, j] = a * (ambient + irr) * gain[i, j]
+                if want_truth:
+                    points[i, j, 0] = X0
+                    points[i, j, 1] = X1
+                    points[i, j, 2] = 0.0
+                    flags[i, j] = 2 if irr > 0.0 else 0
+                continue
             xc = xn * z
             yc = yn * z
             X0 = Rcr[0, 0] * xc + Rcr[0, 1] * yc + Rcr[0, 2] * z + C[0]
@@ -328,26 +384,7 @@ def shade_scene(  # pragma: no cover - compiled
                     vp = kproj[3] * qy / qz + kproj[4]
                     slide = _bilinear(pattern, up, vp)
                     if slide > 0.0:
-                        # Shadow map with percentage-closer filtering over the
-                        # four nearest texels; the depth bias grows with the
-                        # slope seen from the projector (shadow acne otherwise).
-                        foot = qz / fpx
-                        tan_l = math.sqrt(max(1.0 - cos_l * cos_l, 0.0)) / max(cos_l, 0.05)
-                        bias = 0.3 + 1.5 * foot * min(tan_l, 10.0)
-                        j0 = int(math.floor(up))
-                        i0 = int(math.floor(vp))
-                        fu = up - j0
-                        fv = vp - i0
-                        lit = 0.0
-                        for di in range(2):
-                            for dj in range(2):
-                                ii = min(max(i0 + di, 0), Hs - 1)
-                                jj = min(max(j0 + dj, 0), Ws - 1)
-                                sf = smap_f[ii, jj]
-                                ok = sf < 0 or (f >= 0 and sf == f) or qz <= smap_z[ii, jj] + bias
-                                if ok:
-                                    w = (fu if dj == 1 else 1.0 - fu) * (fv if di == 1 else 1.0 - fv)
-                                    lit += w
+                        lit = _shadow(smap_z, smap_f, up, vp, qz, f, _bias(qz, fpx, cos_l))
                         falloff = (r0 / dist) * (r0 / dist)
                         light = power * falloff * lit
                         irr = light * slide
@@ -551,3 +588,63 @@ def sensor_noise(img, key, shot, read2, out):  # pragma: no cover - compiled
             elif s > 255.0:
                 s = 255.0
             out[i, j] = np.uint8(s)
+
+
+@njit(cache=True, parallel=True)
+def belt_static(  # pragma: no cover - compiled
+    rays, Rcr, C, Rp, tp, kproj, pattern, P, power, r0,
+    tex, texel_mm, belt_half_width, floor_albedo, belt_irr, belt_q, belt_alb,
+):
+    """What a camera sees of the empty belt, computed once per rig.
+
+    Writes, per pixel: ``belt_irr`` (H, W) float32, the patterned irradiance
+    times the cosine (before shadows); ``belt_q`` (H, W, 4) float32, the slide
+    position (u, v), depth from the projector (mm) and shadow bias (mm) of the
+    belt point; ``belt_alb`` (H, W) float32, the belt's albedo there (belt at
+    rest). The formulas are those of :func:`shade_scene`.
+    """
+    H, W = belt_irr.shape
+    ncx = Rcr[2, 0]
+    ncy = Rcr[2, 1]
+    ncz = Rcr[2, 2]
+    ndc = -C[2]
+    for i in prange(H):
+        for j in range(W):
+            xn = rays[i, j, 0]
+            yn = rays[i, j, 1]
+            den_c = ncx * xn + ncy * yn + ncz
+            z = ndc / den_c if den_c != 0.0 else -1.0
+            belt_irr[i, j] = 0.0
+            belt_q[i, j, 0] = -1.0
+            belt_q[i, j, 1] = -1.0
+            belt_q[i, j, 2] = 0.0
+            belt_q[i, j, 3] = 0.0
+            belt_alb[i, j] = 0.0
+            if z <= 0.0:
+                continue
+            xc = xn * z
+            yc = yn * z
+            X0 = Rcr[0, 0] * xc + Rcr[0, 1] * yc + Rcr[0, 2] * z + C[0]
+            X1 = Rcr[1, 0] * xc + Rcr[1, 1] * yc + Rcr[1, 2] * z + C[1]
+            belt_alb[i, j] = _belt_albedo(X0, X1, tex, texel_mm, belt_half_width, floor_albedo)
+            lx = P[0] - X0
+            ly = P[1] - X1
+            lz = P[2]
+            dist = math.sqrt(lx * lx + ly * ly + lz * lz)
+            cos_l = lz / dist
+            if cos_l <= 0.0:
+                continue
+            qx = Rp[0, 0] * X0 + Rp[0, 1] * X1 + tp[0]
+            qy = Rp[1, 0] * X0 + Rp[1, 1] * X1 + tp[1]
+            qz = Rp[2, 0] * X0 + Rp[2, 1] * X1 + tp[2]
+            if qz <= NEAR_MM:
+                continue
+            up = kproj[0] * qx / qz + kproj[1] * qy / qz + kproj[2]
+            vp = kproj[3] * qy / qz + kproj[4]
+            slide = _bilinear(pattern, up, vp)
+            falloff = (r0 / dist) * (r0 / dist)
+            belt_irr[i, j] = power * falloff * slide * cos_l
+            belt_q[i, j, 0] = up
+            belt_q[i, j, 1] = vp
+            belt_q[i, j, 2] = qz
+            belt_q[i, j, 3] = _bias(qz, kproj[0], cos_l)

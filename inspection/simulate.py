@@ -49,6 +49,7 @@ log = logging.getLogger(__name__)
 _TEXEL_MM = 0.5  # belt texture resolution
 _BELT_PERIOD_MM = 1024.0  # the belt texture repeats every metre or so
 _BOARD_PX_PER_MM = 8.0
+_FLOOR_ALBEDO = 0.04  # the machine floor beyond the belt's edges
 
 
 @dataclass(frozen=True)
@@ -152,6 +153,9 @@ class _CameraSetup:
     ox: int
     oy: int
     buf_shape: tuple[int, int]
+    belt_irr: npt.NDArray[np.float32]  # (H, W) patterned irradiance x cosine on the empty belt
+    belt_q: npt.NDArray[np.float32]  # (H, W, 4) slide u, v, projector depth, shadow bias
+    belt_alb: npt.NDArray[np.float32]  # (H, W) belt albedo at rest
 
 
 def _kvec(K: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
@@ -179,6 +183,9 @@ class Simulator:
         """Precompute every pixel's ray, the projector slide and the belt texture."""
         if not isinstance(rig, Rig):
             raise InvalidInput(f"rig must be a Rig, got {type(rig).__name__}")
+        p = rig.projector
+        pattern = p.pattern.image(p.width, p.height)
+        belt = _belt_texture(rig)
         cams = []
         for cam in rig.cameras:
             xy = cam.undistort(cam.pixel_grid())
@@ -191,10 +198,16 @@ class Simulator:
             shape = (int(np.ceil(v.max())) - oy + 3, int(np.ceil(u.max())) - ox + 3)
             r2 = (xy * xy).sum(axis=1).reshape(cam.height, cam.width)
             vignette = (1.0 / (1.0 + r2) ** 2).astype(np.float32)
-            cams.append(_CameraSetup(cam, np.ascontiguousarray(rays), vignette, kv, ox, oy, shape))
-        p = rig.projector
-        pattern = p.pattern.image(p.width, p.height)
-        belt = _belt_texture(rig)
+            rays = np.ascontiguousarray(rays)
+            belt_irr = np.empty((cam.height, cam.width), np.float32)
+            belt_q = np.empty((cam.height, cam.width, 4), np.float32)
+            belt_alb = np.empty((cam.height, cam.width), np.float32)
+            _raster.belt_static(
+                rays, np.ascontiguousarray(cam.R.T), cam.centre, p.R, p.t, _kvec(p.K), pattern, p.centre,
+                p.power, float(np.linalg.norm(p.centre)), belt, _TEXEL_MM, rig.conveyor.width_mm / 2.0,
+                _FLOOR_ALBEDO, belt_irr, belt_q, belt_alb,
+            )
+            cams.append(_CameraSetup(cam, rays, vignette, kv, ox, oy, shape, belt_irr, belt_q, belt_alb))
         log.debug("simulator built for rig %s", rig.id)
         return cls(rig, cams, pattern, belt)
 
@@ -261,7 +274,8 @@ class Simulator:
                 opts.part_albedo, opts.specular_sharp, opts.shininess_sharp,
                 opts.specular_broad, opts.shininess_broad,
                 dirt_c, dirt_r, dirt_k,
-                self._belt, _TEXEL_MM, opts.belt_shift_mm, rig.conveyor.width_mm / 2.0, 0.04,
+                self._belt, _TEXEL_MM, opts.belt_shift_mm, rig.conveyor.width_mm / 2.0, _FLOOR_ALBEDO,
+                setup.belt_irr, setup.belt_q, setup.belt_alb,
                 setup.vignette * np.float32(opts.exposure_dn), out, points, flags, return_truth,
             )
             image = self._expose(out, opts, stream)
@@ -307,7 +321,7 @@ class Simulator:
             _raster.shade_board(
                 setup.rays, np.ascontiguousarray(R_cb.T), -R_cb.T @ t_cb, plane, tex, _BOARD_PX_PER_MM,
                 np.zeros(2), lo, hi, np.ascontiguousarray(cam.R.T), cam.centre,
-                self._belt, _TEXEL_MM, opts.belt_shift_mm, self.rig.conveyor.width_mm / 2.0, 0.04,
+                self._belt, _TEXEL_MM, opts.belt_shift_mm, self.rig.conveyor.width_mm / 2.0, _FLOOR_ALBEDO,
                 1.0, int(supersample), setup.vignette * np.float32(opts.board_white_dn / 0.85), out,
             )
             # Calibration lighting is diffuse and even (the flash's slide would
