@@ -261,6 +261,36 @@ def _residuals(X: np.ndarray, Q: np.ndarray, N: np.ndarray) -> np.ndarray:
 
 
 @numba.njit(cache=True)
+def _distance_residuals(
+    X: np.ndarray, Q: np.ndarray, N: np.ndarray, d: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Signed distances and their gradients ``(x - q) / d`` (the face normal on the face)."""
+    n = X.shape[0]
+    r = np.empty(n)
+    U = np.empty((n, 3))
+    for i in range(n):
+        di = d[i]
+        r[i] = di
+        ex = X[i, 0] - Q[i, 0]
+        ey = X[i, 1] - Q[i, 1]
+        ez = X[i, 2] - Q[i, 2]
+        along = N[i, 0] * ex + N[i, 1] * ey + N[i, 2] * ez
+        e2 = ex * ex + ey * ey + ez * ez
+        # Off the face's interior the foot is on an edge or corner: the
+        # distance grows along x - q, not along the face normal.
+        if e2 > 1e-24 and e2 - along * along > 1e-6 * e2:
+            s = 1.0 / di if di != 0.0 else 0.0
+            U[i, 0] = ex * s
+            U[i, 1] = ey * s
+            U[i, 2] = ez * s
+        else:
+            U[i, 0] = N[i, 0]
+            U[i, 1] = N[i, 1]
+            U[i, 2] = N[i, 2]
+    return r, U
+
+
+@numba.njit(cache=True)
 def _cost(r: np.ndarray, v: np.ndarray, sigma: float, loss: int, c: float) -> float:
     s = 0.0
     vs = 0.0
@@ -498,6 +528,7 @@ def register(
     tolerance_mm: float = 5e-4,
     max_rejections: int = 10,
     subset_tolerance_factor: float = 100.0,
+    residual: str = "distance",
 ) -> Registration:
     """Fit measured points to the CAD with robust point-to-plane ICP.
 
@@ -553,6 +584,8 @@ def register(
     """
     if not hasattr(tree, "query"):
         raise InvalidInput("tree must answer closest-point queries (have a .query(points) method)")
+    if residual not in ("distance", "plane"):
+        raise InvalidInput(f"residual must be 'distance' or 'plane', got {residual!r}")
     if loss not in LOSSES:
         raise InvalidInput(f"unknown loss {loss!r}; expected one of {', '.join(LOSSES)}")
     if max_iterations < 1:
@@ -594,6 +627,9 @@ def register(
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         X_ = _transform(T_[:3, :3].copy(), T_[:3, 3].copy(), P[lo:hi])
         Q_, N_, d_ = _query(tree, X_)
+        if residual == "distance":
+            r_, U_ = _distance_residuals(X_, Q_, N_, d_)
+            return X_, U_, r_, d_
         return X_, N_, _residuals(X_, Q_, N_), d_
 
     X, Nrm, r, d = evaluate(T, 0, m)

@@ -1,0 +1,81 @@
+"""Synthetic measured clouds for the registration, alignment and deviation tests.
+
+A "measurement" here is the side of a part that faces a sensor above it
+(faces turned towards +z; no renderer), with Gaussian noise, optionally with
+reflection blobs: clusters of points pushed 1-5 mm off the surface.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from inspection.alignment import sample_facing
+from inspection.cad import CadModel
+
+
+def perturbation(rng: np.random.Generator, deg: float, mm: float, center: np.ndarray) -> np.ndarray:
+    """A rigid transform turning by ``deg`` about a random axis through ``center``
+    and shifting by ``mm`` in a random direction."""
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    R = Rotation.from_rotvec(axis * np.radians(deg)).as_matrix()
+    d = rng.normal(size=3)
+    d /= np.linalg.norm(d)
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = center - R @ center + mm * d
+    return T
+
+
+def measure(
+    cad: CadModel, T_data_cad: np.ndarray, n: int, *, noise_mm: float = 0.02, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Points on the sensor-facing side, in the data frame, and their data-frame normals."""
+    rng = np.random.default_rng(seed + 1000)
+    pts, face = sample_facing(cad.vertices, cad.faces, cad.face_normals, T_data_cad, n, seed=seed)
+    normals = cad.face_normals[face] @ T_data_cad[:3, :3].T
+    return pts + rng.normal(scale=noise_mm, size=pts.shape), normals
+
+
+def add_blobs(
+    points: np.ndarray,
+    normals: np.ndarray,
+    *,
+    fraction: float = 0.25,
+    n_blobs: int = 12,
+    seed: int = 0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Push ``fraction`` of the points, in ``n_blobs`` compact clusters, 1-5 mm
+    off the surface along its normal (reflection blobs). Returns the new
+    points and the boolean mask of the moved ones."""
+    rng = np.random.default_rng(seed + 2000)
+    out = points.copy()
+    moved = np.zeros(len(points), dtype=bool)
+    kd = cKDTree(points)
+    per_blob = int(round(fraction * len(points) / n_blobs))
+    while moved.sum() < fraction * len(points) - 0.5:
+        centre = points[rng.integers(len(points))]
+        _, idx = kd.query(centre, k=min(len(points), 4 * per_blob))
+        idx = idx[~moved[idx]][: min(per_blob, int(round(fraction * len(points))) - int(moved.sum()))]
+        height = rng.uniform(1.0, 5.0) * rng.choice([-1.0, 1.0])
+        # Heights vary inside a blob (a smeared reflection), always 1-5 mm off.
+        h = np.clip(height + rng.normal(scale=0.3, size=len(idx)), -5.0, 5.0)
+        h = np.where(np.abs(h) < 1.0, np.sign(height), h)
+        out[idx] += h[:, None] * normals[idx]
+        moved[idx] = True
+    return out, moved
+
+
+def pose_errors(T_est: np.ndarray, T_true: np.ndarray, points: np.ndarray) -> tuple[float, float]:
+    """Rotation error (degrees) and RMS displacement error (mm) over ``points``."""
+    dR = T_est[:3, :3] @ T_true[:3, :3].T
+    angle = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1.0) / 2.0, -1.0, 1.0))))
+    a = points @ T_est[:3, :3].T + T_est[:3, 3]
+    b = points @ T_true[:3, :3].T + T_true[:3, 3]
+    return angle, float(np.sqrt(np.mean(np.sum((a - b) ** 2, axis=1))))
+
+
+def apply(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    return points @ T[:3, :3].T + T[:3, 3]

@@ -1,0 +1,277 @@
+"""Robust fine registration: recovery of known poses, robustness, the trust
+region's monotone cost, observability, determinism and input validation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from _fitcases import add_blobs, apply, measure, perturbation, pose_errors
+
+from inspection.cad import CadModel, load_cad
+from inspection.errors import InsufficientOverlap, InvalidInput
+from inspection.grid import GridTree
+from inspection.panel import PanelSpec, sheet_metal_panel
+from inspection.registration import LOSSES, Registration, StopReason, register
+
+# The tree's default build parameters: what the line uses.
+TREE: dict[str, float] = {}
+
+
+@pytest.fixture(scope="module")
+def panel():
+    cad = sheet_metal_panel(PanelSpec().scaled(300.0, 200.0))
+    return cad, GridTree.build(cad, **TREE)
+
+
+@pytest.fixture(scope="module")
+def shared(shared_cad):
+    cache = {}
+
+    def get(name: str, scale: float):
+        if name not in cache:
+            cad = load_cad(shared_cad(name), scale=scale)
+            cache[name] = (cad, GridTree.build(cad, **TREE))
+        return cache[name]
+
+    return get
+
+
+def scenario(cad, *, n=50_000, deg=10.0, mm=20.0, seed=0, noise_mm=0.02):
+    """Measured points (data frame), their normals, and the true T_cad_data."""
+    pts, normals = measure(cad, np.eye(4), n, noise_mm=noise_mm, seed=seed)
+    T_data_cad = perturbation(np.random.default_rng(seed), deg, mm, pts.mean(axis=0))
+    return apply(T_data_cad, pts), normals @ T_data_cad[:3, :3].T, np.linalg.inv(T_data_cad)
+
+
+# ----------------------------------------------------------------- accuracy
+@pytest.mark.parametrize("seed", [0, 1])
+def test_recovers_panel_pose_from_10deg_20mm(panel, seed):
+    cad, tree = panel
+    data, _, T_true = scenario(cad, seed=seed)
+    reg = register(tree, data)
+    rot, disp = pose_errors(reg.transform, T_true, data)
+    assert reg.converged and reg.stop_reason is StopReason.CONVERGED
+    assert rot <= 0.005
+    assert disp <= 0.005
+    assert 0.015 < reg.rms_mm < 0.025  # the noise, 0.02 mm
+    assert reg.inlier_fraction > 0.95
+    assert not reg.degenerate
+
+
+def test_recovers_shared_mesh_pose_from_10deg_20mm(shared):
+    cad, tree = shared("busted.STL", 30.0)
+    data, _, T_true = scenario(cad, seed=3)
+    reg = register(tree, data)
+    rot, disp = pose_errors(reg.transform, T_true, data)
+    assert reg.converged
+    assert rot <= 0.005
+    assert disp <= 0.005
+
+
+@pytest.mark.parametrize(("name", "scale"), [("featuretype.STL", 60.0), ("fandisk.obj", 180.0)])
+def test_weakly_observable_meshes_reach_the_noise_limit(shared, name, scale):
+    """Seen from above, these parts fix one horizontal direction only through a
+    few edges: 50k points with 0.02 mm noise cannot place them to 5 um along
+    it. The fit must still reach what the data allow: the error stays within
+    three times the Cramer-Rao bound noise * sqrt(sum 1/lambda_i / N) given by
+    the observability eigenvalues, and the rotation within 0.005 deg."""
+    cad, tree = shared(name, scale)
+    data, _, T_true = scenario(cad, seed=3)
+    reg = register(tree, data)
+    rot, disp = pose_errors(reg.transform, T_true, data)
+    bound = 0.02 * np.sqrt(np.sum(1.0 / reg.observability) / len(data))
+    assert reg.converged
+    assert rot <= 0.005
+    assert disp <= max(0.005, 3.0 * bound), (disp, bound)
+
+
+# --------------------------------------------------------------- robustness
+def test_redescending_losses_ignore_clustered_outliers_and_l2_does_not(panel):
+    cad, tree = panel
+    data, normals, T_true = scenario(cad, seed=5)
+    bad, moved = add_blobs(data, normals, fraction=0.25, seed=5)
+    assert moved.mean() == pytest.approx(0.25, abs=0.001)
+    errors = {}
+    for loss in ("tukey", "welsch", "cauchy", "l2"):
+        reg = register(tree, bad, loss=loss)
+        errors[loss] = pose_errors(reg.transform, T_true, data)
+        if loss == "tukey":
+            # The blobs are recognised as outliers: weight ~0, inliers ~1.
+            assert np.median(reg.weights[moved]) < 0.01
+            assert np.median(reg.weights[~moved]) > 0.8
+            assert reg.inlier_fraction == pytest.approx(0.75, abs=0.03)
+    for loss in ("tukey", "welsch", "cauchy"):
+        rot, disp = errors[loss]
+        assert rot <= 0.02, (loss, errors)
+        assert disp <= 0.020, (loss, errors)
+    worst_robust = max(max(errors[k][1] for k in ("tukey", "welsch", "cauchy")), 1e-4)
+    assert errors["l2"][1] >= 5.0 * worst_robust, errors
+
+
+def test_input_weights_remove_known_outliers(panel):
+    cad, tree = panel
+    data, normals, T_true = scenario(cad, n=20_000, deg=3.0, mm=5.0, seed=6)
+    bad, moved = add_blobs(data, normals, fraction=0.25, seed=6)
+    reg = register(tree, bad, loss="l2", weights=(~moved).astype(float))
+    rot, disp = pose_errors(reg.transform, T_true, data)
+    assert rot <= 0.005 and disp <= 0.005
+    assert np.all(reg.weights[moved] == 0.0)
+
+
+# ------------------------------------------------------------- trust region
+@pytest.mark.parametrize("seed", range(24))
+def test_cost_never_rises(panel, seed):
+    cad, tree = panel
+    rng = np.random.default_rng(seed)
+    loss = sorted(LOSSES)[seed % len(LOSSES)]
+    data, normals, _ = scenario(
+        cad, n=3000, deg=rng.uniform(0.5, 12.0), mm=rng.uniform(0.5, 25.0), seed=100 + seed
+    )
+    if seed % 2:
+        data, _ = add_blobs(data, normals, fraction=0.2, n_blobs=4, seed=seed)
+    reg = register(tree, data, loss=loss, seed=seed, initial_subset=256, max_subset=1024)
+    h = reg.cost_history
+    assert len(h) == reg.iterations == len(reg.subset_sizes)
+    # Within an iteration: an accepted step lowers the cost, else it stays.
+    assert np.all(h[:, 1] <= h[:, 0])
+    assert reg.accepted_steps == int(np.sum(h[:, 1] < h[:, 0]))
+    # Across iterations on the same points: the scale only shrinks, so the
+    # next iteration starts no higher than the last one ended.
+    same = reg.subset_sizes[1:] == reg.subset_sizes[:-1]
+    assert np.all(h[1:, 0][same] <= h[:-1, 1][same] * (1 + 1e-12))
+
+
+def test_stop_reasons(panel):
+    cad, tree = panel
+    data, _, _ = scenario(cad, n=5000, seed=7)
+    short = register(tree, data, max_iterations=2)
+    assert short.stop_reason is StopReason.MAX_ITERATIONS
+    assert not short.converged and short.iterations == 2
+    full = register(tree, data)
+    assert full.stop_reason is StopReason.CONVERGED and full.converged
+    assert str(full.stop_reason) == "converged"
+
+
+# ------------------------------------------------------------ observability
+def test_flat_plate_reports_its_three_free_directions():
+    plate = CadModel.from_mesh(trimesh.creation.box((300.0, 200.0, 4.0)), name="plate")
+    tree = GridTree.build(plate, **TREE)
+    data, _, T_true = scenario(plate, n=5000, deg=0.5, mm=0.5, seed=8)
+    reg = register(tree, data)
+    assert reg.degenerate
+    assert len(reg.degenerate_directions) == 3
+    # The free motions are in-plane: x and y translation and rotation about z
+    # (components 3, 4 and 2 of the twist), no tilt and no lift.
+    free = reg.degenerate_directions
+    assert np.allclose(np.linalg.norm(free[:, [2, 3, 4]], axis=1), 1.0, atol=0.05)
+    # What the data do fix is fixed: the plane (tilt and height).
+    n_est = reg.transform[:3, :3].T @ [0.0, 0.0, 1.0]
+    n_true = T_true[:3, :3].T @ [0.0, 0.0, 1.0]
+    assert np.degrees(np.arccos(min(1.0, n_est @ n_true))) < 0.005
+
+
+def test_panel_is_fully_observable(panel):
+    cad, tree = panel
+    data, _, _ = scenario(cad, n=5000, deg=1.0, mm=1.0, seed=9)
+    reg = register(tree, data)
+    assert reg.observability.shape == (6,)
+    assert np.all(np.diff(reg.observability) >= 0)
+    assert reg.observability[0] > 1e-3 * reg.observability[-1]
+    assert reg.degenerate_directions.shape == (0, 6)
+
+
+# -------------------------------------------------------------- determinism
+def test_bit_identical_results(panel):
+    cad, tree = panel
+    data, normals, _ = scenario(cad, n=20_000, deg=5.0, mm=10.0, seed=10)
+    data, _ = add_blobs(data, normals, fraction=0.05, seed=10)
+    a = register(tree, data)
+    b = register(tree, data.copy())
+    assert a.transform.tobytes() == b.transform.tobytes()
+    assert a.weights.tobytes() == b.weights.tobytes()
+    assert a.cost_history.tobytes() == b.cost_history.tobytes()
+
+
+def test_order_of_points_does_not_change_the_fit(panel):
+    cad, tree = panel
+    data, _, T_true = scenario(cad, n=20_000, deg=5.0, mm=10.0, seed=11)
+    perm = np.random.default_rng(0).permutation(len(data))
+    a = register(tree, data)
+    b = register(tree, data[perm])
+    assert pose_errors(a.transform, b.transform, data)[1] < 0.002
+    assert np.allclose(a.weights[perm], b.weights, atol=0.05)
+
+
+def test_inputs_are_not_mutated(panel):
+    cad, tree = panel
+    data, _, _ = scenario(cad, n=3000, seed=12)
+    init = np.eye(4)
+    w = np.ones(len(data))
+    copies = data.copy(), init.copy(), w.copy()
+    register(tree, data, init=init, weights=w)
+    for before, after in zip(copies, (data, init, w), strict=True):
+        assert np.array_equal(before, after)
+
+
+def test_init_is_used(panel):
+    cad, tree = panel
+    data, _, T_true = scenario(cad, n=5000, deg=30.0, mm=60.0, seed=13)
+    near = T_true.copy()
+    near[:3, 3] += [0.5, -0.3, 0.2]
+    reg = register(tree, data, init=near)
+    assert pose_errors(reg.transform, T_true, data)[1] < 0.01
+
+
+# --------------------------------------------------------------- validation
+@pytest.mark.parametrize(
+    ("points", "message"),
+    [
+        (np.zeros((100, 2)), "shape"),
+        (np.zeros((0, 3)), "at least"),
+        (np.full((100, 3), np.nan), "non-finite"),
+        ([[1, 2, "x"]] * 100, "numbers"),
+    ],
+)
+def test_bad_points_raise(panel, points, message):
+    with pytest.raises(InvalidInput, match=message):
+        register(panel[1], points)
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        {"loss": "bogus"},
+        {"init": np.zeros((4, 4))},
+        {"init": np.eye(3)},
+        {"init": np.diag([1.0, 1.0, -1.0, 1.0])},
+        {"weights": -np.ones(3000)},
+        {"weights": np.ones(10)},
+        {"weights": np.zeros(3000)},
+        {"max_iterations": 0},
+        {"residual": "point"},
+    ],
+)
+def test_bad_parameters_raise(panel, kwargs):
+    cad, tree = panel
+    data, _, _ = scenario(cad, n=3000, seed=14)
+    with pytest.raises(InvalidInput):
+        register(tree, data, **kwargs)
+
+
+def test_cloud_far_from_the_cad_is_insufficient_overlap(panel):
+    cad, tree = panel
+    data, _, _ = scenario(cad, n=3000, deg=0.0, mm=0.0, seed=15)
+    with pytest.raises(InsufficientOverlap):
+        register(tree, data + [0.0, 0.0, 500.0])
+
+
+def test_result_is_a_frozen_registration(panel):
+    cad, tree = panel
+    data, _, _ = scenario(cad, n=3000, seed=16)
+    reg = register(tree, data)
+    assert isinstance(reg, Registration)
+    with pytest.raises(AttributeError):
+        reg.rms_mm = 0.0  # type: ignore[misc]
+    assert reg.weights.shape == (3000,) and reg.residuals.shape == (3000,)
+    assert np.allclose(reg.transform[3], [0, 0, 0, 1])
