@@ -1,0 +1,492 @@
+"""Global alignment: find the pose of a part lying anywhere on the conveyor.
+
+The sensor looks down (+z of the data frame is up) at a part resting in one
+of its stable poses, turned by any angle about the vertical and placed
+anywhere in the measurement volume. The search runs in three stages:
+
+1. *Hypotheses.* For every stable resting pose of the CAD (from the convex
+   hull: trimesh's ``compute_stable_poses``), the side that faces the sensor
+   is sampled once (an :class:`AlignmentModel`, built explicitly and reused
+   for every part). Each pose is tried at ``n_angles`` rotations about the
+   vertical, with the centroid of its visible side put on the centroid of
+   the measured cloud; each hypothesis is scored by the truncated nearest-
+   neighbour distance of its template to a subsample of the cloud (a
+   kd-tree on the cloud, so scoring never touches the CAD).
+2. *Coarse refinement.* The best few distinct hypotheses are refined by
+   :func:`inspection.registration.register` on a subsample of the cloud
+   against a dense sampling of the CAD surface (point-to-plane against the
+   samples' face normals), and re-scored with one common truncated
+   residual cost. Two distinct poses that fit equally well (a box turned by
+   180 degrees, a disc at any angle) make the result *ambiguous*.
+3. *Fine registration* of every point from the best pose with
+   :func:`~inspection.registration.register` on the CAD tree.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+import trimesh
+from scipy.spatial import cKDTree
+
+from .arrays import Faces, Points, Scalars, Transform, Vectors
+from .errors import InsufficientOverlap, InvalidInput
+from .registration import ClosestPointQuery, Registration, register, validate_points
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "Alignment",
+    "AlignmentModel",
+    "Candidate",
+    "RestingPose",
+    "SampledSurface",
+    "align",
+    "alignment_model",
+    "sample_facing",
+]
+
+# Faces whose normal makes less than this cosine with "up" are not seen by
+# the sensor above (grazing faces give no usable points).
+DEFAULT_MIN_COS = 0.1
+
+
+@dataclass(frozen=True, eq=False)
+class RestingPose:
+    """One stable pose of the part on a flat conveyor.
+
+    Attributes
+    ----------
+    transform : (4, 4) float64
+        ``T_rest_cad``: puts the CAD on the plane z = 0, z up.
+    probability : float
+        Share of random drops that end in this pose (quasi-static estimate).
+    template : (M, 3) float64, mm, resting frame
+        Points sampled from the faces that face up in this pose.
+    """
+
+    transform: Transform
+    probability: float
+    template: Points
+
+    @property
+    def centroid(self) -> np.ndarray:
+        """(3,) float64, mm: centroid of the visible template."""
+        return self.template.mean(axis=0)
+
+
+@dataclass(frozen=True, eq=False)
+class SampledSurface:
+    """A dense sampling of the CAD surface answering closest-point queries.
+
+    Approximate (the nearest sample, with the exact face normal, so the
+    point-to-plane residual is exact away from edges): cheap and correct far
+    from the surface, used to refine pose hypotheses before the CAD tree.
+
+    Attributes
+    ----------
+    samples : (S, 3) float64, mm, CAD frame
+    normals : (S, 3) float64
+    face : (S,) int64
+    """
+
+    samples: Points
+    normals: Vectors
+    face: np.ndarray
+    kdtree: cKDTree = field(repr=False)
+
+    @classmethod
+    def build(cls, vertices: Points, faces: Faces, face_normals: Vectors, *, n: int, seed: int = 0):
+        pts, f = _sample_faces(
+            vertices, faces, np.arange(len(faces)), n, np.random.default_rng(seed)
+        )
+        pts = np.concatenate([pts, vertices])
+        # Every vertex, with the normal of one of its faces, so edges and
+        # corners are represented exactly.
+        vf = np.full(len(vertices), -1, dtype=np.int64)
+        vf[faces[:, 0]] = np.arange(len(faces))
+        vf[faces[:, 1]] = np.arange(len(faces))
+        vf[faces[:, 2]] = np.arange(len(faces))
+        keep = np.concatenate([np.ones(len(f), dtype=bool), vf >= 0])
+        f = np.concatenate([f, vf])[keep]
+        pts = pts[keep]
+        return cls(pts, face_normals[f], f, cKDTree(pts))
+
+    def query(self, points: Points) -> _Closest:
+        """Nearest sample of each point: (points, normals, distances, face)."""
+        _, idx = self.kdtree.query(points)
+        q = self.samples[idx]
+        n = self.normals[idx]
+        d = np.einsum("ij,ij->i", n, points - q)
+        return _Closest(q, n, d, self.face[idx])
+
+
+@dataclass(frozen=True)
+class _Closest:
+    points: Points
+    normals: Vectors
+    distances: Scalars
+    face: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class AlignmentModel:
+    """What global alignment needs of a CAD model, computed once per part type.
+
+    Attributes
+    ----------
+    poses : tuple of RestingPose
+        Stable poses with a visible side, most probable first.
+    surface : SampledSurface
+        Dense samples of the whole surface for coarse refinement.
+    size_mm : float
+        Diagonal of the CAD's bounding box.
+    """
+
+    poses: tuple[RestingPose, ...]
+    surface: SampledSurface
+    size_mm: float
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A refined pose hypothesis and its score (lower is better).
+
+    Attributes
+    ----------
+    transform : (4, 4) float64
+        ``T_cad_data`` after coarse refinement.
+    score : float
+        Mean truncated squared residual of the cloud's subsample, mm^2
+        (the same truncation for every candidate).
+    pose_index : int
+        Index into ``AlignmentModel.poses``.
+    angle_deg : float
+        The starting rotation about the vertical.
+    """
+
+    transform: Transform
+    score: float
+    pose_index: int
+    angle_deg: float
+
+
+@dataclass(frozen=True, eq=False)
+class Alignment(Registration):
+    """A :class:`Registration` found from an unknown starting pose.
+
+    Attributes
+    ----------
+    ambiguous : bool
+        Another pose, distinct from the chosen one, fits (almost) as well:
+        the part looks symmetric to the sensor and the pose is not unique.
+    candidates : tuple of Candidate
+        The distinct refined hypotheses, best first (the first is the one
+        refined into ``transform``).
+    """
+
+    ambiguous: bool = False
+    candidates: tuple[Candidate, ...] = ()
+
+
+def sample_facing(
+    vertices: Points,
+    faces: Faces,
+    face_normals: Vectors,
+    T_view_cad: Transform,
+    n: int,
+    *,
+    seed: int = 0,
+    min_cos: float = DEFAULT_MIN_COS,
+) -> tuple[Points, np.ndarray]:
+    """Sample the side of a part that faces a sensor looking down.
+
+    Points are spread uniformly over the area of the faces whose normal,
+    turned into the view frame, points up by more than ``min_cos``
+    (occlusion is ignored).
+
+    Parameters
+    ----------
+    vertices : (V, 3) float64, mm, CAD frame
+    faces : (F, 3) int64
+    face_normals : (F, 3) float64
+    T_view_cad : (4, 4) float64
+        Pose of the part in the view frame (z up).
+    n : int
+        Number of points.
+    seed : int
+    min_cos : float
+
+    Returns
+    -------
+    points : (n, 3) float64, mm, view frame
+    face : (n,) int64
+        The face each point was sampled from.
+
+    Raises
+    ------
+    InvalidInput
+        No face faces the sensor.
+    """
+    R = np.asarray(T_view_cad, dtype=np.float64)[:3, :3]
+    up = face_normals @ R[2]
+    sel = np.flatnonzero(up > min_cos)
+    if len(sel) == 0:
+        raise InvalidInput("no face of the part faces the sensor in this pose")
+    pts, f = _sample_faces(vertices, faces, sel, n, np.random.default_rng(seed))
+    T = np.asarray(T_view_cad, dtype=np.float64)
+    return pts @ T[:3, :3].T + T[:3, 3], f
+
+
+def _sample_faces(
+    vertices: Points, faces: Faces, sel: np.ndarray, n: int, rng: np.random.Generator
+) -> tuple[Points, np.ndarray]:
+    tri = vertices[faces[sel]]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    k = rng.choice(len(sel), size=n, p=area / area.sum())
+    u, v = rng.random(n), rng.random(n)
+    flip = u + v > 1.0
+    u[flip], v[flip] = 1.0 - u[flip], 1.0 - v[flip]
+    t = tri[k]
+    pts = t[:, 0] + u[:, None] * (t[:, 1] - t[:, 0]) + v[:, None] * (t[:, 2] - t[:, 0])
+    return pts, sel[k]
+
+
+def _geometry(source: object) -> tuple[Points, Faces, Vectors]:
+    try:
+        v = np.asarray(source.vertices, dtype=np.float64)  # type: ignore[attr-defined]
+        f = np.asarray(source.faces, dtype=np.int64)  # type: ignore[attr-defined]
+        n = np.asarray(source.face_normals, dtype=np.float64)  # type: ignore[attr-defined]
+    except AttributeError as exc:
+        raise InvalidInput(
+            "need a CAD model or a tree with vertices, faces and face_normals"
+        ) from exc
+    return v, f, n
+
+
+def alignment_model(
+    cad: object,
+    *,
+    max_poses: int = 12,
+    min_probability: float = 0.002,
+    template_points: int = 800,
+    surface_points: int = 40000,
+    min_cos: float = DEFAULT_MIN_COS,
+    seed: int = 0,
+) -> AlignmentModel:
+    """Precompute the stable poses, their visible templates and a surface sampling.
+
+    Parameters
+    ----------
+    cad : CadModel or GridTree
+        Anything with ``vertices`` (V, 3), ``faces`` (F, 3) and
+        ``face_normals`` (F, 3) in mm.
+    max_poses : int
+        At most this many poses, most probable first.
+    min_probability : float
+        Poses less likely than this are left out.
+    template_points : int
+        Points per visible template.
+    surface_points : int
+        Samples of the whole surface for coarse refinement.
+    min_cos : float
+        See :func:`sample_facing`.
+    seed : int
+
+    Returns
+    -------
+    AlignmentModel
+    """
+    v, f, n = _geometry(cad)
+    hull = trimesh.Trimesh(v, f, process=False).convex_hull
+    transforms, probs = trimesh.poses.compute_stable_poses(hull, n_samples=1, threshold=0.0)
+    poses = []
+    for k, (T, p) in enumerate(zip(transforms, probs, strict=True)):
+        if p < min_probability or len(poses) >= max_poses:
+            break
+        T = np.asarray(T, dtype=np.float64)
+        if (n @ T[2, :3] > min_cos).sum() == 0:
+            log.debug("stable pose %d shows no face to the sensor; skipped", k)
+            continue
+        tpl, _ = sample_facing(v, f, n, T, template_points, seed=seed + k, min_cos=min_cos)
+        poses.append(RestingPose(T, float(p), tpl))
+    if not poses:
+        raise InvalidInput("the part has no stable pose in which any face is seen from above")
+    surface = SampledSurface.build(v, f, n, n=surface_points, seed=seed)
+    size = float(np.linalg.norm(v.max(axis=0) - v.min(axis=0)))
+    return AlignmentModel(tuple(poses), surface, size)
+
+
+def _rot_z(theta: float) -> np.ndarray:
+    c, s = np.cos(theta), np.sin(theta)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _pose_distance(A: Transform, B: Transform, pts: Points) -> float:
+    """RMS distance, mm, between the images of ``pts`` under two transforms."""
+    a = pts @ A[:3, :3].T + A[:3, 3]
+    b = pts @ B[:3, :3].T + B[:3, 3]
+    return float(np.sqrt(np.mean(np.sum((a - b) ** 2, axis=1))))
+
+
+def align(
+    tree: ClosestPointQuery,
+    points: Points,
+    *,
+    model: AlignmentModel | None = None,
+    cad: object | None = None,
+    loss: str = "tukey",
+    weights: Scalars | None = None,
+    n_angles: int = 36,
+    n_refine: int = 6,
+    sample_points: int = 1500,
+    refine_points: int = 500,
+    ambiguity_ratio: float = 1.25,
+    seed: int = 0,
+    **register_kwargs: object,
+) -> Alignment:
+    """Find ``T_cad_data`` for a part lying anywhere, then refine it.
+
+    Parameters
+    ----------
+    tree : ClosestPointQuery
+        The CAD tree (``GridTree``); used for the final fine registration and,
+        when neither ``model`` nor ``cad`` is given, as the source of geometry.
+    points : (N, 3) float64, mm, data frame with z up (the rig frame)
+        The measured cloud: the side of the part that faces the sensor.
+    model : AlignmentModel, optional
+        From :func:`alignment_model`; build it once per part type and reuse
+        it (it costs ~0.1-1 s). Built from ``cad`` or ``tree`` when omitted.
+    cad : CadModel, optional
+    loss : str
+        Loss of the final registration (see :func:`register`).
+    weights : (N,) float64, optional
+        Per-point input weights for the final registration.
+    n_angles : int
+        Rotations about the vertical tried per resting pose.
+    n_refine : int
+        Distinct hypotheses refined on the subsample.
+    sample_points : int
+        Size of the cloud's subsample used to score hypotheses.
+    refine_points : int
+        Size of the (smaller) subsample used to refine them.
+    ambiguity_ratio : float
+        A distinct candidate whose score is within this factor of the best
+        makes the result ambiguous.
+    seed : int
+    **register_kwargs
+        Passed on to the final :func:`register`.
+
+    Returns
+    -------
+    Alignment
+
+    Raises
+    ------
+    InvalidInput
+        Bad points or parameters.
+    InsufficientOverlap
+        No hypothesis brings enough points near the CAD.
+    """
+    P = validate_points(points, min_points=30)
+    if n_angles < 1 or n_refine < 1 or sample_points < 30 or refine_points < 30:
+        raise InvalidInput("n_angles and n_refine must be >= 1, sample_points, refine_points >= 30")
+    if not np.isfinite(ambiguity_ratio) or ambiguity_ratio < 1.0:
+        raise InvalidInput(f"ambiguity_ratio must be >= 1, got {ambiguity_ratio!r}")
+    if model is None:
+        model = alignment_model(cad if cad is not None else tree, seed=seed)
+    rng = np.random.default_rng(seed)
+    # Random order: every prefix of the subsample is a random sample too.
+    sub = P[rng.choice(len(P), size=min(sample_points, len(P)), replace=False)]
+    c_data = sub.mean(axis=0)
+    data_tree = cKDTree(sub)
+    # Hypothesis scores saturate at a few per cent of the part size, so that a
+    # hypothesis is judged by how much of its template lands on the cloud.
+    trunc = 0.03 * model.size_mm
+    angles = np.arange(n_angles) * (2.0 * np.pi / n_angles)
+
+    hyps: list[tuple[float, int, float, Transform]] = []
+    for k, pose in enumerate(model.poses):
+        tpl = pose.template - pose.centroid
+        scores = np.empty(n_angles)
+        for a, theta in enumerate(angles):
+            y = tpl @ _rot_z(theta).T + c_data
+            d, _ = data_tree.query(y, distance_upper_bound=trunc)
+            scores[a] = float(np.mean(np.minimum(d, trunc) ** 2))
+        for a in range(n_angles):
+            # T_data_cad = Trans(c_data) Rz(theta) Trans(-centroid) T_rest_cad.
+            T_dc = np.eye(4)
+            T_dc[:3, :3] = _rot_z(angles[a])
+            T_dc[:3, 3] = c_data - _rot_z(angles[a]) @ pose.centroid
+            T_dc = T_dc @ pose.transform
+            hyps.append((scores[a], k, float(np.degrees(angles[a])), np.linalg.inv(T_dc)))
+    hyps.sort(key=lambda h: (h[0], h[1], h[2]))
+
+    # Coarse refinement of the best hypotheses against the sampled surface.
+    refined: list[Candidate] = []
+    residuals: list[np.ndarray] = []
+    tried = 0
+    for score, k, ang, T in hyps:
+        if tried >= 3 * n_refine or len(refined) >= n_refine:
+            break
+        tried += 1
+        try:
+            reg = register(
+                model.surface,
+                sub[:refine_points],
+                init=T,
+                loss="tukey",
+                max_iterations=25,
+                initial_subset=min(128, refine_points),
+                max_subset=None,
+                max_distance_mm=max(model.size_mm, 1.0),
+                min_scale_mm=0.05,
+                tolerance_rad=2e-4,
+                tolerance_mm=2e-2,
+                subset_tolerance_factor=10.0,
+                seed=seed,
+            )
+        except InsufficientOverlap:
+            continue
+        Tr = reg.transform
+        if any(
+            _pose_distance(Tr, c.transform, sub[:refine_points]) < 0.02 * model.size_mm
+            for c in refined
+        ):
+            continue
+        refined.append(Candidate(Tr, 0.0, k, ang))
+        residuals.append(reg.residuals)
+        log.debug(
+            "hypothesis pose %d at %.0f deg: score %.3g -> rms %.3f", k, ang, score, reg.rms_mm
+        )
+    if not refined:
+        raise InsufficientOverlap("no pose hypothesis brings the cloud near the CAD")
+
+    # One truncation for all candidates: a few robust scales of the best fit.
+    sig = min(1.4826 * float(np.median(np.abs(r))) for r in residuals)
+    tau = 3.0 * max(sig, 0.01)
+    scored = sorted(
+        (
+            Candidate(
+                c.transform, float(np.mean(np.minimum(r * r, tau * tau))), c.pose_index, c.angle_deg
+            )
+            for c, r in zip(refined, residuals, strict=True)
+        ),
+        key=lambda c: (c.score, c.pose_index, c.angle_deg),
+    )
+    best = scored[0]
+    ambiguous = len(scored) > 1 and scored[1].score <= ambiguity_ratio * best.score
+    fine = register(
+        tree, P, init=best.transform, loss=loss, weights=weights, seed=seed, **register_kwargs
+    )
+    log.debug(
+        "align: %d candidates, best %.4g, runner-up %s, ambiguous %s",
+        len(scored),
+        best.score,
+        f"{scored[1].score:.4g}" if len(scored) > 1 else "none",
+        ambiguous,
+    )
+    fields = {name: getattr(fine, name) for name in Registration.__dataclass_fields__}
+    return Alignment(**fields, ambiguous=bool(ambiguous), candidates=tuple(scored))

@@ -1,0 +1,449 @@
+"""Signed deviations of a registered cloud from the CAD, and the part's verdict.
+
+Every measured point (already in the CAD frame) gets its signed distance to
+the CAD surface (positive on the outer side). At each named comparison point
+the measured points within its support radius are pooled and their signed
+distances, taken along the comparison point's normal, are averaged robustly
+(a Huber M-estimate of location with a MAD scale, so that a stray reflection
+in the support does not move the result). The deviation is checked against
+the point's signed tolerance; a comparison point with too few points in its
+support cannot be judged (``not_measurable``).
+"""
+
+from __future__ import annotations
+
+import enum
+import json
+import logging
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .arrays import Points, Scalars
+from .errors import InvalidInput
+from .registration import ClosestPointQuery, validate_points
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "ComparisonPoint",
+    "ComparisonResult",
+    "Deviations",
+    "FieldSummary",
+    "Verdict",
+    "deviations",
+    "load_comparison_points",
+    "robust_location",
+]
+
+KINDS = ("surface", "hole", "trim_edge")
+"""Kinds of comparison point a spec may name."""
+MEASURED_KINDS = ("surface",)
+"""Kinds measured today; the others are reported as not measurable."""
+
+# Points whose CAD normal turns more than ~60 degrees away from the
+# comparison point's normal lie on another surface (a flange, the far side
+# of a thin wall) and are not pooled.
+_MIN_NORMAL_COS = 0.5
+# Huber's tuning constant (95 % efficiency under Gaussian noise).
+_HUBER_C = 1.345
+
+
+class Verdict(enum.StrEnum):
+    """Outcome of a check."""
+
+    PASS = "pass"
+    FAIL = "fail"
+    NOT_MEASURABLE = "not_measurable"
+
+
+@dataclass(frozen=True)
+class ComparisonPoint:
+    """A named point on the CAD surface where the deviation is checked.
+
+    Attributes
+    ----------
+    name : str
+    position : (3,) tuple of float, mm, CAD frame
+        Nominal point on the surface.
+    normal : (3,) tuple of float
+        Direction along which the deviation is measured (normalised on
+        construction); the outward surface normal for ``kind="surface"``.
+    lower_mm, upper_mm : float
+        Signed tolerance: the deviation must lie in [lower_mm, upper_mm].
+    radius_mm : float
+        Measured points within this distance of ``position`` are pooled.
+    kind : str
+        ``"surface"``. ``"hole"`` and ``"trim_edge"`` are accepted in specs
+        but not measured yet (reported as not measurable).
+    min_support : int or None
+        Points needed for a verdict at this point; None: the ``min_support``
+        given to :func:`deviations`.
+    """
+
+    name: str
+    position: tuple[float, float, float]
+    normal: tuple[float, float, float]
+    lower_mm: float
+    upper_mm: float
+    radius_mm: float
+    kind: str = "surface"
+    min_support: int | None = None
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.name, str) or not self.name:
+            raise InvalidInput("a comparison point needs a non-empty name")
+        pos = _vec3(self.position, f"{self.name}: position")
+        nrm = _vec3(self.normal, f"{self.name}: normal")
+        length = math.sqrt(sum(c * c for c in nrm))
+        if length < 1e-12:
+            raise InvalidInput(f"{self.name}: normal must not be zero")
+        for label, val in (("lower_mm", self.lower_mm), ("upper_mm", self.upper_mm)):
+            if not isinstance(val, int | float) or not math.isfinite(val):
+                raise InvalidInput(f"{self.name}: {label} must be a finite number, got {val!r}")
+        if self.lower_mm > self.upper_mm:
+            raise InvalidInput(f"{self.name}: lower_mm {self.lower_mm} > upper_mm {self.upper_mm}")
+        r = self.radius_mm
+        if not isinstance(r, int | float) or not math.isfinite(r) or r <= 0:
+            raise InvalidInput(
+                f"{self.name}: radius_mm must be a finite positive number, got {r!r}"
+            )
+        if self.kind not in KINDS:
+            raise InvalidInput(f"{self.name}: unknown kind {self.kind!r}; expected one of {KINDS}")
+        ms = self.min_support
+        if ms is not None and (
+            isinstance(ms, bool) or not isinstance(ms, int | np.integer) or ms < 1
+        ):
+            raise InvalidInput(f"{self.name}: min_support must be an integer >= 1, got {ms!r}")
+        object.__setattr__(self, "position", pos)
+        object.__setattr__(self, "normal", tuple(c / length for c in nrm))
+        object.__setattr__(self, "lower_mm", float(self.lower_mm))
+        object.__setattr__(self, "upper_mm", float(self.upper_mm))
+        object.__setattr__(self, "radius_mm", float(r))
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, object]) -> ComparisonPoint:
+        """Build from a mapping with the field names (as in a JSON or TOML spec)."""
+        if not isinstance(d, Mapping):
+            raise InvalidInput(f"a comparison point must be a mapping, got {type(d).__name__}")
+        known = set(cls.__dataclass_fields__)
+        extra = set(d) - known
+        if extra:
+            raise InvalidInput(f"comparison point: unknown keys {sorted(extra)}")
+        missing = known - set(d) - {"kind", "min_support"}
+        if missing:
+            raise InvalidInput(
+                f"comparison point {d.get('name', '?')!r}: missing {sorted(missing)}"
+            )
+        return cls(**d)  # type: ignore[arg-type]
+
+    def to_dict(self) -> dict[str, object]:
+        return {
+            "name": self.name,
+            "position": list(self.position),
+            "normal": list(self.normal),
+            "lower_mm": self.lower_mm,
+            "upper_mm": self.upper_mm,
+            "radius_mm": self.radius_mm,
+            "kind": self.kind,
+            "min_support": self.min_support,
+        }
+
+
+def _vec3(v: object, label: str) -> tuple[float, float, float]:
+    try:
+        a = np.asarray(v, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InvalidInput(f"{label} must be three numbers: {exc}") from exc
+    if a.shape != (3,) or not np.isfinite(a).all():
+        raise InvalidInput(f"{label} must be three finite numbers, got {v!r}")
+    return (float(a[0]), float(a[1]), float(a[2]))
+
+
+def load_comparison_points(path: str | Path) -> tuple[ComparisonPoint, ...]:
+    """Read comparison points from JSON: a list, or ``{"points": [...]}``.
+
+    Raises
+    ------
+    InvalidInput
+        Unreadable file, malformed JSON, bad or duplicate entries.
+    """
+    p = Path(path)
+    try:
+        doc = json.loads(p.read_text())
+    except OSError as exc:
+        raise InvalidInput(f"{p}: cannot read: {exc}") from exc
+    except json.JSONDecodeError as exc:
+        raise InvalidInput(f"{p}: not valid JSON: {exc}") from exc
+    items = doc.get("points") if isinstance(doc, dict) else doc
+    if not isinstance(items, list):
+        raise InvalidInput(f"{p}: expected a list of comparison points or {{'points': [...]}}")
+    points = tuple(ComparisonPoint.from_dict(it) for it in items)
+    _check_unique(points)
+    return points
+
+
+def _check_unique(points: Sequence[ComparisonPoint]) -> None:
+    seen: set[str] = set()
+    for cp in points:
+        if cp.name in seen:
+            raise InvalidInput(f"duplicate comparison point name {cp.name!r}")
+        seen.add(cp.name)
+
+
+@dataclass(frozen=True)
+class ComparisonResult:
+    """The deviation at one comparison point.
+
+    Attributes
+    ----------
+    name : str
+    deviation_mm : float
+        Robust average of the signed distances along the point's normal, mm;
+        NaN when not measurable.
+    support : int
+        Measured points pooled.
+    verdict : Verdict
+    lower_mm, upper_mm : float
+        The tolerance it was checked against.
+    spread_mm : float
+        Robust standard deviation (MAD x 1.4826) of the pooled distances, mm;
+        NaN when not measurable.
+    """
+
+    name: str
+    deviation_mm: float
+    support: int
+    verdict: Verdict
+    lower_mm: float
+    upper_mm: float
+    spread_mm: float
+
+    def to_dict(self) -> dict[str, object]:
+        return {
+            "name": self.name,
+            "deviation_mm": None if math.isnan(self.deviation_mm) else self.deviation_mm,
+            "lower_mm": self.lower_mm,
+            "upper_mm": self.upper_mm,
+            "support": self.support,
+            "verdict": self.verdict.value,
+            "spread_mm": None if math.isnan(self.spread_mm) else self.spread_mm,
+        }
+
+
+@dataclass(frozen=True)
+class FieldSummary:
+    """Statistics of the signed distances of every point, mm.
+
+    Attributes
+    ----------
+    n : int
+    mean_mm, std_mm, rms_mm, min_mm, max_mm, max_abs_mm : float
+    median_mm, mad_mm : float
+        Median and median absolute deviation from it.
+    p01_mm, p05_mm, p95_mm, p99_mm : float
+        Percentiles.
+    """
+
+    n: int
+    mean_mm: float
+    std_mm: float
+    rms_mm: float
+    min_mm: float
+    max_mm: float
+    max_abs_mm: float
+    median_mm: float
+    mad_mm: float
+    p01_mm: float
+    p05_mm: float
+    p95_mm: float
+    p99_mm: float
+
+    @classmethod
+    def of(cls, d: Scalars) -> FieldSummary:
+        d = np.asarray(d, dtype=np.float64)
+        p01, p05, p50, p95, p99 = np.percentile(d, [1, 5, 50, 95, 99])
+        return cls(
+            n=len(d),
+            mean_mm=float(d.mean()),
+            std_mm=float(d.std()),
+            rms_mm=float(np.sqrt(np.mean(d * d))),
+            min_mm=float(d.min()),
+            max_mm=float(d.max()),
+            max_abs_mm=float(np.abs(d).max()),
+            median_mm=float(p50),
+            mad_mm=float(np.median(np.abs(d - p50))),
+            p01_mm=float(p01),
+            p05_mm=float(p05),
+            p95_mm=float(p95),
+            p99_mm=float(p99),
+        )
+
+    def to_dict(self) -> dict[str, float | int]:
+        return dict(self.__dict__)
+
+
+@dataclass(frozen=True, eq=False)
+class Deviations:
+    """Signed deviations of a cloud from the CAD.
+
+    Attributes
+    ----------
+    distances : (N,) float64, mm
+        Signed distance of every point (positive on the outer side).
+    comparison : tuple of ComparisonResult
+        One per comparison point, in the given order.
+    summary : FieldSummary
+        Statistics of ``distances`` (the whole field).
+    verdict : Verdict
+        ``fail`` if any comparison point fails, else ``not_measurable`` if any
+        cannot be judged, else ``pass``.
+    """
+
+    distances: Scalars
+    comparison: tuple[ComparisonResult, ...]
+    summary: FieldSummary
+    verdict: Verdict
+
+    @property
+    def field(self) -> FieldSummary:
+        """Alias of ``summary`` (the name used in inspection results)."""
+        return self.summary
+
+
+def robust_location(
+    x: Scalars, *, c: float = _HUBER_C, iterations: int = 30
+) -> tuple[float, float]:
+    """Huber M-estimate of location with a fixed MAD scale.
+
+    Parameters
+    ----------
+    x : (n,) float64
+    c : float
+        Huber's constant in units of the scale.
+
+    Returns
+    -------
+    location : float
+    scale : float
+        1.4826 x MAD about the median.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    mu = float(np.median(x))
+    scale = 1.482602218505602 * float(np.median(np.abs(x - mu)))
+    if scale <= 1e-12:
+        return mu, scale
+    for _ in range(iterations):
+        # IRLS for Huber's psi: weight 1 inside c scale, c scale / |r| outside.
+        r = np.abs(x - mu)
+        w = np.minimum(1.0, c * scale / np.maximum(r, 1e-300))
+        new = float(np.sum(w * x) / np.sum(w))
+        if abs(new - mu) <= 1e-9 * scale:
+            mu = new
+            break
+        mu = new
+    return mu, scale
+
+
+def deviations(
+    tree: ClosestPointQuery,
+    points_cad: Points,
+    comparison_points: Iterable[ComparisonPoint] = (),
+    *,
+    min_support: int = 10,
+) -> Deviations:
+    """Signed deviations of every point, and at each comparison point.
+
+    Parameters
+    ----------
+    tree : ClosestPointQuery
+        The CAD's closest-point structure (``GridTree``).
+    points_cad : (N, 3) float64, mm, CAD frame
+        The measured points after registration (``T_cad_data`` applied).
+    comparison_points : iterable of ComparisonPoint
+    min_support : int
+        A comparison point with fewer pooled points is ``not_measurable``
+        (unless the point sets its own ``min_support``).
+
+    Returns
+    -------
+    Deviations
+
+    Raises
+    ------
+    InvalidInput
+        Bad points, duplicate comparison point names, ``min_support < 1``.
+    """
+    P = validate_points(points_cad, name="points_cad")
+    cps = tuple(comparison_points)
+    for cp in cps:
+        if not isinstance(cp, ComparisonPoint):
+            raise InvalidInput(f"expected ComparisonPoint, got {type(cp).__name__}")
+    _check_unique(cps)
+    if min_support < 1:
+        raise InvalidInput(f"min_support must be >= 1, got {min_support}")
+    cl = tree.query(P)
+    d = np.asarray(cl.distances, dtype=np.float64)
+    normals = np.asarray(cl.normals, dtype=np.float64)
+    results = []
+    kd = cKDTree(P) if cps else None
+    for cp in cps:
+        assert kd is not None
+        need = cp.min_support if cp.min_support is not None else min_support
+        if cp.kind not in MEASURED_KINDS:
+            log.warning("comparison point %s: kind %r is not measured yet", cp.name, cp.kind)
+            results.append(
+                ComparisonResult(
+                    cp.name, math.nan, 0, Verdict.NOT_MEASURABLE, cp.lower_mm, cp.upper_mm, math.nan
+                )
+            )
+            continue
+        idx = np.asarray(kd.query_ball_point(np.asarray(cp.position), cp.radius_mm), dtype=np.int64)
+        n_cp = np.asarray(cp.normal)
+        cos = normals[idx] @ n_cp if len(idx) else np.empty(0)
+        keep = np.abs(cos) >= _MIN_NORMAL_COS
+        # The field's sign is "outward"; along the comparison normal it flips
+        # where that normal points inwards.
+        x = d[idx[keep]] * np.sign(cos[keep])
+        support = len(x)
+        if support < need:
+            results.append(
+                ComparisonResult(
+                    cp.name,
+                    math.nan,
+                    support,
+                    Verdict.NOT_MEASURABLE,
+                    cp.lower_mm,
+                    cp.upper_mm,
+                    math.nan,
+                )
+            )
+            continue
+        dev, spread = robust_location(x)
+        ok = cp.lower_mm <= dev <= cp.upper_mm
+        results.append(
+            ComparisonResult(
+                cp.name,
+                dev,
+                support,
+                Verdict.PASS if ok else Verdict.FAIL,
+                cp.lower_mm,
+                cp.upper_mm,
+                spread,
+            )
+        )
+    verdicts = {r.verdict for r in results}
+    if Verdict.FAIL in verdicts:
+        verdict = Verdict.FAIL
+    elif Verdict.NOT_MEASURABLE in verdicts:
+        verdict = Verdict.NOT_MEASURABLE
+    else:
+        verdict = Verdict.PASS
+    log.debug("deviations: %d points, %d comparison points, verdict %s", len(P), len(cps), verdict)
+    return Deviations(
+        distances=d, comparison=tuple(results), summary=FieldSummary.of(d), verdict=verdict
+    )
