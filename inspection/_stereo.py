@@ -210,7 +210,7 @@ def coarse_disparity(left_u8: npt.NDArray[np.uint8], right_u8: npt.NDArray[np.ui
     return cv2.resize(disp, (w, h), interpolation=cv2.INTER_NEAREST)
 
 
-@njit(cache=True, nogil=True, parallel=True, fastmath=False)
+@njit(cache=True, nogil=True, parallel=True, fastmath=True)
 def refine_pixels(left, right, wl, wr, px, py, d0, radius, iterations, out_d, out_score, out_step):  # pragma: no cover
     """Sub-pixel disparity of each listed pixel: Gauss-Newton on its own window.
 
@@ -281,9 +281,8 @@ def refine_pixels(left, right, wl, wr, px, py, d0, radius, iterations, out_d, ou
                 for u in range(-radius, radius + 1):
                     xl = x + u
                     xb = xi + u
+                    # No branch on zero weights: the loop stays vectorisable.
                     wt = wl[yy, xl] * wr[yy, xb] * wr[yy, xb + 1]
-                    if wt == 0.0:
-                        continue
                     r0 = right[yy, xb - 1]
                     r1 = right[yy, xb]
                     r2 = right[yy, xb + 1]
@@ -346,142 +345,6 @@ def refine_pixels(left, right, wl, wr, px, py, d0, radius, iterations, out_d, ou
             g += dg
             o += do
             step = dd
-            if abs(dd) < 0.002:
-                break
-        if ok:
-            out_d[i] = d
-            out_score[i] = score
-            out_step[i] = step
-        else:
-            out_d[i] = np.nan
-            out_score[i] = -1.0
-            out_step[i] = 99.0
-
-
-@njit(cache=True, nogil=True)
-def _solve5(A, b):  # pragma: no cover - compiled
-    """Solve the 5x5 symmetric system A x = b in place by Gaussian elimination (b is overwritten)."""
-    n = 5
-    for k in range(n):
-        piv = A[k, k]
-        if abs(piv) < 1e-12:
-            return False
-        for i in range(k + 1, n):
-            f = A[i, k] / piv
-            for j in range(k, n):
-                A[i, j] -= f * A[k, j]
-            b[i] -= f * b[k]
-    for k in range(n - 1, -1, -1):
-        s = b[k]
-        for j in range(k + 1, n):
-            s -= A[k, j] * b[j]
-        b[k] = s / A[k, k]
-    return True
-
-
-@njit(cache=True, nogil=True, parallel=True)
-def refine_pixels_affine(left, right, wl, wr, px, py, d0, radius, iterations, out_d, out_score, out_step):  # pragma: no cover
-    """As :func:`refine_pixels`, with a disparity that varies linearly across the window.
-
-    The window's disparity is ``d + a u + b v`` (u, v: offsets from the
-    centre), so that slanted and curved surfaces (flanges, rounded feature
-    edges) are not averaged into the centre pixel. Five unknowns
-    (d, a, b, gain, offset) by Gauss-Newton.
-    """
-    H, W = left.shape
-    n = px.shape[0]
-    for i in prange(n):
-        x = px[i]
-        y = py[i]
-        d = float(d0[i])
-        sa = 0.0
-        sb = 0.0
-        g = 1.0
-        o = 0.0
-        score = -1.0
-        step = 99.0
-        ok = True
-        A = np.empty((5, 5))
-        rhs = np.empty(5)
-        if y - radius < 0 or y + radius >= H:
-            ok = False
-        for _ in range(iterations):
-            if not ok:
-                break
-            A[:] = 0.0
-            rhs[:] = 0.0
-            s1 = 0.0
-            st = 0.0
-            sr = 0.0
-            stt = 0.0
-            srr = 0.0
-            str_ = 0.0
-            for v in range(-radius, radius + 1):
-                yy = y + v
-                base = x - d - sb * v
-                for u in range(-radius, radius + 1):
-                    xl = x + u
-                    xr = base + (1.0 - sa) * u
-                    xi = int(math.floor(xr))
-                    if xi < 1 or xi + 2 >= W:
-                        continue
-                    wt = wl[yy, xl] * wr[yy, xi] * wr[yy, xi + 1]
-                    if wt == 0.0:
-                        continue
-                    a = xr - xi
-                    a2 = a * a
-                    a3 = a2 * a
-                    r0 = right[yy, xi - 1]
-                    r1 = right[yy, xi]
-                    r2 = right[yy, xi + 1]
-                    r3 = right[yy, xi + 2]
-                    rv = ((-0.5 * a3 + a2 - 0.5 * a) * r0 + (1.5 * a3 - 2.5 * a2 + 1.0) * r1
-                          + (-1.5 * a3 + 2.0 * a2 + 0.5 * a) * r2 + (0.5 * a3 - 0.5 * a2) * r3)
-                    gv = ((-1.5 * a2 + 2.0 * a - 0.5) * r0 + (4.5 * a2 - 5.0 * a) * r1
-                          + (-4.5 * a2 + 4.0 * a + 0.5) * r2 + (1.5 * a2 - a) * r3)
-                    t = left[yy, xl]
-                    e = t - g * rv - o
-                    j0 = -g * gv
-                    j1 = j0 * u
-                    j2 = j0 * v
-                    J = (j0, j1, j2, rv, 1.0)
-                    for p in range(5):
-                        wp = wt * J[p]
-                        rhs[p] += wp * e
-                        for q in range(p, 5):
-                            A[p, q] += wp * J[q]
-                    s1 += wt
-                    st += wt * t
-                    sr += wt * rv
-                    stt += wt * t * t
-                    srr += wt * rv * rv
-                    str_ += wt * t * rv
-            if s1 < 0.5 * (2 * radius + 1) ** 2:
-                ok = False
-                break
-            mt = st / s1
-            mr = sr / s1
-            score = (str_ / s1 - mt * mr) / math.sqrt(max((stt / s1 - mt * mt) * (srr / s1 - mr * mr), 1e-12))
-            for p in range(5):
-                for q in range(p):
-                    A[p, q] = A[q, p]
-            if not _solve5(A, rhs):
-                ok = False
-                break
-            dd = rhs[0]
-            if dd > 1.0:
-                dd = 1.0
-            elif dd < -1.0:
-                dd = -1.0
-            d += dd
-            sa += rhs[1]
-            sb += rhs[2]
-            g += rhs[3]
-            o += rhs[4]
-            step = dd
-            if abs(sa) > 0.5 or abs(sb) > 0.5:
-                ok = False
-                break
             if abs(dd) < 0.002:
                 break
         if ok:

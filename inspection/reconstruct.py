@@ -11,11 +11,13 @@ The algorithm, per stereo pair of :attr:`Rig.stereo_pairs` (cam0-cam1, cam2-cam3
    1/16 px (here 1/8 px at full resolution, ~0.25 mm) is far from 0.1 mm.
 3. **Region of the part**: coarse points more than ``z_min_mm`` above the belt;
    the conveyor background is dropped here, before the expensive steps.
-4. **Sub-pixel refinement** at full resolution: dense Lucas-Kanade on locally
-   normalised images, windowed by box filters, with saturated pixels (the
-   flash's mirror reflections) masked out of every window. Pixels whose
-   windows do not correlate (score below ``min_score``), move too far, or do
-   not converge are dropped.
+4. **Sub-pixel refinement** at full resolution: a Gauss-Newton (Lucas-Kanade)
+   fit of each pixel's window with gain and offset, on locally normalised
+   images, with Catmull-Rom interpolation and with saturated pixels (the
+   flash's mirror reflections) given no weight. Pixels whose windows do not
+   correlate (score below ``min_score``), move too far, or do not converge
+   are dropped. Every ``stride``-th column is refined (windows overlap, so
+   neighbouring columns add little information but cost as much).
 5. **Triangulation** in the rectified frame (``Z = f B / d``), back to the rig frame.
 
 Then the two pairs are **fused**: each point is looked up in the other pair's
@@ -85,9 +87,6 @@ class ReconstructParams:
         Lucas-Kanade window at full resolution (odd).
     iterations : int
         Most Lucas-Kanade iterations per pixel (it stops earlier when converged).
-    affine : bool
-        Let the disparity vary linearly across each window (slanted and
-        rounded surfaces); else constant per window (faster, biased there).
     stride : int
         Refine every ``stride``-th column of the rectified left image (1: every pixel).
     max_shift_px : float
@@ -113,10 +112,9 @@ class ReconstructParams:
     norm_window: int = 15
     window: int = 9
     iterations: int = 5
-    stride: int = 1
-    affine: bool = True
+    stride: int = 2
     max_shift_px: float = 1.5
-    min_score: float = 0.6
+    min_score: float = 0.85
     consistency_mm: float = 1.0
     dark_dn: float = 25.0
     saturated_fraction: float = 0.25
@@ -297,6 +295,8 @@ class Reconstructor:
     pairs : tuple of _stereo.RectifiedPair
     volume_lo, volume_hi : (3,) float64, mm
         The box searched without a prior (rig frame).
+    foreground_disparity : tuple of (H, W) float32
+        Per pair, the coarse disparity above which a pixel is part, not belt.
     """
 
     rig: Rig
@@ -304,6 +304,7 @@ class Reconstructor:
     pairs: tuple[_stereo.RectifiedPair, ...]
     volume_lo: npt.NDArray[np.float64]
     volume_hi: npt.NDArray[np.float64]
+    foreground_disparity: tuple[npt.NDArray[np.float32], ...]
 
     @classmethod
     def build(cls, rig: Rig, params: ReconstructParams | None = None) -> Reconstructor:
@@ -323,9 +324,14 @@ class Reconstructor:
             if ca.centre[0] > cb.centre[0]:
                 a, b, ca, cb = b, a, cb, ca
             pairs.append(_stereo.rectify_pair(ca, cb, a, b, lo, hi))
+        # The belt at z = 0 seen through a rectified pixel has the disparity of
+        # that depth; a part pixel is one whose coarse disparity is above that of
+        # the plane z = z_min (less the coarse matching's own uncertainty, ~1 mm).
+        z_fg = max(params.z_min_mm - 1.5, 0.0)
+        fg = tuple(_belt_disparity(pair, z_fg) for pair in pairs)
         log.debug("reconstructor built for rig %s: %s", rig.id,
                   [(p.name, p.size, round(p.baseline_mm, 1)) for p in pairs])
-        return cls(rig, params, tuple(pairs), lo, hi)
+        return cls(rig, params, tuple(pairs), lo, hi, fg)
 
     def __call__(self, frames: Sequence[npt.NDArray[np.uint8]], *, prior: Prior | None = None) -> Cloud:
         """Reconstruct one frame set; see :func:`reconstruct`."""
@@ -461,7 +467,8 @@ def _run(rec: Reconstructor, frames: Any, prior: Prior | None) -> Cloud:
                                        np.zeros((0, 3)), np.zeros(0, np.float32)))
             all_flags.add(FLAG_PAIR_SKIPPED)
             continue
-        results.append(_match_pair(pair, imgs[pair.left], imgs[pair.right], lo, hi, p, timings, k))
+        results.append(_match_pair(pair, rec.foreground_disparity[k], imgs[pair.left], imgs[pair.right],
+                                   lo, hi, p, timings, k))
         timings[f"pair{pair.name}"] = (time.perf_counter() - t1) * 1e3
 
     t2 = time.perf_counter()
@@ -475,7 +482,7 @@ def _run(rec: Reconstructor, frames: Any, prior: Prior | None) -> Cloud:
     return Cloud(points, weights, which, report, rig.id)
 
 
-def _match_pair(pair: _stereo.RectifiedPair, img_l: npt.NDArray[np.uint8], img_r: npt.NDArray[np.uint8],
+def _match_pair(pair: _stereo.RectifiedPair, fg_disparity: npt.NDArray[np.float32], img_l: npt.NDArray[np.uint8], img_r: npt.NDArray[np.uint8],
                 lo: npt.NDArray[np.float64], hi: npt.NDArray[np.float64], p: ReconstructParams,
                 timings: dict[str, float], k: int) -> _PairResult:
     t = time.perf_counter()
@@ -500,11 +507,8 @@ def _match_pair(pair: _stereo.RectifiedPair, img_l: npt.NDArray[np.uint8], img_r
         return empty
 
     t = time.perf_counter()
-    # The part's region: coarse depth above the belt. The belt at depth Z_belt(x, y)
-    # would have the disparity of that depth; instead of triangulating every
-    # pixel, compare with the disparity of the plane z = z_min (minus the
-    # coarse matching's own uncertainty, ~1 mm).
-    fg = coarse_ok & (d_coarse > _belt_disparity(pair, max(p.z_min_mm - 1.5, 0.0)))
+    # The part's region: coarse depth above the belt (conveyor background removed).
+    fg = coarse_ok & (d_coarse > fg_disparity)
     n_fg = int(fg.sum())
     if n_fg == 0:
         return _PairResult(PairReport(pair.name, coarse=n_coarse, disparity_range=(d_min, d_max)),
@@ -536,8 +540,7 @@ def _match_pair(pair: _stereo.RectifiedPair, img_l: npt.NDArray[np.uint8], img_r
     d_ref = np.empty(n, np.float32)
     score = np.empty(n, np.float32)
     step = np.empty(n, np.float32)
-    kernel = _stereo.refine_pixels_affine if p.affine else _stereo.refine_pixels
-    kernel(left_n, right_n, wl, wr, px.astype(np.int64), py.astype(np.int64),
+    _stereo.refine_pixels(left_n, right_n, wl, wr, px.astype(np.int64), py.astype(np.int64),
                           (d_init + shift).astype(np.float32), p.window // 2, p.iterations, d_ref, score, step)
     d_ref -= shift
     good = (np.isfinite(d_ref) & (score >= p.min_score) & (np.abs(d_ref - d_init) <= p.max_shift_px)
@@ -554,10 +557,21 @@ def _match_pair(pair: _stereo.RectifiedPair, img_l: npt.NDArray[np.uint8], img_r
     score = score[good][inside]
     full = np.full(fg.shape, np.nan, np.float32)
     full[vy[inside] + y0, vx[inside] + x0] = d[inside]
+    if p.stride > 1:
+        _fill_columns(full, p.stride)
     timings[f"triangulate{k}"] = (time.perf_counter() - t) * 1e3
     rep = PairReport(pair.name, coarse=n_coarse, foreground=n_fg, refined=len(vx), in_volume=len(pts),
                      disparity_range=(d_min, d_max))
     return _PairResult(rep, pts, score, full)
+
+
+def _fill_columns(disparity: npt.NDArray[np.float32], stride: int) -> None:
+    """Interpolate the columns skipped by ``stride`` along rows, in place (NaN where a neighbour is NaN)."""
+    ref = disparity[:, 0::stride]
+    for r in range(1, stride):
+        dst = disparity[:, r::stride]
+        m = min(dst.shape[1], ref.shape[1] - 1)
+        dst[:, :m] = ((stride - r) * ref[:, :m] + r * ref[:, 1 : m + 1]) / stride
 
 
 def _belt_disparity(pair: _stereo.RectifiedPair, z_mm: float) -> npt.NDArray[np.float32]:
