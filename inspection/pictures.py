@@ -50,83 +50,88 @@ def write_png(path: str | os.PathLike[str], image: npt.ArrayLike, *, compression
 
 
 def draw_rig_layout(rig: Rig, *, scale: float = 0.5) -> npt.NDArray[np.uint8]:
-    """Top and side views of the rig: cameras, projector, volume, stereo pairs.
+    """Top view (x-y) and front view (y-z) of the rig: cameras, projector,
+    measurement volume, belt, each camera's field of view on the belt, and
+    the stereo pairs.
 
     Parameters
     ----------
     rig : Rig
     scale : float
-        Pixels per mm.
+        Pixels per mm of the top view (the front view is drawn at 0.6 x scale).
 
     Returns
     -------
     (H, W, 3) uint8 RGB
     """
     vx, vy, vz = VOLUME_MM
-    pad = 60
-    span_x = 1000.0
-    span_y = 800.0
+    pad = 40
+    span_x, span_y = 1100.0, 900.0
     top_w = int(span_x * scale) + 2 * pad
     top_h = int(span_y * scale) + 2 * pad
-    side_h = int(1500 * scale) + 2 * pad
-    img = np.full((top_h + side_h, top_w, 3), 255, np.uint8)
+    fs = 0.6 * scale
+    front_w = int(1000.0 * fs) + 2 * pad
+    img = np.full((top_h, top_w + front_w, 3), 255, np.uint8)  # RGB
     grey = (150, 150, 150)
-    colours = [(200, 40, 40), (40, 140, 40), (40, 80, 210), (200, 120, 0)]
+    colours = [(30, 90, 220), (40, 150, 40), (220, 90, 20), (170, 40, 170)]
+    font = cv2.FONT_HERSHEY_SIMPLEX
 
     def top(p: npt.ArrayLike) -> tuple[int, int]:
         q = np.asarray(p, dtype=float)
         return int(round(top_w / 2 + q[0] * scale)), int(round(top_h / 2 - q[1] * scale))
 
-    def side(p: npt.ArrayLike) -> tuple[int, int]:
+    def front(p: npt.ArrayLike) -> tuple[int, int]:
         q = np.asarray(p, dtype=float)
-        return int(round(top_w / 2 + q[0] * scale)), int(round(top_h + side_h - pad - q[2] * scale))
+        return int(round(top_w + front_w / 2 + q[1] * fs)), int(round(top_h - pad - q[2] * fs))
 
-    font = cv2.FONT_HERSHEY_SIMPLEX
-    # belt and volume, top view
+    # top view: belt, volume, axes
     half_belt = rig.conveyor.width_mm / 2
-    cv2.rectangle(img, top((-span_x / 2, half_belt)), top((span_x / 2, -half_belt)), (225, 225, 225), -1)
+    cv2.rectangle(img, top((-span_x / 2, half_belt)), top((span_x / 2, -half_belt)), (228, 228, 228), -1)
     cv2.rectangle(img, top((-vx / 2, vy / 2)), top((vx / 2, -vy / 2)), grey, 2)
-    cv2.arrowedLine(img, top((0, 0)), top((120, 0)), (220, 0, 0), 2, tipLength=0.2)
-    cv2.arrowedLine(img, top((0, 0)), top((0, 120)), (0, 160, 0), 2, tipLength=0.2)
-    cv2.putText(img, "x (belt motion)", top((125, -15)), font, 0.45, (220, 0, 0), 1, cv2.LINE_AA)
-    cv2.putText(img, "y", top((8, 125)), font, 0.45, (0, 160, 0), 1, cv2.LINE_AA)
-    cv2.putText(img, f"top view: volume {vx:g} x {vy:g} x {vz:g} mm, belt {rig.conveyor.width_mm:g} mm wide",
-                (10, 22), font, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
-    # stereo pairs
-    for a, b in rig.stereo_pairs:
-        cv2.line(img, top(rig.cameras[a].centre), top(rig.cameras[b].centre), (120, 0, 160), 2, cv2.LINE_AA)
+    for k, cam in enumerate(rig.cameras):
+        corners = np.array([[0, 0], [cam.width - 1, 0], [cam.width - 1, cam.height - 1], [0, cam.height - 1]],
+                           float)
+        o, d = cam.rays(corners)
+        foot = o + (-o[:, 2] / d[:, 2])[:, None] * d
+        cv2.polylines(img, [np.array([top(p) for p in foot], np.int32)], True, colours[k % 4], 1, cv2.LINE_AA)
     for a, b in rig.ring_pairs:
-        cv2.line(img, top(rig.cameras[a].centre), top(rig.cameras[b].centre), (190, 160, 210), 1, cv2.LINE_AA)
-    # side view (x-z)
-    cv2.line(img, side((-span_x / 2, 0, 0)), side((span_x / 2, 0, 0)), (90, 90, 90), 3)
-    cv2.rectangle(img, side((-vx / 2, 0, vz)), side((vx / 2, 0, 0)), grey, 2)
-    cv2.putText(img, "side view (x-z)", (10, top_h + 22), font, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
-    target = np.array([0.0, 0.0, 0.0])
+        cv2.line(img, top(rig.cameras[a].centre), top(rig.cameras[b].centre), (200, 170, 220), 1, cv2.LINE_AA)
+    for a, b in rig.stereo_pairs:
+        cv2.line(img, top(rig.cameras[a].centre), top(rig.cameras[b].centre), (120, 0, 160), 3, cv2.LINE_AA)
+    cv2.arrowedLine(img, top((0, 0)), top((150, 0)), (220, 0, 0), 2, cv2.LINE_AA, tipLength=0.15)
+    cv2.arrowedLine(img, top((0, 0)), top((0, 150)), (0, 150, 0), 2, cv2.LINE_AA, tipLength=0.15)
+    cv2.putText(img, "x: belt motion", top((160, -8)), font, 0.45, (220, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(img, "y", top((10, 150)), font, 0.45, (0, 150, 0), 1, cv2.LINE_AA)
+    for k, cam in enumerate(rig.cameras):
+        c = top(cam.centre)
+        cv2.circle(img, c, 7, colours[k % 4], -1, cv2.LINE_AA)
+        cv2.putText(img, cam.name, (c[0] + 10, c[1] - 8), font, 0.5, colours[k % 4], 1, cv2.LINE_AA)
+    pc = top(rig.projector.centre)
+    cv2.drawMarker(img, pc, (0, 0, 0), cv2.MARKER_DIAMOND, 14, 2)
+    cv2.putText(img, "projector", (pc[0] - 30, pc[1] + 22), font, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(img, f"top view: volume {vx:g} x {vy:g} mm (grey), belt {rig.conveyor.width_mm:g} mm wide, "
+                "fields of view on the belt", (8, 16), font, 0.42, (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(img, "bold: stereo pairs, thin: ring pairs", (8, top_h - 10), font, 0.42, (120, 0, 160), 1,
+                cv2.LINE_AA)
+    # front view (y-z), looking along the belt
+    cv2.line(img, (top_w, 0), (top_w, top_h), (200, 200, 200), 1)
+    cv2.line(img, front((0, -half_belt, 0)), front((0, half_belt, 0)), (90, 90, 90), 3)
+    cv2.rectangle(img, front((0, -vy / 2, vz)), front((0, vy / 2, 0)), grey, 2)
+    aim = np.array([0.0, 0.0, 100.0])
     for k, cam in enumerate(rig.cameras):
         c = cam.centre
-        col = colours[k % 4]
-        # viewing frustum footprint on the belt, top view
-        corners = np.array([[0, 0], [cam.width - 1, 0], [cam.width - 1, cam.height - 1], [0, cam.height - 1]], float)
-        o, d = cam.rays(corners)
-        s = -o[:, 2] / d[:, 2]
-        foot = o + s[:, None] * d
-        cv2.polylines(img, [np.array([top(p) for p in foot], np.int32)], True, col, 1, cv2.LINE_AA)
-        cv2.circle(img, top(c), 7, col, -1, cv2.LINE_AA)
-        cv2.putText(img, cam.name, (top(c)[0] + 9, top(c)[1] - 6), font, 0.5, col, 1, cv2.LINE_AA)
-        cv2.circle(img, side(c), 6, col, -1, cv2.LINE_AA)
-        axis = cam.R[2]
-        s_hit = (target[2] + 100 - c[2]) / axis[2]
-        cv2.line(img, side(c), side(c + s_hit * axis), col, 1, cv2.LINE_AA)
-    p = rig.projector.centre
-    cv2.drawMarker(img, top(p), (0, 0, 0), cv2.MARKER_DIAMOND, 14, 2)
-    cv2.putText(img, "projector", (top(p)[0] + 9, top(p)[1] + 16), font, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
-    cv2.drawMarker(img, side(p), (0, 0, 0), cv2.MARKER_DIAMOND, 14, 2)
-    cv2.putText(img, "pairs: bold = stereo pairs, thin = ring pairs", (10, top_h - 12), font, 0.45,
-                (120, 0, 160), 1, cv2.LINE_AA)
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+        cv2.line(img, front(c), front(aim), colours[k % 4], 1, cv2.LINE_AA)
+        cv2.circle(img, front(c), 6, colours[k % 4], -1, cv2.LINE_AA)
+    cv2.drawMarker(img, front(rig.projector.centre), (0, 0, 0), cv2.MARKER_DIAMOND, 14, 2)
+    cv2.putText(img, "front view (y-z)", (top_w + 8, 16), font, 0.42, (0, 0, 0), 1, cv2.LINE_AA)
+    h_cam = float(np.mean([c.centre[2] for c in rig.cameras]))
+    cv2.putText(img, f"{h_cam:.0f} mm", (front((0, 0, h_cam))[0] - 25, front((0, 0, h_cam))[1] + 30), font, 0.42,
+                (0, 0, 0), 1, cv2.LINE_AA)
+    return img
 
 
-def draw_frames(rig: Rig, images: Sequence[Image], *, axis_mm: float = 150.0, width: int = 1280) -> npt.NDArray[np.uint8]:
+def draw_frames(rig: Rig, images: Sequence[Image], *, axis_mm: float = 150.0, width: int = 1280,
+                grey_levels: int = 256) -> npt.NDArray[np.uint8]:
     """The four camera images tiled 2 x 2, with the rig frame's axes drawn in each.
 
     Parameters
@@ -137,6 +142,9 @@ def draw_frames(rig: Rig, images: Sequence[Image], *, axis_mm: float = 150.0, wi
         Length of the drawn x (red), y (green) and z (blue) axes.
     width : int
         Width of the output picture, pixels.
+    grey_levels : int
+        Quantise the images to this many grey levels (fewer make a smaller
+        PNG of the noisy frames, e.g. for documentation).
 
     Returns
     -------
@@ -147,7 +155,11 @@ def draw_frames(rig: Rig, images: Sequence[Image], *, axis_mm: float = 150.0, wi
     tiles = []
     axes = np.array([[0, 0, 0], [axis_mm, 0, 0], [0, axis_mm, 0], [0, 0, axis_mm]], float)
     for cam, im in zip(rig.cameras, images, strict=True):
-        rgb = cv2.cvtColor(np.asarray(im, np.uint8), cv2.COLOR_GRAY2RGB)
+        grey = np.asarray(im, np.uint8)
+        if grey_levels < 256:
+            step = 256 // max(grey_levels, 2)
+            grey = (grey // step * step).astype(np.uint8)
+        rgb = cv2.cvtColor(grey, cv2.COLOR_GRAY2RGB)
         px = cam.project(axes)
         o = tuple(int(round(v)) for v in px[0])
         for k, col in enumerate([(255, 40, 40), (40, 220, 40), (60, 120, 255)]):
@@ -156,4 +168,37 @@ def draw_frames(rig: Rig, images: Sequence[Image], *, axis_mm: float = 150.0, wi
         tiles.append(rgb)
     grid = np.vstack([np.hstack(tiles[0:2]), np.hstack(tiles[2:4])])
     h = int(round(grid.shape[0] * width / grid.shape[1]))
-    return cv2.resize(grid, (width, h), interpolation=cv2.INTER_AREA)
+    small = cv2.resize(grid, (width, h), interpolation=cv2.INTER_AREA)
+    if grey_levels < 256:
+        step = 256 // max(grey_levels, 2)
+        grey_px = (small[..., 0] == small[..., 1]) & (small[..., 1] == small[..., 2])
+        small[grey_px] = small[grey_px] // step * step
+    return small
+
+
+def write_rig_pictures(directory: str | os.PathLike[str], *, seed: int = 0) -> list[Path]:
+    """Write the README's rig pictures: ``rig_layout.png`` and ``rig_frames.png``.
+
+    The frames show the demo panel (400 x 260 mm) turned by 30° on the belt,
+    rendered with the rig as built, with the rig frame's axes drawn in.
+
+    Returns
+    -------
+    list of Path
+        The files written.
+    """
+    from .panel import PanelSpec, sheet_metal_panel
+    from .simulate import simulate
+
+    out = Path(directory)
+    rig = Rig.nominal()
+    mesh = sheet_metal_panel(PanelSpec().scaled(400.0, 260.0))
+    a = np.deg2rad(30.0)
+    T = np.eye(4)
+    T[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
+    T[:3, 3] = (60.0, -40.0, 0.0)
+    images = simulate(rig, mesh, T, seed=seed)
+    return [
+        write_png(out / "rig_layout.png", draw_rig_layout(rig), compression=9),
+        write_png(out / "rig_frames.png", draw_frames(rig, images, width=800, grey_levels=16), compression=9),
+    ]
