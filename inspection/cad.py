@@ -240,7 +240,7 @@ def load_cad(path: str | Path, *, scale: float = 1.0, name: str | None = None) -
     except Exception as exc:  # trimesh raises many kinds on bad bytes
         raise CadLoadError(f"{p}: cannot read as {suffix[1:].upper()}: {exc}") from exc
     if not isinstance(loaded, trimesh.Trimesh) or len(getattr(loaded, "faces", ())) == 0:
-        raise CadLoadError(f"{p}: no triangle faces could be read (not a {suffix[1:].upper()} mesh?)")
+        raise CadLoadError(f"{p}: no triangle faces could be read; is it really {suffix[1:].upper()}?")
     return CadModel.from_arrays(loaded.vertices, loaded.faces, name=name, source=str(p), scale=scale)
 
 
