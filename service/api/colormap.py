@@ -32,7 +32,7 @@ def render_top_view(
     *,
     limit_mm: float,
     size_px: int = 800,
-    dot_px: int = 2,
+    dot_px: int | None = None,
     title: str = "",
 ) -> bytes:
     """PNG bytes of the deviation map.
@@ -45,6 +45,9 @@ def render_top_view(
         Deviation at which the colours saturate (> 0).
     size_px : int
         Length of the map's longer side, pixels.
+    dot_px : int, optional
+        Typical spacing of the points in pixels; gaps up to 1.5 times it
+        are filled. Default: from the point density.
     """
     if not limit_mm > 0:
         raise ValueError(f"limit_mm must be positive, got {limit_mm}")
@@ -59,6 +62,9 @@ def render_top_view(
     scale = (size_px - 1) / float(span.max())
     w = int(np.ceil(span[0] * scale)) + 1
     h = int(np.ceil(span[1] * scale)) + 1
+    if dot_px is None:
+        # Points spread over the bounding box: about one per dot_px^2 pixels.
+        dot_px = int(np.clip(np.ceil(np.sqrt(w * h / max(len(pts), 1))), 1, 8))
     img = np.full((h + 2 * margin, w + 2 * margin + bar_w, 3), _BACKGROUND, dtype=np.uint8)
     if len(pts):
         # The highest point wins a pixel: draw from low to high z.
@@ -71,11 +77,10 @@ def render_top_view(
         idx = np.clip(((np.nan_to_num(dd) / limit_mm) + 1.0) * 127.5, 0, 255).astype(np.int64)
         colours = lut[idx]
         colours[~np.isfinite(dd)] = _GREY
-        for du in range(-(dot_px // 2), dot_px - dot_px // 2):
-            for dv in range(-(dot_px // 2), dot_px - dot_px // 2):
-                uu = np.clip(u + du, 0, img.shape[1] - 1)
-                vv = np.clip(v + dv, 0, img.shape[0] - 1)
-                img[vv, uu] = colours
+        img[v, u] = colours
+        drawn = np.zeros(img.shape[:2], dtype=bool)
+        drawn[v, u] = True
+        _fill_gaps(img, drawn, max_px=1.5 * dot_px)
     _colour_bar(img, x0=w + 2 * margin + 10, y0=margin, height=max(h, 120), limit_mm=limit_mm)
     if title:
         cv2.putText(img, title, (margin, margin - 5), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
@@ -84,6 +89,23 @@ def render_top_view(
     if not ok:  # pragma: no cover - OpenCV always encodes a uint8 BGR image
         raise RuntimeError("PNG encoding failed")
     return png.tobytes()
+
+
+def _fill_gaps(img: np.ndarray, drawn: np.ndarray, *, max_px: float) -> None:
+    """Give each empty pixel within ``max_px`` of a drawn one that pixel's colour.
+
+    Sampling gaps between points close up; real holes in the part (wider
+    than the point spacing) stay empty.
+    """
+    empty = (~drawn).astype(np.uint8)
+    dist, labels = cv2.distanceTransformWithLabels(
+        empty, cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_PIXEL
+    )
+    # Labels number the zero (drawn) pixels in row-major order, from 1.
+    rows, cols = np.nonzero(~empty.astype(bool))
+    fill = (empty == 1) & (dist <= max_px)
+    src = labels[fill] - 1
+    img[fill] = img[rows[src], cols[src]]
 
 
 def _colour_bar(img: np.ndarray, *, x0: int, y0: int, height: int, limit_mm: float) -> None:
