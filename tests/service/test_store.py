@@ -201,3 +201,26 @@ def test_deviation_archive_round_trip(tmp_path):
         arc.path("../etc/passwd")
     with pytest.raises(ValueError):
         arc.save("x", pts, d[:5])
+
+
+def test_an_older_file_is_migrated_on_open(tmp_path):
+    path = tmp_path / "old.sqlite"
+    with sqlite3.connect(path) as db:
+        db.execute("CREATE TABLE schema_version (version INTEGER NOT NULL)")
+        db.execute("INSERT INTO schema_version VALUES (0)")
+    with ResultStore(path) as s:
+        assert s.schema_version == SCHEMA_VERSION
+        s.put(res(1))
+        assert s.count() == 1
+    with sqlite3.connect(path) as db:
+        tables = {r[0] for r in db.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+    assert {"schema_version", "results"} <= tables
+
+
+def test_readers_in_other_processes_see_committed_rows(tmp_path):
+    """WAL: a second connection (e.g. `sqlite3` on the shell) reads while the store is open."""
+    path = tmp_path / "r.sqlite"
+    with ResultStore(path) as s:
+        s.put(res(1))
+        with sqlite3.connect(path) as db:
+            assert db.execute("SELECT COUNT(*) FROM results").fetchone()[0] == 1
