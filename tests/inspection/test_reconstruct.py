@@ -1,0 +1,247 @@
+"""Reconstruction from simulated flash frames: heights, dents, bad frames, fusion, PLY."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from inspection.errors import InvalidInput
+from inspection.panel import PanelSpec, sheet_metal_panel
+from inspection.reconstruct import (
+    FLAG_EMPTY,
+    FLAG_SATURATED,
+    FLAG_TOO_DARK,
+    Cloud,
+    Prior,
+    ReconstructParams,
+    Reconstructor,
+    deviation_colours,
+    reconstruct,
+    write_ply,
+)
+from inspection.rig import Rig
+from inspection.simulate import simulate
+
+PLATE_TOP_MM = 40.0
+DENT_DEPTH_MM = 1.0
+DENT_SIGMA_MM = 8.0
+DENT_AT = np.array([30.0, -20.0])
+
+
+def plate_mesh(top_mm: float, dent_depth_mm: float = 0.0, size=(300.0, 200.0), spacing=2.0) -> trimesh.Trimesh:
+    """A flat plate (top surface as a height field, on four walls) with an optional Gaussian dent."""
+    nx = int(size[0] / spacing) + 1
+    ny = int(size[1] / spacing) + 1
+    x, y = np.meshgrid(np.linspace(-size[0] / 2, size[0] / 2, nx), np.linspace(-size[1] / 2, size[1] / 2, ny))
+    r2 = (x - DENT_AT[0]) ** 2 + (y - DENT_AT[1]) ** 2
+    z = top_mm - dent_depth_mm * np.exp(-r2 / (2 * DENT_SIGMA_MM**2))
+    top = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
+    idx = np.arange(nx * ny).reshape(ny, nx)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+    faces = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
+    plate = trimesh.Trimesh(top, faces, process=False)
+    # The body under the plate stays below the dent's bottom, or it would show through.
+    body = top_mm - 5.0
+    walls = trimesh.creation.box(extents=(size[0], size[1], body))
+    walls.apply_translation((0, 0, body / 2))
+    return trimesh.util.concatenate([plate, walls])
+
+
+@pytest.fixture(scope="module")
+def rig() -> Rig:
+    return Rig.nominal()
+
+
+@pytest.fixture(scope="module")
+def reconstructor(rig: Rig) -> Reconstructor:
+    return Reconstructor.build(rig)
+
+
+@pytest.fixture(scope="module")
+def plate_frames(rig: Rig) -> list[np.ndarray]:
+    T = np.eye(4)
+    T[:3, 3] = (-40.0, 25.0, 0.0)
+    return simulate(rig, plate_mesh(PLATE_TOP_MM), T, seed=3)
+
+
+@pytest.fixture(scope="module")
+def plate_cloud(reconstructor: Reconstructor, plate_frames) -> Cloud:
+    return reconstructor(plate_frames)
+
+
+def test_plane_at_known_height(plate_cloud: Cloud) -> None:
+    top = plate_cloud.points[np.abs(plate_cloud.points[:, 2] - PLATE_TOP_MM) < 1.0]
+    # 300 x 200 mm at ~0.8 mm per pixel, every second column, two pairs: ~90k points.
+    assert len(top) > 50_000
+    assert abs(np.median(top[:, 2]) - PLATE_TOP_MM) < 0.03
+    assert np.sqrt(np.mean((top[:, 2] - PLATE_TOP_MM) ** 2)) < 0.15
+    # Nothing of the belt survives: no point lower than the background threshold.
+    assert plate_cloud.points[:, 2].min() >= ReconstructParams().z_min_mm
+    # Points lie on the plate's footprint (moved by -40, +25).
+    inner = top[(np.abs(top[:, 0] + 40) < 151) & (np.abs(top[:, 1] - 25) < 101)]
+    assert len(inner) > 0.99 * len(top)
+
+
+def test_cloud_fields_and_report(plate_cloud: Cloud, rig: Rig) -> None:
+    n = len(plate_cloud)
+    assert plate_cloud.points.shape == (n, 3) and plate_cloud.points.dtype == np.float64
+    assert plate_cloud.weights.shape == (n,)
+    assert np.all((plate_cloud.weights >= 0) & (plate_cloud.weights <= 1))
+    assert set(np.unique(plate_cloud.pair)) == {0, 1}
+    rep = plate_cloud.report
+    assert rep.flags == ()
+    assert rep.points == n
+    assert len(rep.pairs) == 2
+    for pr in rep.pairs:
+        assert pr.coarse >= pr.foreground >= pr.refined >= pr.in_volume > 0
+        assert pr.confirmed > 0.5 * pr.in_volume
+    assert plate_cloud.rig_id == rig.id
+    assert "total" in rep.timings_ms
+    assert rep.as_dict()["points"] == n
+
+
+def test_deterministic(reconstructor: Reconstructor, plate_frames, plate_cloud: Cloud) -> None:
+    again = reconstructor(plate_frames)
+    np.testing.assert_array_equal(again.points, plate_cloud.points)
+    np.testing.assert_array_equal(again.weights, plate_cloud.weights)
+
+
+def test_frames_not_mutated(reconstructor: Reconstructor, plate_frames) -> None:
+    copies = [f.copy() for f in plate_frames]
+    reconstructor(plate_frames)
+    for a, b in zip(copies, plate_frames, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_dent_is_visible(rig: Rig, reconstructor: Reconstructor) -> None:
+    frames = simulate(rig, plate_mesh(PLATE_TOP_MM, DENT_DEPTH_MM), np.eye(4), seed=5)
+    pts = reconstructor(frames).points
+    r = np.hypot(pts[:, 0] - DENT_AT[0], pts[:, 1] - DENT_AT[1])
+    centre = pts[r < 2.0, 2]
+    ring = pts[(r > 40.0) & (r < 60.0), 2]
+    assert len(centre) > 10 and len(ring) > 1000
+    depth = np.median(ring) - np.median(centre)
+    assert depth == pytest.approx(DENT_DEPTH_MM, abs=0.15)
+
+
+def test_prior_narrows_the_search(reconstructor: Reconstructor, plate_frames, plate_cloud: Cloud) -> None:
+    prior = Prior(z_max_mm=60.0)
+    cloud = reconstructor(plate_frames, prior=prior)
+    for with_prior, without in zip(cloud.report.pairs, plate_cloud.report.pairs, strict=True):
+        lo, hi = with_prior.disparity_range
+        lo0, hi0 = without.disparity_range
+        assert hi - lo < 0.5 * (hi0 - lo0)
+    top = cloud.points[np.abs(cloud.points[:, 2] - PLATE_TOP_MM) < 1.0]
+    assert len(top) > 0.95 * len(plate_cloud.points[np.abs(plate_cloud.points[:, 2] - PLATE_TOP_MM) < 1.0])
+
+
+def test_prior_from_cad() -> None:
+    cad = sheet_metal_panel(PanelSpec().scaled(400, 260))
+    prior = Prior.from_cad(cad)
+    height = float(np.ptp(cad.vertices[:, 2]))
+    assert height < prior.z_max_mm < height + 20.0
+    with pytest.raises(InvalidInput):
+        Prior.from_cad(np.zeros((2, 3)))
+    with pytest.raises(InvalidInput):
+        Prior(z_max_mm=-1.0)
+
+
+# -- bad frames ---------------------------------------------------------------
+
+def _frames(rig: Rig, value: int = 80) -> list[np.ndarray]:
+    return [np.full(cam.shape, value, np.uint8) for cam in rig.cameras]
+
+
+@pytest.mark.parametrize(
+    "make, message",
+    [
+        (lambda fr: fr[:3], "need 4 frames"),
+        (lambda fr: fr + fr[:1], "need 4 frames"),
+        (lambda fr: [fr[0][:-1]] + fr[1:], "shape"),
+        (lambda fr: [fr[0].astype(np.uint16)] + fr[1:], "uint8"),
+        (lambda fr: [fr[0].astype(np.float32)] + fr[1:], "uint8"),
+        (lambda fr: [np.stack([fr[0]] * 3, axis=-1)] + fr[1:], "2-D"),
+        (lambda fr: [fr[0].tolist()] + fr[1:], "numpy array"),
+        (lambda fr: None, "sequence"),
+    ],
+)
+def test_malformed_frames_raise(rig: Rig, reconstructor: Reconstructor, make, message: str) -> None:
+    with pytest.raises(InvalidInput, match=message):
+        reconstruct(rig, make(_frames(rig)), reconstructor=reconstructor)
+
+
+@pytest.mark.parametrize("value, flag", [(0, FLAG_TOO_DARK), (255, FLAG_SATURATED)])
+def test_black_or_saturated_frames_give_empty_flagged_cloud(rig: Rig, reconstructor: Reconstructor,
+                                                             value: int, flag: str) -> None:
+    cloud = reconstruct(rig, _frames(rig, value), reconstructor=reconstructor)
+    assert cloud.empty and len(cloud.weights) == 0 and cloud.points.shape == (0, 3)
+    assert flag in cloud.report.flags and FLAG_EMPTY in cloud.report.flags
+    assert all(flag in f for f in cloud.report.frame_flags)
+    assert all(p.skipped for p in cloud.report.pairs)
+
+
+def test_one_dark_frame_loses_one_pair(rig: Rig, reconstructor: Reconstructor, plate_frames) -> None:
+    frames = list(plate_frames)
+    frames[2] = np.zeros_like(frames[2])
+    cloud = reconstructor(frames)
+    assert FLAG_TOO_DARK in cloud.report.flags and not cloud.empty
+    assert set(np.unique(cloud.pair)) == {0}
+    assert cloud.report.pairs[1].skipped
+
+
+def test_featureless_frames_give_empty_cloud(rig: Rig, reconstructor: Reconstructor) -> None:
+    cloud = reconstruct(rig, _frames(rig, 120), reconstructor=reconstructor)
+    assert cloud.empty and FLAG_EMPTY in cloud.report.flags
+
+
+def test_empty_belt_gives_empty_cloud(rig: Rig, reconstructor: Reconstructor) -> None:
+    far = np.eye(4)
+    far[:3, 3] = (5000.0, 0.0, 0.0)  # the part is out of view: only the belt is seen
+    frames = simulate(rig, plate_mesh(PLATE_TOP_MM, size=(20.0, 20.0)), far, seed=1)
+    cloud = reconstructor(frames)
+    assert FLAG_EMPTY in cloud.report.flags
+    assert len(cloud) == 0
+
+
+def test_reconstructor_of_another_rig_is_refused(reconstructor: Reconstructor) -> None:
+    other = Rig.nominal(640, 512)
+    with pytest.raises(InvalidInput, match="built for rig"):
+        reconstruct(other, _frames(other), reconstructor=reconstructor)
+
+
+def test_bad_params() -> None:
+    with pytest.raises(InvalidInput):
+        ReconstructParams(window=4)
+    with pytest.raises(InvalidInput):
+        ReconstructParams(z_min_mm=10.0, z_max_mm=5.0)
+    with pytest.raises(InvalidInput):
+        ReconstructParams(stride=0)
+
+
+def test_other_image_size() -> None:
+    small = Rig.nominal(640, 512)
+    frames = simulate(small, plate_mesh(PLATE_TOP_MM), np.eye(4), seed=2)
+    cloud = reconstruct(small, frames)
+    top = cloud.points[np.abs(cloud.points[:, 2] - PLATE_TOP_MM) < 2.0]
+    assert len(top) > 10_000
+    assert abs(np.median(top[:, 2]) - PLATE_TOP_MM) < 0.1
+
+
+# -- pictures -----------------------------------------------------------------
+
+def test_deviation_colours() -> None:
+    rgb = deviation_colours(np.array([-1.0, 0.0, 1.0, np.nan]), 0.5)
+    assert rgb.tolist() == [[0, 0, 255], [255, 255, 255], [255, 0, 0], [128, 128, 128]]
+
+
+def test_write_ply_round_trip(tmp_path, plate_cloud: Cloud) -> None:
+    dev = plate_cloud.points[:, 2] - PLATE_TOP_MM
+    path = write_ply(tmp_path / "cloud.ply", plate_cloud, dev, limit_mm=0.2)
+    mesh = trimesh.load(path, process=False)
+    np.testing.assert_allclose(np.asarray(mesh.vertices), plate_cloud.points, atol=1e-3)
+    with open(path, "rb") as fh:
+        header = fh.read(400).split(b"end_header")[0].decode()
+    assert f"element vertex {len(plate_cloud)}" in header and "property float deviation" in header
+    with pytest.raises(InvalidInput):
+        write_ply(tmp_path / "bad.ply", plate_cloud.points, dev[:-1])
