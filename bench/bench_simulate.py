@@ -13,13 +13,14 @@ from __future__ import annotations
 import os
 import statistics
 import time
+from collections.abc import Callable
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
 
-def _median_time(fn, repeats: int) -> float:  # type: ignore[no-untyped-def]
+def _median_time(fn: Callable[[], object], repeats: int) -> float:
     times = []
     for _ in range(repeats):
         start = time.perf_counter()
@@ -49,7 +50,9 @@ def main() -> int:
     repeats = 7
     seeds = iter(range(1, 1000))
     sim_s = _median_time(lambda: simulate(rig, mesh, T, seed=next(seeds)), repeats)
-    clean_s = _median_time(lambda: simulate(rig, mesh, T, seed=0, options=RenderOptions.clean()), repeats)
+    clean_s = _median_time(
+        lambda: simulate(rig, mesh, T, seed=0, options=RenderOptions.clean()), repeats
+    )
     truth_s = _median_time(lambda: simulate(rig, mesh, T, seed=0, return_truth=True), 3)
 
     rows = [
@@ -66,7 +69,7 @@ def main() -> int:
         belt = trimesh.creation.box((3000.0, 3000.0, 1.0))
         belt.apply_translation((0.0, 0.0, -0.5))
         scene = trimesh.util.concatenate([posed, belt])
-        intersector = scene.ray
+        intersector = scene.ray  # type: ignore[attr-defined]
         origins, dirs = [], []
         for cam in rig.cameras:
             o, d = cam.rays(cam.pixel_grid())
@@ -76,19 +79,26 @@ def main() -> int:
         d_all = np.concatenate(dirs)
         intersector.intersects_first(o_all[:1000], d_all[:1000])  # warm-up
         peer_s = _median_time(lambda: intersector.intersects_first(o_all, d_all), 3)
-        rows.append((f"peer: trimesh {type(intersector).__module__.split('.')[-1]} first hits only", peer_s))
+        rows.append(
+            (f"peer: trimesh {type(intersector).__module__.split('.')[-1]} first hits only", peer_s)
+        )
     except Exception as exc:  # a bench must report, not die, when a peer is unavailable
         print(f"peer skipped: {exc}")
 
     n_px = sum(c.width * c.height for c in rig.cameras)
-    print(f"rig {rig.id}, 4 x {rig.cameras[0].width} x {rig.cameras[0].height} px, panel {len(cad.faces)} faces, "
-          f"OMP/numba threads {os.environ.get('NUMBA_NUM_THREADS', 'default')}")
+    print(
+        f"rig {rig.id}, 4 x {rig.cameras[0].width} x {rig.cameras[0].height} px, "
+        f"panel {len(cad.faces)} faces, "
+        f"OMP/numba threads {os.environ.get('NUMBA_NUM_THREADS', 'default')}"
+    )
     print(f"one-off set-up (rays, slide, belt): {build_s:.2f} s")
     print(f"{'what':<44} {'median s':>9} {'Mpx/s':>7} {'vs simulate':>12}")
     for name, s in rows:
         print(f"{name:<44} {s:9.3f} {n_px / s / 1e6:7.1f} {s / sim_s:12.2f}")
     ok = sim_s <= 1.0
-    print(f"check: simulate <= 1 s per frame set: {'yes' if ok else 'NO'} ({sim_s:.3f} s; aim 0.3 s)")
+    print(
+        f"check: simulate <= 1 s per frame set: {'yes' if ok else 'NO'} ({sim_s:.3f} s; aim 0.3 s)"
+    )
     return 0 if ok else 1
 
 

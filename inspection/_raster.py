@@ -106,8 +106,9 @@ def _bilinear(img, u, v):  # pragma: no cover - compiled
     i = min(int(v), H - 2)
     fu = u - j
     fv = v - i
-    return ((1.0 - fv) * ((1.0 - fu) * img[i, j] + fu * img[i, j + 1])
-            + fv * ((1.0 - fu) * img[i + 1, j] + fu * img[i + 1, j + 1]))
+    return (1.0 - fv) * ((1.0 - fu) * img[i, j] + fu * img[i, j + 1]) + fv * (
+        (1.0 - fu) * img[i + 1, j] + fu * img[i + 1, j + 1]
+    )
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -176,18 +177,56 @@ def _belt_albedo(x, y, tex, texel_mm, belt_half_width, floor_albedo):  # pragma:
     fu = u - j
     fv = v - i
     j1 = j + 1 if j + 1 < Tx else 0
-    return ((1.0 - fv) * ((1.0 - fu) * tex[i, j] + fu * tex[i, j1])
-            + fv * ((1.0 - fu) * tex[i + 1, j] + fu * tex[i + 1, j1]))
+    return (1.0 - fv) * ((1.0 - fu) * tex[i, j] + fu * tex[i, j1]) + fv * (
+        (1.0 - fu) * tex[i + 1, j] + fu * tex[i + 1, j1]
+    )
 
 
 @njit(cache=True, parallel=True, fastmath=_FAST)
 def shade_scene(  # pragma: no cover - compiled
-    rays, kcam, ox, oy, fbuf, sx, sy, faces, planes, normals_rig, Rcr, C,
-    Rp, tp, kproj, pattern, smap_z, smap_f, P, power, r0, ambient,
-    albedo, ks_sharp, n_sharp, ks_broad, n_broad,
-    dirt_c, dirt_r, dirt_k,
-    tex, texel_mm, belt_shift_mm, belt_half_width, floor_albedo, belt_irr, belt_q, belt_alb,
-    gain, out, points, flags, want_truth,
+    rays,
+    kcam,
+    ox,
+    oy,
+    fbuf,
+    sx,
+    sy,
+    faces,
+    planes,
+    normals_rig,
+    Rcr,
+    C,
+    Rp,
+    tp,
+    kproj,
+    pattern,
+    smap_z,
+    smap_f,
+    P,
+    power,
+    r0,
+    ambient,
+    albedo,
+    ks_sharp,
+    n_sharp,
+    ks_broad,
+    n_broad,
+    dirt_c,
+    dirt_r,
+    dirt_k,
+    tex,
+    texel_mm,
+    belt_shift_mm,
+    belt_half_width,
+    floor_albedo,
+    belt_irr,
+    belt_q,
+    belt_alb,
+    gain,
+    out,
+    points,
+    flags,
+    want_truth,
 ):
     """Radiance of every real pixel of one camera, under the pattern flash.
 
@@ -320,8 +359,15 @@ def shade_scene(  # pragma: no cover - compiled
                 # camera and precomputed (belt_static).
                 irr = belt_irr[i, j]
                 if irr > 0.0:
-                    irr *= _shadow(smap_z, smap_f, belt_q[i, j, 0], belt_q[i, j, 1], belt_q[i, j, 2], -1,
-                                   belt_q[i, j, 3])
+                    irr *= _shadow(
+                        smap_z,
+                        smap_f,
+                        belt_q[i, j, 0],
+                        belt_q[i, j, 1],
+                        belt_q[i, j, 2],
+                        -1,
+                        belt_q[i, j, 3],
+                    )
                 xc = xn * z
                 yc = yn * z
                 X0 = Rcr[0, 0] * xc + Rcr[0, 1] * yc + Rcr[0, 2] * z + C[0]
@@ -329,7 +375,9 @@ def shade_scene(  # pragma: no cover - compiled
                 if belt_shift_mm == 0.0:
                     a = belt_alb[i, j]
                 else:
-                    a = _belt_albedo(X0 + belt_shift_mm, X1, tex, texel_mm, belt_half_width, floor_albedo)
+                    a = _belt_albedo(
+                        X0 + belt_shift_mm, X1, tex, texel_mm, belt_half_width, floor_albedo
+                    )
                 out[i, j] = a * (ambient + irr) * gain[i, j]
                 if want_truth:
                     points[i, j, 0] = X0
@@ -419,7 +467,9 @@ def shade_scene(  # pragma: no cover - compiled
                             spec += ks_sharp * math.exp(n_sharp * lnh)
                         radiance += light * keep * spec
             else:
-                a = _belt_albedo(X0 + belt_shift_mm, X1, tex, texel_mm, belt_half_width, floor_albedo)
+                a = _belt_albedo(
+                    X0 + belt_shift_mm, X1, tex, texel_mm, belt_half_width, floor_albedo
+                )
                 radiance = a * (ambient + irr * cos_l)
             out[i, j] = radiance * gain[i, j]
             if want_truth:
@@ -436,9 +486,26 @@ def shade_scene(  # pragma: no cover - compiled
 
 @njit(cache=True, parallel=True, fastmath=_FAST)
 def shade_board(  # pragma: no cover - compiled
-    rays, Rbc, tbc, plane, board_tex, tex_ppm, tex_origin, board_lo, board_hi,
-    Rcr, C, tex, texel_mm, belt_shift_mm, belt_half_width, floor_albedo,
-    irradiance, ss, gain, out,
+    rays,
+    Rbc,
+    tbc,
+    plane,
+    board_tex,
+    tex_ppm,
+    tex_origin,
+    board_lo,
+    board_hi,
+    Rcr,
+    C,
+    tex,
+    texel_mm,
+    belt_shift_mm,
+    belt_half_width,
+    floor_albedo,
+    irradiance,
+    ss,
+    gain,
+    out,
 ):
     """Radiance of a flat printed board (and the belt behind it), supersampled.
 
@@ -510,7 +577,12 @@ def shade_board(  # pragma: no cover - compiled
                         yc = yn * zb
                         bx = Rbc[0, 0] * xc + Rbc[0, 1] * yc + Rbc[0, 2] * zb + tbc[0]
                         by = Rbc[1, 0] * xc + Rbc[1, 1] * yc + Rbc[1, 2] * zb + tbc[1]
-                        if bx >= board_lo[0] and bx <= board_hi[0] and by >= board_lo[1] and by <= board_hi[1]:
+                        if (
+                            bx >= board_lo[0]
+                            and bx <= board_hi[0]
+                            and by >= board_lo[1]
+                            and by <= board_hi[1]
+                        ):
                             hit = True
                             tu = (bx + tex_origin[0]) * tex_ppm - 0.5
                             tv = (by + tex_origin[1]) * tex_ppm - 0.5
@@ -521,8 +593,12 @@ def shade_board(  # pragma: no cover - compiled
                                 ii = min(int(tv), Ht - 2)
                                 fu = tu - jj
                                 fv = tv - ii
-                                g = ((1.0 - fv) * ((1.0 - fu) * board_tex[ii, jj] + fu * board_tex[ii, jj + 1])
-                                     + fv * ((1.0 - fu) * board_tex[ii + 1, jj] + fu * board_tex[ii + 1, jj + 1]))
+                                g = (1.0 - fv) * (
+                                    (1.0 - fu) * board_tex[ii, jj] + fu * board_tex[ii, jj + 1]
+                                ) + fv * (
+                                    (1.0 - fu) * board_tex[ii + 1, jj]
+                                    + fu * board_tex[ii + 1, jj + 1]
+                                )
                             # Printed matte board: black ink 0.05, white paper 0.85.
                             value = 0.05 + 0.80 * g / 255.0
                     if not hit and zc < np.inf:
@@ -530,14 +606,16 @@ def shade_board(  # pragma: no cover - compiled
                         yc = yn * zc
                         X0 = Rcr[0, 0] * xc + Rcr[0, 1] * yc + Rcr[0, 2] * zc + C[0]
                         X1 = Rcr[1, 0] * xc + Rcr[1, 1] * yc + Rcr[1, 2] * zc + C[1]
-                        value = _belt_albedo(X0 + belt_shift_mm, X1, tex, texel_mm, belt_half_width, floor_albedo)
+                        value = _belt_albedo(
+                            X0 + belt_shift_mm, X1, tex, texel_mm, belt_half_width, floor_albedo
+                        )
                     acc += value
             out[i, j] = irradiance * acc * inv_n * gain[i, j]
 
 
 @njit(cache=True, nogil=True, inline="always")
 def _splitmix64(x):  # pragma: no cover - compiled
-    x = (x + np.uint64(0x9E3779B97F4A7C15))
+    x = x + np.uint64(0x9E3779B97F4A7C15)
     x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
     x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
     return x ^ (x >> np.uint64(31))
@@ -592,8 +670,23 @@ def sensor_noise(img, key, shot, read2, out):  # pragma: no cover - compiled
 
 @njit(cache=True, parallel=True)
 def belt_static(  # pragma: no cover - compiled
-    rays, Rcr, C, Rp, tp, kproj, pattern, P, power, r0,
-    tex, texel_mm, belt_half_width, floor_albedo, belt_irr, belt_q, belt_alb,
+    rays,
+    Rcr,
+    C,
+    Rp,
+    tp,
+    kproj,
+    pattern,
+    P,
+    power,
+    r0,
+    tex,
+    texel_mm,
+    belt_half_width,
+    floor_albedo,
+    belt_irr,
+    belt_q,
+    belt_alb,
 ):
     """What a camera sees of the empty belt, computed once per rig.
 

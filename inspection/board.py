@@ -92,11 +92,16 @@ class CharucoSpec:
         if abs(sq - round(sq)) > 1e-9:
             raise InvalidInput("square_mm * px_per_mm must be a whole number of pixels")
         size = (self.squares_x * int(round(sq)), self.squares_y * int(round(sq)))
-        return self.make_board().generateImage(size, marginSize=0, borderBits=1)
+        image = self.make_board().generateImage(size, marginSize=0, borderBits=1)
+        return np.asarray(image, dtype=np.uint8)
 
 
-def board_lying_flat(spec: CharucoSpec, centre_xy_mm: tuple[float, float] = (0.0, 0.0),
-                     yaw_deg: float = 0.0, height_mm: float = 0.0) -> Transform:
+def board_lying_flat(
+    spec: CharucoSpec,
+    centre_xy_mm: tuple[float, float] = (0.0, 0.0),
+    yaw_deg: float = 0.0,
+    height_mm: float = 0.0,
+) -> Transform:
     """T_rig_board of a board lying face up on the belt.
 
     Parameters

@@ -103,7 +103,8 @@ class Calibration:
         lines = [f"rig {self.rig.id}: {self.rig.source}"]
         for i, cam in enumerate(self.rig.cameras):
             lines.append(
-                f"  {cam.name}: RMS {self.rms_px[i]:.3f} px (per camera {self.initial_rms_px[i]:.3f}), "
+                f"  {cam.name}: RMS {self.rms_px[i]:.3f} px "
+                f"(per camera {self.initial_rms_px[i]:.3f}), "
                 f"{self.corners[i]} corners in {self.views_used[i]} views, "
                 f"centre {np.round(cam.centre, 2).tolist()} mm"
             )
@@ -119,7 +120,9 @@ def make_detector(board: CharucoSpec) -> cv2.aruco.CharucoDetector:
     return cv2.aruco.CharucoDetector(board.make_board(), charuco, params)
 
 
-def detect_board(image: Image, board: CharucoSpec, detector: cv2.aruco.CharucoDetector | None = None) -> Detection | None:
+def detect_board(
+    image: Image, board: CharucoSpec, detector: cv2.aruco.CharucoDetector | None = None
+) -> Detection | None:
     """Find the ChArUco corners in one image.
 
     Parameters
@@ -138,15 +141,23 @@ def detect_board(image: Image, board: CharucoSpec, detector: cv2.aruco.CharucoDe
     corners, ids, _, _ = det.detectBoard(img)
     if ids is None or len(ids) < MIN_CORNERS:
         return None
-    obj, imgp = det.getBoard().matchImagePoints(corners, ids)
+    obj, imgp = det.getBoard().matchImagePoints(corners, ids)  # type: ignore[call-overload]
     if obj is None or len(obj) < MIN_CORNERS:
         return None
-    return Detection(ids.reshape(-1).astype(np.int32), obj.reshape(-1, 3).astype(np.float64),
-                     imgp.reshape(-1, 2).astype(np.float64))
+    return Detection(
+        ids.reshape(-1).astype(np.int32),
+        obj.reshape(-1, 3).astype(np.float64),
+        imgp.reshape(-1, 2).astype(np.float64),
+    )
 
 
-def calibration_poses(n_views: int, *, seed: int = 0, board: CharucoSpec | None = None,
-                      reference: Transform | None = None) -> list[Transform]:
+def calibration_poses(
+    n_views: int,
+    *,
+    seed: int = 0,
+    board: CharucoSpec | None = None,
+    reference: Transform | None = None,
+) -> list[Transform]:
     """Board poses that calibrate the rig well: the reference view, then tilted views.
 
     The first pose is ``reference`` (default: the board flat on the belt,
@@ -167,14 +178,18 @@ def calibration_poses(n_views: int, *, seed: int = 0, board: CharucoSpec | None 
     poses = [reference if reference is not None else board_lying_flat(spec)]
     w, h = spec.size_mm
     rim = spec.rim_mm
-    outline = np.array([[-rim, -rim, 0.0], [w + rim, -rim, 0.0], [w + rim, h + rim, 0.0], [-rim, h + rim, 0.0]])
+    outline = np.array(
+        [[-rim, -rim, 0.0], [w + rim, -rim, 0.0], [w + rim, h + rim, 0.0], [-rim, h + rim, 0.0]]
+    )
     while len(poses) < n_views:
         centre = np.array([rng.uniform(-200, 200), rng.uniform(-110, 110), 0.0])
         yaw = rng.uniform(-40, 40)
         axis_angle = rng.uniform(0, 2 * np.pi)
         tilt = np.deg2rad(rng.uniform(15, 40))
         base = board_lying_flat(spec, (0.0, 0.0), yaw)
-        R_tilt = Rotation.from_rotvec(tilt * np.array([np.cos(axis_angle), np.sin(axis_angle), 0.0])).as_matrix()
+        R_tilt = Rotation.from_rotvec(
+            tilt * np.array([np.cos(axis_angle), np.sin(axis_angle), 0.0])
+        ).as_matrix()
         T = np.eye(4)
         T[:3, :3] = R_tilt @ base[:3, :3]
         T[:3, 3] = R_tilt @ base[:3, 3]
@@ -188,9 +203,15 @@ def calibration_poses(n_views: int, *, seed: int = 0, board: CharucoSpec | None 
     return poses
 
 
-def render_calibration_views(rig: Rig, n_views: int, *, seed: int = 0, board: CharucoSpec | None = None,
-                             reference: Transform | None = None,
-                             supersample: int = 3) -> tuple[list[list[Image]], list[Transform]]:
+def render_calibration_views(
+    rig: Rig,
+    n_views: int,
+    *,
+    seed: int = 0,
+    board: CharucoSpec | None = None,
+    reference: Transform | None = None,
+    supersample: int = 3,
+) -> tuple[list[list[Image]], list[Transform]]:
     """Render the board in :func:`calibration_poses` with the simulator.
 
     ``supersample`` is passed to :func:`inspection.simulate.simulate_board`.
@@ -204,8 +225,10 @@ def render_calibration_views(rig: Rig, n_views: int, *, seed: int = 0, board: Ch
 
     spec = board if board is not None else CharucoSpec()
     poses = calibration_poses(n_views, seed=seed, board=spec, reference=reference)
-    views = [simulate_board(rig, T, spec, seed=seed * 1000 + k, supersample=supersample)
-             for k, T in enumerate(poses)]
+    views = [
+        simulate_board(rig, T, spec, seed=seed * 1000 + k, supersample=supersample)
+        for k, T in enumerate(poses)
+    ]
     return views, poses
 
 
@@ -256,7 +279,11 @@ def calibrate(
         raise InvalidInput(f"calibration needs at least 4 views, got {len(views)}")
     if not 0 <= reference_view < len(views):
         raise InvalidInput(f"reference_view {reference_view} is not one of the {len(views)} views")
-    T_ref = board_lying_flat(spec) if T_rig_board_ref is None else np.asarray(T_rig_board_ref, np.float64)
+    T_ref = (
+        board_lying_flat(spec)
+        if T_rig_board_ref is None
+        else np.asarray(T_rig_board_ref, np.float64)
+    )
     if T_ref.shape != (4, 4) or not np.all(np.isfinite(T_ref)):
         raise InvalidInput("T_rig_board_ref must be a finite (4, 4) transform")
 
@@ -271,7 +298,9 @@ def calibrate(
             img = _check_image(image, f"view {v} camera {c}")
             cam = tmpl.cameras[c]
             if img.shape != cam.shape:
-                raise InvalidInput(f"view {v} camera {c}: image is {img.shape}, the camera's is {cam.shape}")
+                raise InvalidInput(
+                    f"view {v} camera {c}: image is {img.shape}, the camera's is {cam.shape}"
+                )
             row.append(detect_board(img, spec, detector))
         dets.append(row)
 
@@ -282,13 +311,20 @@ def calibrate(
     for c, cam in enumerate(tmpl.cameras):
         used = [v for v in range(len(views)) if dets[v][c] is not None]
         if len(used) < 4:
-            raise CalibrationError(f"camera {cam.name} found the board in only {len(used)} views (need 4)")
+            raise CalibrationError(
+                f"camera {cam.name} found the board in only {len(used)} views (need 4)"
+            )
         if dets[reference_view][c] is None:
-            raise CalibrationError(f"camera {cam.name} did not find the board in the reference view {reference_view}")
-        obj = [dets[v][c].object_points.astype(np.float32) for v in used]  # type: ignore[union-attr]
-        img = [dets[v][c].image_points.astype(np.float32) for v in used]  # type: ignore[union-attr]
+            raise CalibrationError(
+                f"camera {cam.name} did not find the board in the reference view {reference_view}"
+            )
+        found = [d for v in used if (d := dets[v][c]) is not None]
+        obj = [d.object_points.astype(np.float32) for d in found]
+        img_pts = [d.image_points.astype(np.float32) for d in found]
         crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
-        rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, cam.size, None, None, criteria=crit)
+        rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(
+            obj, img_pts, cam.size, None, None, criteria=crit
+        )
         initial_rms.append(float(rms))
         intr.append((K, dist.reshape(-1)[:5]))
         poses = {}
@@ -313,18 +349,36 @@ def calibrate(
             T_rig_board[v] = np.linalg.inv(T_cam_rig[c]) @ poses_cam[c][v]
 
     # 4. joint refinement
-    cams, T_rig_board, rms, view_rms, counts = _bundle_adjust(tmpl, intr, T_cam_rig, T_rig_board, dets, reference_view)
-    views_used = tuple(sum(1 for v in range(len(views)) if dets[v][c] is not None) for c in range(n_cams))
-    text = source if source is not None else (
-        f"calibrated from {len(views)} ChArUco views ({spec.squares_x}x{spec.squares_y} x {spec.square_mm:g} mm), "
-        f"reprojection RMS {', '.join(f'{r:.3f}' for r in rms)} px"
+    cams, T_rig_board, rms, view_rms, counts = _bundle_adjust(
+        tmpl, intr, T_cam_rig, T_rig_board, dets, reference_view
     )
-    rig = Rig(tuple(cams), tmpl.projector, tmpl.conveyor, tmpl.stereo_pairs, tmpl.ring_pairs, text,
-              tuple(round(r, 4) for r in rms))
-    return Calibration(rig, tuple(rms), tuple(initial_rms), view_rms, tuple(counts), views_used, T_rig_board)
+    views_used = tuple(
+        sum(1 for v in range(len(views)) if dets[v][c] is not None) for c in range(n_cams)
+    )
+    text = (
+        source
+        if source is not None
+        else (
+            f"calibrated from {len(views)} ChArUco views "
+            f"({spec.squares_x}x{spec.squares_y} x {spec.square_mm:g} mm), "
+            f"reprojection RMS {', '.join(f'{r:.3f}' for r in rms)} px"
+        )
+    )
+    rig = Rig(
+        tuple(cams),
+        tmpl.projector,
+        tmpl.conveyor,
+        tmpl.stereo_pairs,
+        tmpl.ring_pairs,
+        text,
+        tuple(round(r, 4) for r in rms),
+    )
+    return Calibration(
+        rig, tuple(rms), tuple(initial_rms), view_rms, tuple(counts), views_used, T_rig_board
+    )
 
 
-def _bundle_adjust(tmpl, intr, T_cam_rig, T_rig_board, dets, ref):  # type: ignore[no-untyped-def]
+def _bundle_adjust(tmpl, intr, T_cam_rig, T_rig_board, dets, ref):
     """Refine intrinsics, camera poses and board poses together (reference board fixed)."""
     n_cams = len(tmpl.cameras)
     n_views = len(dets)
@@ -405,9 +459,23 @@ def _bundle_adjust(tmpl, intr, T_cam_rig, T_rig_board, dets, ref):  # type: igno
         cols = vb + 6 * view_idx[free] + k
         sparsity[2 * rows[free], cols] = 1
         sparsity[2 * rows[free] + 1, cols] = 1
-    res = least_squares(residuals, x0, jac_sparsity=sparsity.tocsr(), method="trf", x_scale="jac",
-                        xtol=1e-12, ftol=1e-12, gtol=1e-10, max_nfev=200)
-    log.debug("bundle adjustment: %s, cost %.4g -> %.4g", res.message, 0.5 * np.sum(residuals(x0) ** 2), res.cost)
+    res = least_squares(
+        residuals,
+        x0,
+        jac_sparsity=sparsity.tocsr(),
+        method="trf",
+        x_scale="jac",
+        xtol=1e-12,
+        ftol=1e-12,
+        gtol=1e-10,
+        max_nfev=200,
+    )
+    log.debug(
+        "bundle adjustment: %s, cost %.4g -> %.4g",
+        res.message,
+        0.5 * np.sum(residuals(x0) ** 2),
+        res.cost,
+    )
     r = res.fun.reshape(-1, 2)
     sq = (r**2).sum(axis=1)
 
@@ -419,7 +487,9 @@ def _bundle_adjust(tmpl, intr, T_cam_rig, T_rig_board, dets, ref):  # type: igno
         p = res.x[c * cam_block : (c + 1) * cam_block]
         K = np.array([[p[0], 0.0, p[2]], [0.0, p[1], p[3]], [0.0, 0.0, 1.0]])
         R = Rotation.from_rotvec(p[9:12]).as_matrix()
-        cams.append(Camera(tcam.name, tcam.width, tcam.height, K, p[4:9].copy(), R, p[12:15].copy()))
+        cams.append(
+            Camera(tcam.name, tcam.width, tcam.height, K, p[4:9].copy(), R, p[12:15].copy())
+        )
         m = cam_idx == c
         rms.append(float(np.sqrt(sq[m].mean())))
         counts.append(int(m.sum()))

@@ -86,18 +86,38 @@ def draw_rig_layout(rig: Rig, *, scale: float = 0.5) -> npt.NDArray[np.uint8]:
 
     # top view: belt, volume, axes
     half_belt = rig.conveyor.width_mm / 2
-    cv2.rectangle(img, top((-span_x / 2, half_belt)), top((span_x / 2, -half_belt)), (228, 228, 228), -1)
+    cv2.rectangle(
+        img, top((-span_x / 2, half_belt)), top((span_x / 2, -half_belt)), (228, 228, 228), -1
+    )
     cv2.rectangle(img, top((-vx / 2, vy / 2)), top((vx / 2, -vy / 2)), grey, 2)
     for k, cam in enumerate(rig.cameras):
-        corners = np.array([[0, 0], [cam.width - 1, 0], [cam.width - 1, cam.height - 1], [0, cam.height - 1]],
-                           float)
+        corners = np.array(
+            [[0, 0], [cam.width - 1, 0], [cam.width - 1, cam.height - 1], [0, cam.height - 1]],
+            float,
+        )
         o, d = cam.rays(corners)
         foot = o + (-o[:, 2] / d[:, 2])[:, None] * d
-        cv2.polylines(img, [np.array([top(p) for p in foot], np.int32)], True, colours[k % 4], 1, cv2.LINE_AA)
+        cv2.polylines(
+            img, [np.array([top(p) for p in foot], np.int32)], True, colours[k % 4], 1, cv2.LINE_AA
+        )
     for a, b in rig.ring_pairs:
-        cv2.line(img, top(rig.cameras[a].centre), top(rig.cameras[b].centre), (200, 170, 220), 1, cv2.LINE_AA)
+        cv2.line(
+            img,
+            top(rig.cameras[a].centre),
+            top(rig.cameras[b].centre),
+            (200, 170, 220),
+            1,
+            cv2.LINE_AA,
+        )
     for a, b in rig.stereo_pairs:
-        cv2.line(img, top(rig.cameras[a].centre), top(rig.cameras[b].centre), (120, 0, 160), 3, cv2.LINE_AA)
+        cv2.line(
+            img,
+            top(rig.cameras[a].centre),
+            top(rig.cameras[b].centre),
+            (120, 0, 160),
+            3,
+            cv2.LINE_AA,
+        )
     cv2.arrowedLine(img, top((0, 0)), top((150, 0)), (220, 0, 0), 2, cv2.LINE_AA, tipLength=0.15)
     cv2.arrowedLine(img, top((0, 0)), top((0, 150)), (0, 150, 0), 2, cv2.LINE_AA, tipLength=0.15)
     cv2.putText(img, "x: belt motion", top((160, -8)), font, 0.45, (220, 0, 0), 1, cv2.LINE_AA)
@@ -109,29 +129,60 @@ def draw_rig_layout(rig: Rig, *, scale: float = 0.5) -> npt.NDArray[np.uint8]:
     pc = top(rig.projector.centre)
     cv2.drawMarker(img, pc, (0, 0, 0), cv2.MARKER_DIAMOND, 14, 2)
     cv2.putText(img, "projector", (pc[0] - 30, pc[1] + 22), font, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
-    cv2.putText(img, f"top view: volume {vx:g} x {vy:g} mm (grey), belt {rig.conveyor.width_mm:g} mm wide, "
-                "fields of view on the belt", (8, 16), font, 0.42, (0, 0, 0), 1, cv2.LINE_AA)
-    cv2.putText(img, "bold: stereo pairs, thin: ring pairs", (8, top_h - 10), font, 0.42, (120, 0, 160), 1,
-                cv2.LINE_AA)
+    cv2.putText(
+        img,
+        f"top view: volume {vx:g} x {vy:g} mm (grey), belt {rig.conveyor.width_mm:g} mm wide, "
+        "fields of view on the belt",
+        (8, 16),
+        font,
+        0.42,
+        (0, 0, 0),
+        1,
+        cv2.LINE_AA,
+    )
+    cv2.putText(
+        img,
+        "bold: stereo pairs, thin: ring pairs",
+        (8, top_h - 10),
+        font,
+        0.42,
+        (120, 0, 160),
+        1,
+        cv2.LINE_AA,
+    )
     # front view (y-z), looking along the belt
     cv2.line(img, (top_w, 0), (top_w, top_h), (200, 200, 200), 1)
     cv2.line(img, front((0, -half_belt, 0)), front((0, half_belt, 0)), (90, 90, 90), 3)
     cv2.rectangle(img, front((0, -vy / 2, vz)), front((0, vy / 2, 0)), grey, 2)
     aim = np.array([0.0, 0.0, 100.0])
     for k, cam in enumerate(rig.cameras):
-        c = cam.centre
-        cv2.line(img, front(c), front(aim), colours[k % 4], 1, cv2.LINE_AA)
-        cv2.circle(img, front(c), 6, colours[k % 4], -1, cv2.LINE_AA)
+        centre = cam.centre
+        cv2.line(img, front(centre), front(aim), colours[k % 4], 1, cv2.LINE_AA)
+        cv2.circle(img, front(centre), 6, colours[k % 4], -1, cv2.LINE_AA)
     cv2.drawMarker(img, front(rig.projector.centre), (0, 0, 0), cv2.MARKER_DIAMOND, 14, 2)
     cv2.putText(img, "front view (y-z)", (top_w + 8, 16), font, 0.42, (0, 0, 0), 1, cv2.LINE_AA)
     h_cam = float(np.mean([c.centre[2] for c in rig.cameras]))
-    cv2.putText(img, f"{h_cam:.0f} mm", (front((0, 0, h_cam))[0] - 25, front((0, 0, h_cam))[1] + 30), font, 0.42,
-                (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(
+        img,
+        f"{h_cam:.0f} mm",
+        (front((0, 0, h_cam))[0] - 25, front((0, 0, h_cam))[1] + 30),
+        font,
+        0.42,
+        (0, 0, 0),
+        1,
+        cv2.LINE_AA,
+    )
     return img
 
 
-def draw_frames(rig: Rig, images: Sequence[Image], *, axis_mm: float = 150.0, width: int = 1280,
-                grey_levels: int = 256) -> npt.NDArray[np.uint8]:
+def draw_frames(
+    rig: Rig,
+    images: Sequence[Image],
+    *,
+    axis_mm: float = 150.0,
+    width: int = 1280,
+    grey_levels: int = 256,
+) -> npt.NDArray[np.uint8]:
     """The four camera images tiled 2 x 2, with the rig frame's axes drawn in each.
 
     Parameters
@@ -163,8 +214,12 @@ def draw_frames(rig: Rig, images: Sequence[Image], *, axis_mm: float = 150.0, wi
         px = cam.project(axes)
         o = tuple(int(round(v)) for v in px[0])
         for k, col in enumerate([(255, 40, 40), (40, 220, 40), (60, 120, 255)]):
-            cv2.arrowedLine(rgb, o, tuple(int(round(v)) for v in px[k + 1]), col, 4, cv2.LINE_AA, tipLength=0.15)
-        cv2.putText(rgb, cam.name, (20, 50), cv2.FONT_HERSHEY_SIMPLEX, 1.5, (255, 255, 0), 3, cv2.LINE_AA)
+            cv2.arrowedLine(
+                rgb, o, tuple(int(round(v)) for v in px[k + 1]), col, 4, cv2.LINE_AA, tipLength=0.15
+            )
+        cv2.putText(
+            rgb, cam.name, (20, 50), cv2.FONT_HERSHEY_SIMPLEX, 1.5, (255, 255, 0), 3, cv2.LINE_AA
+        )
         tiles.append(rgb)
     grid = np.vstack([np.hstack(tiles[0:2]), np.hstack(tiles[2:4])])
     h = int(round(grid.shape[0] * width / grid.shape[1]))
@@ -173,7 +228,7 @@ def draw_frames(rig: Rig, images: Sequence[Image], *, axis_mm: float = 150.0, wi
         step = 256 // max(grey_levels, 2)
         grey_px = (small[..., 0] == small[..., 1]) & (small[..., 1] == small[..., 2])
         small[grey_px] = small[grey_px] // step * step
-    return small
+    return np.asarray(small, dtype=np.uint8)
 
 
 def write_rig_pictures(directory: str | os.PathLike[str], *, seed: int = 0) -> list[Path]:
@@ -200,5 +255,9 @@ def write_rig_pictures(directory: str | os.PathLike[str], *, seed: int = 0) -> l
     images = simulate(rig, mesh, T, seed=seed)
     return [
         write_png(out / "rig_layout.png", draw_rig_layout(rig), compression=9),
-        write_png(out / "rig_frames.png", draw_frames(rig, images, width=800, grey_levels=16), compression=9),
+        write_png(
+            out / "rig_frames.png",
+            draw_frames(rig, images, width=800, grey_levels=16),
+            compression=9,
+        ),
     ]

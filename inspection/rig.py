@@ -59,7 +59,7 @@ import logging
 import math
 import os
 import tomllib
-from collections.abc import Sequence
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -114,7 +114,9 @@ def _check_pixels(pixels: Any) -> npt.NDArray[np.float64]:
     return arr
 
 
-def distort_normalized(xy: npt.NDArray[np.float64], dist: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+def distort_normalized(
+    xy: npt.NDArray[np.float64], dist: npt.NDArray[np.float64]
+) -> npt.NDArray[np.float64]:
     """Apply OpenCV's radial-tangential distortion to normalised coordinates.
 
     Parameters
@@ -139,7 +141,9 @@ def distort_normalized(xy: npt.NDArray[np.float64], dist: npt.NDArray[np.float64
     return np.stack([xd, yd], axis=1)
 
 
-def undistort_normalized(xy_d: npt.NDArray[np.float64], dist: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+def undistort_normalized(
+    xy_d: npt.NDArray[np.float64], dist: npt.NDArray[np.float64]
+) -> npt.NDArray[np.float64]:
     """Invert :func:`distort_normalized` by fixed-point iteration.
 
     OpenCV's ``undistortPoints`` stops after 5 iterations by default, which
@@ -172,7 +176,9 @@ def undistort_normalized(xy_d: npt.NDArray[np.float64], dist: npt.NDArray[np.flo
     return np.stack([x, y], axis=1)
 
 
-def look_at(centre: npt.ArrayLike, target: npt.ArrayLike, right: npt.ArrayLike = (1.0, 0.0, 0.0)) -> npt.NDArray[np.float64]:
+def look_at(
+    centre: npt.ArrayLike, target: npt.ArrayLike, right: npt.ArrayLike = (1.0, 0.0, 0.0)
+) -> npt.NDArray[np.float64]:
     """Rotation rig -> camera for a camera at ``centre`` looking at ``target``.
 
     Parameters
@@ -237,12 +243,21 @@ class Camera:
             raise InvalidInput("camera name must be a non-empty string")
         for attr in ("width", "height"):
             value = getattr(self, attr)
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not 16 <= value <= 20000:
-                raise InvalidInput(f"camera {self.name}: {attr} must be an int in [16, 20000], got {value!r}")
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, (int, np.integer))
+                or not 16 <= value <= 20000
+            ):
+                raise InvalidInput(
+                    f"camera {self.name}: {attr} must be an int in [16, 20000], got {value!r}"
+                )
             object.__setattr__(self, attr, int(value))
         K = _as_matrix(self.K, (3, 3), f"camera {self.name}: K")
         if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0.0, 0.0, 1.0]) or K[1, 0] != 0.0:
-            raise InvalidInput(f"camera {self.name}: K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
+            raise InvalidInput(
+                f"camera {self.name}: K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] "
+                "with fx, fy > 0"
+            )
         R = _as_matrix(self.R, (3, 3), f"camera {self.name}: R")
         _rotation_ok(R, f"camera {self.name}: R")
         object.__setattr__(self, "K", K)
@@ -323,7 +338,9 @@ class Camera:
         xd = (px[:, 0] - K[0, 2] - K[0, 1] * yd) / K[0, 0]
         return undistort_normalized(np.stack([xd, yd], axis=1), self.dist)
 
-    def rays(self, pixels: npt.ArrayLike) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    def rays(
+        self, pixels: npt.ArrayLike
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
         """Viewing rays of pixels, in the rig frame.
 
         Parameters
@@ -410,9 +427,12 @@ class Pattern:
         rng = np.random.default_rng(self.seed)
         noise = rng.standard_normal((height, width), dtype=np.float32)
         smooth = cv2.GaussianBlur(noise, (0, 0), self.grain_px, borderType=cv2.BORDER_REFLECT)
-        binary = (smooth > 0).astype(np.float32)
+        binary = (np.asarray(smooth) > 0).astype(np.float32)
         if self.blur_px > 0:
-            binary = cv2.GaussianBlur(binary, (0, 0), self.blur_px, borderType=cv2.BORDER_REFLECT)
+            binary = np.asarray(
+                cv2.GaussianBlur(binary, (0, 0), self.blur_px, borderType=cv2.BORDER_REFLECT),
+                dtype=np.float32,
+            )
         return (self.low + (self.high - self.low) * binary).astype(np.float32)
 
 
@@ -446,7 +466,11 @@ class Projector:
     def __post_init__(self) -> None:
         for attr in ("width", "height"):
             value = getattr(self, attr)
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not 16 <= value <= 20000:
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, (int, np.integer))
+                or not 16 <= value <= 20000
+            ):
                 raise InvalidInput(f"projector {attr} must be an int in [16, 20000], got {value!r}")
             object.__setattr__(self, attr, int(value))
         K = _as_matrix(self.K, (3, 3), "projector K")
@@ -468,8 +492,13 @@ class Projector:
         pc = _check_points(points_rig) @ self.R.T + self.t
         with np.errstate(divide="ignore", invalid="ignore"):
             xy = pc[:, :2] / pc[:, 2:3]
-        return np.stack([self.K[0, 0] * xy[:, 0] + self.K[0, 1] * xy[:, 1] + self.K[0, 2],
-                         self.K[1, 1] * xy[:, 1] + self.K[1, 2]], axis=1)
+        return np.stack(
+            [
+                self.K[0, 0] * xy[:, 0] + self.K[0, 1] * xy[:, 1] + self.K[0, 2],
+                self.K[1, 1] * xy[:, 1] + self.K[1, 2],
+            ],
+            axis=1,
+        )
 
 
 @dataclass(frozen=True)
@@ -504,9 +533,13 @@ class Conveyor:
         if not (math.isfinite(self.speed_mm_s) and self.speed_mm_s >= 0):
             raise InvalidInput("conveyor speed_mm_s must be finite and >= 0")
         if self.surface_z_mm != 0.0:
-            raise InvalidInput("conveyor surface_z_mm must be 0: the belt surface defines z = 0 of the rig frame")
+            raise InvalidInput(
+                "conveyor surface_z_mm must be 0: the belt surface defines z = 0 of the rig frame"
+            )
         if not (self.width_mm > 0 and 0 < self.albedo <= 1 and 0 <= self.texture_contrast < 1):
-            raise InvalidInput("conveyor needs width_mm > 0, 0 < albedo <= 1, 0 <= texture_contrast < 1")
+            raise InvalidInput(
+                "conveyor needs width_mm > 0, 0 < albedo <= 1, 0 <= texture_contrast < 1"
+            )
 
 
 @dataclass(frozen=True, eq=False)
@@ -562,7 +595,7 @@ class Rig:
     def __len__(self) -> int:
         return len(self.cameras)
 
-    def __iter__(self):  # type: ignore[no-untyped-def]
+    def __iter__(self) -> Iterator[Camera]:
         return iter(self.cameras)
 
     def __getitem__(self, key: int | str) -> Camera:
@@ -602,7 +635,9 @@ class Rig:
         h.update(np.array([p.width, p.height], dtype=np.int64).tobytes())
         for arr in (p.K, p.R, p.t):
             h.update(np.ascontiguousarray(arr, dtype=np.float64).tobytes())
-        h.update(repr((p.pattern, p.power, self.conveyor, self.stereo_pairs, self.ring_pairs)).encode())
+        h.update(
+            repr((p.pattern, p.power, self.conveyor, self.stereo_pairs, self.ring_pairs)).encode()
+        )
         return h.hexdigest()[:16]
 
     # -- construction --------------------------------------------------------
@@ -628,24 +663,50 @@ class Rig:
         # Fixed numbers, so the truth never changes with library versions.
         built = [
             # name, (x, y), d_angle (rx, ry, rz), d_pos, d_pp, dist
-            ("cam0", (-250.0, -300.0), (0.004, -0.003, 0.006), (1.2, -0.8, 2.1), (6.2, -4.1),
-             (-0.082, 0.071, 0.0006, -0.0004, -0.012)),
-            ("cam1", (250.0, -300.0), (-0.002, 0.005, -0.004), (-0.7, 1.5, -1.3), (-3.5, 5.4),
-             (-0.091, 0.088, -0.0003, 0.0005, -0.021)),
-            ("cam2", (-250.0, 300.0), (0.003, 0.002, 0.003), (0.4, 0.9, -0.6), (2.8, 7.3),
-             (-0.076, 0.062, 0.0004, 0.0002, -0.008)),
-            ("cam3", (250.0, 300.0), (-0.005, -0.004, -0.005), (-1.6, -0.3, 1.7), (-5.9, -2.2),
-             (-0.087, 0.079, -0.0005, -0.0003, -0.016)),
+            (
+                "cam0",
+                (-250.0, -300.0),
+                (0.004, -0.003, 0.006),
+                (1.2, -0.8, 2.1),
+                (6.2, -4.1),
+                (-0.082, 0.071, 0.0006, -0.0004, -0.012),
+            ),
+            (
+                "cam1",
+                (250.0, -300.0),
+                (-0.002, 0.005, -0.004),
+                (-0.7, 1.5, -1.3),
+                (-3.5, 5.4),
+                (-0.091, 0.088, -0.0003, 0.0005, -0.021),
+            ),
+            (
+                "cam2",
+                (-250.0, 300.0),
+                (0.003, 0.002, 0.003),
+                (0.4, 0.9, -0.6),
+                (2.8, 7.3),
+                (-0.076, 0.062, 0.0004, 0.0002, -0.008),
+            ),
+            (
+                "cam3",
+                (250.0, 300.0),
+                (-0.005, -0.004, -0.005),
+                (-1.6, -0.3, 1.7),
+                (-5.9, -2.2),
+                (-0.087, 0.079, -0.0005, -0.0003, -0.016),
+            ),
         ]
         cams = []
         for name, (x, y), d_ang, d_pos, d_pp, dist in built:
             C = np.array([x, y, 1300.0]) + np.array(d_pos)
             R = _rotvec_matrix(np.array(d_ang)) @ look_at(C, target)
-            K = np.array([
-                [f_px * 1.0004, 0.0, 639.5 + d_pp[0]],
-                [0.0, f_px * 0.9997, 511.5 + d_pp[1]],
-                [0.0, 0.0, 1.0],
-            ])
+            K = np.array(
+                [
+                    [f_px * 1.0004, 0.0, 639.5 + d_pp[0]],
+                    [0.0, f_px * 0.9997, 511.5 + d_pp[1]],
+                    [0.0, 0.0, 1.0],
+                ]
+            )
             cam = Camera(name, 1280, 1024, K, np.array(dist), R, -R @ C)
             if (width, height) != (1280, 1024):
                 cam = cam.with_size(width, height)
@@ -683,8 +744,15 @@ class Rig:
     def with_image_size(self, width: int, height: int) -> Rig:
         """This rig with every camera's image scaled to ``width`` x ``height``."""
         cams = tuple(c.with_size(width, height) for c in self.cameras)
-        return Rig(cams, self.projector, self.conveyor, self.stereo_pairs, self.ring_pairs,
-                   self.source, self.reprojection_rms_px)
+        return Rig(
+            cams,
+            self.projector,
+            self.conveyor,
+            self.stereo_pairs,
+            self.ring_pairs,
+            self.source,
+            self.reprojection_rms_px,
+        )
 
     # -- TOML ----------------------------------------------------------------
     def to_toml(self) -> str:
@@ -720,7 +788,7 @@ class Rig:
                 f"dist = {f(cam.dist.tolist())}",
                 f"R = {f(cam.R.tolist())}",
                 f"t = {f(cam.t.tolist())}",
-                f"# centre in the rig frame (mm, for reading only): {np.round(cam.centre, 3).tolist()}",
+                f"# centre in the rig frame (mm, read only): {np.round(cam.centre, 3).tolist()}",
             ]
         p = self.projector
         pat = p.pattern
@@ -795,21 +863,40 @@ class Rig:
     def from_dict(cls, data: dict[str, Any], *, where: str = "rig") -> Rig:
         """Build a rig from the parsed TOML structure (see :meth:`to_toml`)."""
         try:
-            _keys(data, {"format", "id", "source", "stereo_pairs", "ring_pairs", "reprojection_rms_px",
-                         "camera", "projector", "conveyor"}, where)
+            _keys(
+                data,
+                {
+                    "format",
+                    "id",
+                    "source",
+                    "stereo_pairs",
+                    "ring_pairs",
+                    "reprojection_rms_px",
+                    "camera",
+                    "projector",
+                    "conveyor",
+                },
+                where,
+            )
             if data.get("format") != RIG_FORMAT:
-                raise InvalidInput(f"{where}: format must be {RIG_FORMAT!r}, got {data.get('format')!r}")
+                raise InvalidInput(
+                    f"{where}: format must be {RIG_FORMAT!r}, got {data.get('format')!r}"
+                )
             cams = []
             for i, c in enumerate(data["camera"]):
                 _keys(c, {"name", "width", "height", "K", "dist", "R", "t"}, f"{where}: camera {i}")
-                cams.append(Camera(c["name"], c["width"], c["height"], c["K"], c["dist"], c["R"], c["t"]))
+                cams.append(
+                    Camera(c["name"], c["width"], c["height"], c["K"], c["dist"], c["R"], c["t"])
+                )
             pj = dict(data["projector"])
             _keys(pj, {"width", "height", "K", "R", "t", "power", "pattern"}, f"{where}: projector")
             pattern = Pattern(**pj.pop("pattern", {}))
             projector = Projector(pattern=pattern, **pj)
             conveyor = Conveyor(**data.get("conveyor", {}))
             rig = cls(
-                tuple(cams), projector, conveyor,
+                tuple(cams),
+                projector,
+                conveyor,
                 stereo_pairs=tuple(tuple(x) for x in data.get("stereo_pairs", ((0, 1), (2, 3)))),
                 ring_pairs=tuple(tuple(x) for x in data.get("ring_pairs", ((0, 2), (1, 3)))),
                 source=str(data.get("source", "")),
@@ -832,7 +919,8 @@ class Rig:
         out = [f"rig {self.id} ({self.source})"]
         for cam in self.cameras:
             out.append(
-                f"  {cam.name}: {cam.width}x{cam.height} f=({cam.K[0, 0]:.1f}, {cam.K[1, 1]:.1f}) px "
+                f"  {cam.name}: {cam.width}x{cam.height} "
+                f"f=({cam.K[0, 0]:.1f}, {cam.K[1, 1]:.1f}) px "
                 f"centre={np.round(cam.centre, 1).tolist()} mm"
             )
         out.append(f"  stereo pairs {self.stereo_pairs}, ring pairs {self.ring_pairs}")
@@ -874,7 +962,7 @@ def _quote(text: str) -> str:
     return '"' + text.replace("\\", "\\\\").replace('"', '\\"').replace("\n", " ") + '"'
 
 
-def rigid_align(src: Sequence[npt.ArrayLike], dst: Sequence[npt.ArrayLike]) -> Transform:
+def rigid_align(src: npt.ArrayLike, dst: npt.ArrayLike) -> Transform:
     """Least-squares rigid transform (Kabsch) mapping ``src`` points onto ``dst``.
 
     Parameters

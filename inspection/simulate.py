@@ -102,9 +102,19 @@ class RenderOptions:
     board_white_dn: float = 200.0
 
     def __post_init__(self) -> None:
-        for name in ("exposure_dn", "ambient", "part_albedo", "specular_sharp", "shininess_sharp",
-                     "specular_broad", "shininess_broad", "blur_px", "shot_noise", "read_noise_dn",
-                     "board_white_dn"):
+        for name in (
+            "exposure_dn",
+            "ambient",
+            "part_albedo",
+            "specular_sharp",
+            "shininess_sharp",
+            "specular_broad",
+            "shininess_broad",
+            "blur_px",
+            "shot_noise",
+            "read_noise_dn",
+            "board_white_dn",
+        ):
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0):
                 raise InvalidInput(f"RenderOptions.{name} must be finite and >= 0, got {value!r}")
@@ -118,8 +128,14 @@ class RenderOptions:
     @classmethod
     def clean(cls) -> RenderOptions:
         """No faults: no mirror lobe, no dirt, no noise (for tests of geometry)."""
-        return cls(specular_sharp=0.0, specular_broad=0.0, shot_noise=0.0, read_noise_dn=0.0,
-                   part_dirt_spots=0, lens_dirt_spots=0)
+        return cls(
+            specular_sharp=0.0,
+            specular_broad=0.0,
+            shot_noise=0.0,
+            read_noise_dn=0.0,
+            part_dirt_spots=0,
+            lens_dirt_spots=0,
+        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -171,8 +187,13 @@ class Simulator:
         The rig rendered (the truth).
     """
 
-    def __init__(self, rig: Rig, cams: list[_CameraSetup], pattern: npt.NDArray[np.float32],
-                 belt: npt.NDArray[np.float32]) -> None:
+    def __init__(
+        self,
+        rig: Rig,
+        cams: list[_CameraSetup],
+        pattern: npt.NDArray[np.float32],
+        belt: npt.NDArray[np.float32],
+    ) -> None:
         self.rig = rig
         self._cams = cams
         self._pattern = pattern
@@ -203,11 +224,27 @@ class Simulator:
             belt_q = np.empty((cam.height, cam.width, 4), np.float32)
             belt_alb = np.empty((cam.height, cam.width), np.float32)
             _raster.belt_static(
-                rays, np.ascontiguousarray(cam.R.T), cam.centre, p.R, p.t, _kvec(p.K), pattern, p.centre,
-                p.power, float(np.linalg.norm(p.centre)), belt, _TEXEL_MM, rig.conveyor.width_mm / 2.0,
-                _FLOOR_ALBEDO, belt_irr, belt_q, belt_alb,
+                rays,
+                np.ascontiguousarray(cam.R.T),
+                cam.centre,
+                p.R,
+                p.t,
+                _kvec(p.K),
+                pattern,
+                p.centre,
+                p.power,
+                float(np.linalg.norm(p.centre)),
+                belt,
+                _TEXEL_MM,
+                rig.conveyor.width_mm / 2.0,
+                _FLOOR_ALBEDO,
+                belt_irr,
+                belt_q,
+                belt_alb,
             )
-            cams.append(_CameraSetup(cam, rays, vignette, kv, ox, oy, shape, belt_irr, belt_q, belt_alb))
+            cams.append(
+                _CameraSetup(cam, rays, vignette, kv, ox, oy, shape, belt_irr, belt_q, belt_alb)
+            )
         log.debug("simulator built for rig %s", rig.id)
         return cls(rig, cams, pattern, belt)
 
@@ -245,7 +282,9 @@ class Simulator:
 
         rig = self.rig
         p = rig.projector
-        smap_z, smap_f, _, _ = _rasterize_view(V, faces, p.R, p.t, _kvec(p.K), 0, 0, (p.height, p.width))
+        smap_z, smap_f, _, _ = _rasterize_view(
+            V, faces, p.R, p.t, _kvec(p.K), 0, 0, (p.height, p.width)
+        )
         dirt_c, dirt_r, dirt_k = _part_dirt(V, faces, norm, opts.part_dirt_spots, streams[0])
         P = p.centre
         r0 = float(np.linalg.norm(P))
@@ -254,8 +293,9 @@ class Simulator:
         truths: list[CameraTruth] = []
         for setup, stream in zip(self._cams, streams[1:], strict=True):
             cam = setup.camera
-            zb, fb, sx, sy = _rasterize_view(V, faces, cam.R, cam.t, setup.kvec, setup.ox, setup.oy,
-                                             setup.buf_shape)
+            zb, fb, sx, sy = _rasterize_view(
+                V, faces, cam.R, cam.t, setup.kvec, setup.ox, setup.oy, setup.buf_shape
+            )
             n_c = normals @ cam.R.T
             planes = np.empty((len(faces), 4))
             planes[:, :3] = n_c
@@ -268,21 +308,58 @@ class Simulator:
                 points = np.empty((1, 1, 3), np.float32)
                 flags = np.empty((1, 1), np.uint8)
             _raster.shade_scene(
-                setup.rays, setup.kvec, setup.ox, setup.oy, fb, sx, sy, faces, planes, normals,
-                np.ascontiguousarray(cam.R.T), cam.centre,
-                p.R, p.t, _kvec(p.K), self._pattern, smap_z, smap_f, P, p.power, r0, opts.ambient,
-                opts.part_albedo, opts.specular_sharp, opts.shininess_sharp,
-                opts.specular_broad, opts.shininess_broad,
-                dirt_c, dirt_r, dirt_k,
-                self._belt, _TEXEL_MM, opts.belt_shift_mm, rig.conveyor.width_mm / 2.0, _FLOOR_ALBEDO,
-                setup.belt_irr, setup.belt_q, setup.belt_alb,
-                setup.vignette * np.float32(opts.exposure_dn), out, points, flags, return_truth,
+                setup.rays,
+                setup.kvec,
+                setup.ox,
+                setup.oy,
+                fb,
+                sx,
+                sy,
+                faces,
+                planes,
+                normals,
+                np.ascontiguousarray(cam.R.T),
+                cam.centre,
+                p.R,
+                p.t,
+                _kvec(p.K),
+                self._pattern,
+                smap_z,
+                smap_f,
+                P,
+                p.power,
+                r0,
+                opts.ambient,
+                opts.part_albedo,
+                opts.specular_sharp,
+                opts.shininess_sharp,
+                opts.specular_broad,
+                opts.shininess_broad,
+                dirt_c,
+                dirt_r,
+                dirt_k,
+                self._belt,
+                _TEXEL_MM,
+                opts.belt_shift_mm,
+                rig.conveyor.width_mm / 2.0,
+                _FLOOR_ALBEDO,
+                setup.belt_irr,
+                setup.belt_q,
+                setup.belt_alb,
+                setup.vignette * np.float32(opts.exposure_dn),
+                out,
+                points,
+                flags,
+                return_truth,
             )
             image = self._expose(out, opts, stream)
             images.append(image)
             if return_truth:
-                truths.append(CameraTruth(points, (flags & 1).astype(bool), (flags & 2).astype(bool),
-                                          image == 255))
+                truths.append(
+                    CameraTruth(
+                        points, (flags & 1).astype(bool), (flags & 2).astype(bool), image == 255
+                    )
+                )
         return (images, truths) if return_truth else images
 
     # ----------------------------------------------------------------- boards
@@ -319,10 +396,26 @@ class Simulator:
             plane = np.array([n[0], n[1], n[2], n @ t_cb])
             out = np.empty((cam.height, cam.width), np.float32)
             _raster.shade_board(
-                setup.rays, np.ascontiguousarray(R_cb.T), -R_cb.T @ t_cb, plane, tex, _BOARD_PX_PER_MM,
-                np.zeros(2), lo, hi, np.ascontiguousarray(cam.R.T), cam.centre,
-                self._belt, _TEXEL_MM, opts.belt_shift_mm, self.rig.conveyor.width_mm / 2.0, _FLOOR_ALBEDO,
-                1.0, int(supersample), setup.vignette * np.float32(opts.board_white_dn / 0.85), out,
+                setup.rays,
+                np.ascontiguousarray(R_cb.T),
+                -R_cb.T @ t_cb,
+                plane,
+                tex,
+                _BOARD_PX_PER_MM,
+                np.zeros(2),
+                lo,
+                hi,
+                np.ascontiguousarray(cam.R.T),
+                cam.centre,
+                self._belt,
+                _TEXEL_MM,
+                opts.belt_shift_mm,
+                self.rig.conveyor.width_mm / 2.0,
+                _FLOOR_ALBEDO,
+                1.0,
+                int(supersample),
+                setup.vignette * np.float32(opts.board_white_dn / 0.85),
+                out,
             )
             # Calibration lighting is diffuse and even (the flash's slide would
             # cover the board with speckle): exposure set by the paper's white.
@@ -330,17 +423,23 @@ class Simulator:
         return images
 
     # ----------------------------------------------------------------- sensor
-    def _expose(self, signal: npt.NDArray[np.float32], opts: RenderOptions,
-                stream: np.random.SeedSequence) -> Image:
+    def _expose(
+        self, signal: npt.NDArray[np.float32], opts: RenderOptions, stream: np.random.SeedSequence
+    ) -> Image:
         """Sensor signal (DN, vignetting applied) -> 8-bit image: lens dust, blur, noise."""
         rng = np.random.default_rng(stream)
         if opts.lens_dirt_spots:
             _lens_dust(signal, opts.lens_dirt_spots, rng)
         if opts.blur_px > 0:
-            signal = cv2.GaussianBlur(signal, (0, 0), opts.blur_px, borderType=cv2.BORDER_REPLICATE)
+            signal = np.asarray(
+                cv2.GaussianBlur(signal, (0, 0), opts.blur_px, borderType=cv2.BORDER_REPLICATE),
+                dtype=np.float32,
+            )
         key = np.uint64(rng.integers(0, 2**63, dtype=np.int64))
         image = np.empty(signal.shape, np.uint8)
-        _raster.sensor_noise(signal, key, float(opts.shot_noise), float(opts.read_noise_dn) ** 2, image)
+        _raster.sensor_noise(
+            signal, key, float(opts.shot_noise), float(opts.read_noise_dn) ** 2, image
+        )
         return image
 
 
@@ -367,12 +466,25 @@ def simulator_for(rig: Rig) -> Simulator:
 
 
 @overload
-def simulate(rig: Rig, mesh: Any, T_rig_part: npt.ArrayLike, *, seed: int = ...,
-             options: RenderOptions | None = ..., return_truth: Literal[False] = ...) -> list[Image]: ...
+def simulate(
+    rig: Rig,
+    mesh: Any,
+    T_rig_part: npt.ArrayLike,
+    *,
+    seed: int = ...,
+    options: RenderOptions | None = ...,
+    return_truth: Literal[False] = ...,
+) -> list[Image]: ...
 @overload
-def simulate(rig: Rig, mesh: Any, T_rig_part: npt.ArrayLike, *, seed: int = ...,
-             options: RenderOptions | None = ...,
-             return_truth: Literal[True]) -> tuple[list[Image], list[CameraTruth]]: ...
+def simulate(
+    rig: Rig,
+    mesh: Any,
+    T_rig_part: npt.ArrayLike,
+    *,
+    seed: int = ...,
+    options: RenderOptions | None = ...,
+    return_truth: Literal[True],
+) -> tuple[list[Image], list[CameraTruth]]: ...
 def simulate(
     rig: Rig,
     mesh: Any,
@@ -414,8 +526,9 @@ def simulate(
         For a mesh without faces or with non-finite vertices, a transform that
         is not a finite rigid 4 x 4 matrix, or a bad seed.
     """
-    return simulator_for(rig).render(mesh, T_rig_part, seed=seed, options=options,
-                                     return_truth=return_truth)
+    return simulator_for(rig).render(
+        mesh, T_rig_part, seed=seed, options=options, return_truth=return_truth
+    )
 
 
 def simulate_board(
@@ -448,8 +561,9 @@ def simulate_board(
     -------
     list of four (H, W) uint8
     """
-    return simulator_for(rig).render_board(T_rig_board, board, seed=seed, options=options,
-                                           supersample=supersample)
+    return simulator_for(rig).render_board(
+        T_rig_board, board, seed=seed, options=options, supersample=supersample
+    )
 
 
 # --------------------------------------------------------------------- helpers
@@ -469,9 +583,14 @@ def _check_transform(T: Any, what: str) -> Transform:
     if not np.all(np.isfinite(arr)):
         raise InvalidInput(f"{what} must be finite")
     R = arr[:3, :3]
-    if (not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) <= 0
-            or not np.allclose(arr[3], [0.0, 0.0, 0.0, 1.0])):
-        raise InvalidInput(f"{what} must be a rigid transform (rotation, translation, last row 0 0 0 1)")
+    if (
+        not np.allclose(R @ R.T, np.eye(3), atol=1e-6)
+        or np.linalg.det(R) <= 0
+        or not np.allclose(arr[3], [0.0, 0.0, 0.0, 1.0])
+    ):
+        raise InvalidInput(
+            f"{what} must be a rigid transform (rotation, translation, last row 0 0 0 1)"
+        )
     return arr
 
 
@@ -492,7 +611,7 @@ def _mesh_arrays(mesh: Any) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.int
     return vertices, np.ascontiguousarray(faces)
 
 
-def _rasterize_view(V, faces, R, t, kvec, ox, oy, shape):  # type: ignore[no-untyped-def]
+def _rasterize_view(V, faces, R, t, kvec, ox, oy, shape):
     """Depth and face buffers of a mesh seen by a pinhole (R, t, K) in a buffer at (ox, oy),
     and the projected vertices (buffer pixels)."""
     q = V @ R.T + t
@@ -510,7 +629,7 @@ def _rasterize_view(V, faces, R, t, kvec, ox, oy, shape):  # type: ignore[no-unt
     return zbuf, fbuf, sx, sy
 
 
-def _part_dirt(V, faces, double_area, count, stream):  # type: ignore[no-untyped-def]
+def _part_dirt(V, faces, double_area, count, stream):
     """Dirt spots on the part surface: centres, radii and remaining reflectance."""
     if count == 0:
         return np.zeros((0, 3)), np.zeros(0), np.zeros(0)

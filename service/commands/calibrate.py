@@ -17,27 +17,46 @@ import logging
 import sys
 from pathlib import Path
 
+import numpy as np
+
 log = logging.getLogger(__name__)
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "calibrate",
         help="calibrate the four cameras from ChArUco images (rendered by default)",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--out", default="configs/rig.toml", help="rig TOML to write (default: %(default)s)")
-    p.add_argument("--images", type=Path, default=None,
-                   help="directory of real board images (DIR/<view>/<camera>.png); default: render them")
-    p.add_argument("--views", type=int, default=20, help="board views to render (default: %(default)s)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the rendered poses and noise (default: %(default)s)")
-    p.add_argument("--save-images", type=Path, default=None,
-                   help="also write the rendered board images as PNG under this directory")
+    p.add_argument(
+        "--out", default="configs/rig.toml", help="rig TOML to write (default: %(default)s)"
+    )
+    p.add_argument(
+        "--images",
+        type=Path,
+        default=None,
+        help="directory of real board images (DIR/<view>/<camera>.png); default: render them",
+    )
+    p.add_argument(
+        "--views", type=int, default=20, help="board views to render (default: %(default)s)"
+    )
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="seed of the rendered poses and noise (default: %(default)s)",
+    )
+    p.add_argument(
+        "--save-images",
+        type=Path,
+        default=None,
+        help="also write the rendered board images as PNG under this directory",
+    )
     p.set_defaults(func=cmd_calibrate)
 
 
-def _read_views(root: Path, names: tuple[str, ...]) -> list[list]:  # type: ignore[type-arg]
+def _read_views(root: Path, names: tuple[str, ...]) -> list[list[np.ndarray]]:
     import cv2
 
     dirs = sorted(d for d in root.iterdir() if d.is_dir())
@@ -86,8 +105,11 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     print(cal.summary())
     if args.images is None:
         err = centre_errors(cal.rig, truth)
-        print("simulation check: camera centres vs the rig as built, after one rigid alignment: "
-              + ", ".join(f"{e:.3f}" for e in err) + " mm")
+        print(
+            "simulation check: camera centres vs the rig as built, after one rigid alignment: "
+            + ", ".join(f"{e:.3f}" for e in err)
+            + " mm"
+        )
     out = cal.rig.save(args.out)
     print(f"wrote {out} (calibration id {cal.rig.id})")
     return 0

@@ -6,7 +6,12 @@ import numpy as np
 import pytest
 
 from inspection.board import CharucoSpec, board_lying_flat
-from inspection.calibration import calibrate, calibration_poses, centre_errors, render_calibration_views
+from inspection.calibration import (
+    calibrate,
+    calibration_poses,
+    centre_errors,
+    render_calibration_views,
+)
 from inspection.errors import CalibrationError, InvalidInput
 from inspection.rig import Rig
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 
@@ -103,8 +105,15 @@ def test_with_image_size_keeps_the_field_of_view(rig: Rig) -> None:
 )
 def test_bad_camera_is_refused(rig: Rig, kwargs, message) -> None:
     cam = rig.cameras[0]
-    args = {"name": cam.name, "width": cam.width, "height": cam.height, "K": cam.K,
-            "dist": cam.dist, "R": cam.R, "t": cam.t}
+    args: dict[str, Any] = {
+        "name": cam.name,
+        "width": cam.width,
+        "height": cam.height,
+        "K": cam.K,
+        "dist": cam.dist,
+        "R": cam.R,
+        "t": cam.t,
+    }
     args.update(kwargs)
     with pytest.raises(InvalidInput, match=message):
         Camera(**args)

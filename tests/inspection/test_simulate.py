@@ -25,7 +25,9 @@ def panel() -> trimesh.Trimesh:
     plate.apply_translation((0.0, 0.0, 1.0))
     wall = trimesh.creation.box((400.0, 3.0, 40.0))
     wall.apply_translation((0.0, 128.5, 20.0))
-    return trimesh.util.concatenate([plate, wall])
+    mesh = trimesh.util.concatenate([plate, wall])
+    assert isinstance(mesh, trimesh.Trimesh)
+    return mesh
 
 
 def _pose(x: float, y: float, yaw_deg: float, z: float = 0.0) -> np.ndarray:
@@ -101,8 +103,14 @@ def test_pattern_on_the_part_and_shadow_behind_the_wall(rig, rendered) -> None:
 def test_faults_saturate_and_clean_options_do_not(rig, panel, rendered) -> None:
     _, truths = rendered
     assert sum(int(t.saturated.sum()) for t in truths) > 500  # mirror highlights
-    images, clean = simulate(rig, panel, _pose(40.0, -25.0, 25.0), seed=3,
-                             options=RenderOptions.clean(), return_truth=True)
+    images, clean = simulate(
+        rig,
+        panel,
+        _pose(40.0, -25.0, 25.0),
+        seed=3,
+        options=RenderOptions.clean(),
+        return_truth=True,
+    )
     assert sum(int(t.saturated.sum()) for t in clean) == 0
 
 
@@ -139,9 +147,14 @@ def test_bad_inputs_are_refused(rig, mesh_kind, T, message) -> None:
     box = trimesh.creation.box((10.0, 10.0, 10.0))
     mesh = {
         "ok": box,
-        "empty": trimesh.Trimesh(vertices=np.zeros((3, 3)), faces=np.zeros((0, 3), int), process=False),
-        "nan": trimesh.Trimesh(vertices=np.where(box.vertices > 0, np.nan, box.vertices), faces=box.faces,
-                               process=False),
+        "empty": trimesh.Trimesh(
+            vertices=np.zeros((3, 3)), faces=np.zeros((0, 3), int), process=False
+        ),
+        "nan": trimesh.Trimesh(
+            vertices=np.where(box.vertices > 0, np.nan, box.vertices),
+            faces=box.faces,
+            process=False,
+        ),
         "object": object(),
     }[mesh_kind]
     with pytest.raises(InvalidInput, match=message):
@@ -155,4 +168,4 @@ def test_bad_seed_and_options_are_refused(rig) -> None:
     with pytest.raises(InvalidInput, match="blur_px"):
         RenderOptions(blur_px=-1.0)
     with pytest.raises(InvalidInput, match="Rig"):
-        simulate("rig", box, np.eye(4))  # type: ignore[arg-type]
+        simulate("rig", box, np.eye(4))  # type: ignore[call-overload]
