@@ -425,6 +425,11 @@ class PartRegistry:
                 job_id, state=JobState.failed, message=entry.error, finished_ns=time.time_ns()
             )
             return
+        if self.alignment and loaded.alignment_model is not None:
+            self._update_job(job_id, progress=0.98, message="warming up")
+            from .inspect import warm_up
+
+            log.info("part %s: measured once in %.1f s (warm-up)", name, warm_up(loaded))
         with self._lock:
             entry.loaded = loaded
             entry.state = PartState.ready
