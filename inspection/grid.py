@@ -22,8 +22,9 @@ answer exact wherever the surface is connected. Signs come from the
 angle-weighted pseudo-normal of the closest feature (face, edge or corner).
 
 Points outside the band, outside the bounding box, or in cells whose corners
-lie outside the band take the exact slow path: a kd-tree on surface samples
-gives an upper bound, and every face that could beat it is tested exactly.
+lie outside the band take the exact slow path: a bounding volume hierarchy
+over the faces, searched depth first with the nearer box first and every box
+farther than the best face so far pruned.
 
 Compilation: the kernels are numba functions cached on disk (``cache=True``).
 The first query of a fresh process loads (or, on a new machine, compiles) them;
@@ -46,7 +47,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from . import _grid_kernels as K
 from .arrays import Faces, Indices, Points, Scalars, Vectors
@@ -91,21 +91,17 @@ class GridParams:
         Queries within this distance of the surface take the fast path.
     block : int
         Fine cells per block edge.
-    sample_spacing_mm : float
-        Covering radius of the surface samples used by the slow path, mm.
     """
 
     spacing_mm: float
     band_mm: float
     block: int
-    sample_spacing_mm: float
 
     def to_dict(self) -> dict[str, Any]:
         return {
             "spacing_mm": self.spacing_mm,
             "band_mm": self.band_mm,
             "block": self.block,
-            "sample_spacing_mm": self.sample_spacing_mm,
         }
 
 
@@ -148,6 +144,11 @@ class _Mesh:
     vf_idx: np.ndarray  # (sum,) int32: faces around each vertex
     edge_pn: np.ndarray  # (F, 3, 3) float64: pseudo-normal of edge e of face f
     vert_pn: np.ndarray  # (V, 3) float64: angle-weighted vertex pseudo-normal
+    bvh_order: np.ndarray  # (F,) int32: faces in leaf order
+    bvh_lo: np.ndarray  # (N, 3) float64: node boxes
+    bvh_hi: np.ndarray  # (N, 3) float64
+    bvh_child: np.ndarray  # (N, 2) int32: children, -1 for a leaf
+    bvh_span: np.ndarray  # (N, 2) int32: a leaf's [start, end) in bvh_order
 
 
 class GridTree:
@@ -180,9 +181,6 @@ class GridTree:
         cells: np.ndarray,
         mixed_ptr: np.ndarray,
         mixed_faces: np.ndarray,
-        samples: np.ndarray,
-        sample_face: np.ndarray,
-        sample_radius: float,
         name: str,
         tree_hash: str | None = None,
         cad: CadModel | None = None,
@@ -198,12 +196,11 @@ class GridTree:
         self._cells = cells
         self._mixed_ptr = mixed_ptr
         self._mixed_faces = mixed_faces
-        self._samples = samples
-        self._sample_face = sample_face
-        self._sample_radius = float(sample_radius)
-        # The slow path's search structure; a balanced, compact tree builds in
-        # tens of ms for ~1e5 samples, so it is rebuilt on load instead of saved.
-        self._kd = cKDTree(samples, balanced_tree=False, compact_nodes=False)
+        # Read-only everywhere, built or loaded: numba compiles one
+        # specialisation per array mutability, so mixing them would compile
+        # the kernels twice.
+        for arr in (origin, dims, coarse, cells, mixed_ptr, mixed_faces):
+            arr.setflags(write=False)
         self.hash = tree_hash if tree_hash is not None else self._content_hash()
 
     # ------------------------------------------------------------------ build
@@ -333,11 +330,7 @@ class GridTree:
             np.concatenate(faces_parts) if faces_parts else np.zeros(0, dtype=np.int32)
         ).astype(np.int32, copy=False)
 
-        sample_spacing = 4.0 * h
-        samples, sample_face, sample_radius = _surface_samples(tri, sample_spacing)
-        params = GridParams(
-            spacing_mm=h, band_mm=band_mm, block=BLOCK, sample_spacing_mm=sample_spacing
-        )
+        params = GridParams(spacing_mm=h, band_mm=band_mm, block=BLOCK)
         tree = cls(
             mesh=mesh,
             params=params,
@@ -348,9 +341,6 @@ class GridTree:
             cells=cells,
             mixed_ptr=mixed_ptr,
             mixed_faces=mixed_faces,
-            samples=samples,
-            sample_face=sample_face,
-            sample_radius=sample_radius,
             name=cad.name,
             cad=cad,
         )
@@ -425,34 +415,16 @@ class GridTree:
         return Closest(points=out_pts, normals=out_nrm, distances=out_dist, face=out_face)
 
     def _query_slow(self, p, rows, out_pts, out_nrm, out_dist, out_face) -> None:
-        """Exact closest faces of p[rows] by a kd-tree bound on surface samples.
-
-        Every point of a face lies within ``sample_radius`` of one of its
-        samples, so a face closer than the bound U has a sample within
-        U + sample_radius: testing the faces of those samples is exact.
-        """
+        """Exact closest faces of p[rows] through the bounding volume hierarchy."""
         m = self._mesh
-        q = np.ascontiguousarray(p[rows])
-        _, nearest = self._kd.query(q, k=1, workers=-1)
-        bound = np.sqrt(K.exact_distance(q, self._sample_face[nearest], m.tri))
-        balls = self._kd.query_ball_point(
-            q, bound + self._sample_radius * (1.0 + 1e-9) + 1e-9, workers=-1, return_sorted=False
-        )
-        lens = np.fromiter((len(b) for b in balls), dtype=np.int64, count=len(balls))
-        cand_ptr = np.zeros(len(rows) + 1, dtype=np.int64)
-        np.cumsum(lens, out=cand_ptr[1:])
-        flat = np.fromiter((i for b in balls for i in b), dtype=np.int64, count=int(cand_ptr[-1]))
-        cand = self._sample_face[flat]
-        # Several samples of one face: test each face once per point.
-        owner = np.repeat(np.arange(len(rows)), lens)
-        key = np.unique(owner * np.int64(len(m.faces)) + cand)
-        owner_u, cand_u = np.divmod(key, np.int64(len(m.faces)))
-        cand_ptr = np.searchsorted(owner_u, np.arange(len(rows) + 1)).astype(np.int64)
-        K.query_candidates(
-            q,
-            rows.astype(np.int64),
-            cand_ptr,
-            cand_u.astype(np.int32),
+        K.query_bvh(
+            p,
+            np.asarray(rows, dtype=np.int64),
+            m.bvh_order,
+            m.bvh_lo,
+            m.bvh_hi,
+            m.bvh_child,
+            m.bvh_span,
             m.tri,
             m.faces,
             m.face_adj,
@@ -501,7 +473,7 @@ class GridTree:
 
     @property
     def nbytes(self) -> int:
-        """Memory held by the tree's arrays, bytes (mesh, grid, samples)."""
+        """Memory held by the tree's arrays, bytes (mesh, grid, hierarchy)."""
         m = self._mesh
         arrays = [
             m.vertices,
@@ -519,8 +491,11 @@ class GridTree:
             self._cells,
             self._mixed_ptr,
             self._mixed_faces,
-            self._samples,
-            self._sample_face,
+            m.bvh_order,
+            m.bvh_lo,
+            m.bvh_hi,
+            m.bvh_child,
+            m.bvh_span,
         ]
         return int(sum(a.nbytes for a in arrays))
 
@@ -540,7 +515,7 @@ class GridTree:
             "fine_cells": int(len(self._cells)),
             "mixed_cells": self.n_mixed_cells,
             "unknown_cells": int((self._cells == K.CELL_UNKNOWN).sum()),
-            "samples": int(len(self._samples)),
+            "bvh_nodes": int(len(self._mesh.bvh_lo)),
             "nbytes": self.nbytes,
         }
 
@@ -571,8 +546,11 @@ class GridTree:
             "cells": self._cells,
             "mixed_ptr": self._mixed_ptr,
             "mixed_faces": self._mixed_faces,
-            "samples": self._samples,
-            "sample_face": self._sample_face,
+            "bvh_order": m.bvh_order,
+            "bvh_lo": m.bvh_lo,
+            "bvh_hi": m.bvh_hi,
+            "bvh_child": m.bvh_child,
+            "bvh_span": m.bvh_span,
         }
 
     def _content_hash(self) -> str:
@@ -583,7 +561,6 @@ class GridTree:
                     "format_version": FORMAT_VERSION,
                     "cad_hash": self.cad_hash,
                     "params": self.params.to_dict(),
-                    "sample_radius": self._sample_radius,
                 },
                 sort_keys=True,
             ).encode()
@@ -612,7 +589,6 @@ class GridTree:
             "cad_hash": self.cad_hash,
             "tree_hash": self.hash,
             "params": self.params.to_dict(),
-            "sample_radius": self._sample_radius,
         }
         arrays = dict(self._arrays())
         arrays["meta"] = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), dtype=np.uint8)
@@ -682,6 +658,11 @@ class GridTree:
             vf_idx=a["vf_idx"],
             edge_pn=a["edge_pn"],
             vert_pn=a["vert_pn"],
+            bvh_order=a["bvh_order"],
+            bvh_lo=a["bvh_lo"],
+            bvh_hi=a["bvh_hi"],
+            bvh_child=a["bvh_child"],
+            bvh_span=a["bvh_span"],
         )
         for arr in (*a.values(), tri):
             arr.setflags(write=False)
@@ -695,9 +676,6 @@ class GridTree:
             cells=a["cells"],
             mixed_ptr=a["mixed_ptr"],
             mixed_faces=a["mixed_faces"],
-            samples=a["samples"],
-            sample_face=a["sample_face"],
-            sample_radius=meta["sample_radius"],
             name=meta["name"],
             tree_hash=meta["tree_hash"],
             cad=cad,
@@ -740,7 +718,10 @@ def _as_points(points: Any) -> np.ndarray:
     if not np.isfinite(p).all():
         bad = int((~np.isfinite(p)).any(axis=1).sum())
         raise InvalidInput(f"points: {bad} rows hold NaN or inf")
-    return np.ascontiguousarray(p)
+    p = np.ascontiguousarray(p)
+    # The kernels are compiled for writable arrays; a read-only view (a
+    # frozen cloud, say) would trigger a second compilation.
+    return p if p.flags.writeable else p.copy()
 
 
 def _mesh_arrays(vertices: np.ndarray, faces: np.ndarray, face_normals: np.ndarray) -> _Mesh:
@@ -798,6 +779,7 @@ def _mesh_arrays(vertices: np.ndarray, faces: np.ndarray, face_normals: np.ndarr
     np.cumsum(np.bincount(flat_v, minlength=nv), out=vf_ptr[1:])
 
     plane = _plane_data(tri, fn)
+    bvh = K.bvh_build(tri)
     smooth_adj = _smooth_adjacency(face_adj, fn)
     mesh = _Mesh(
         vertices=v,
@@ -811,8 +793,26 @@ def _mesh_arrays(vertices: np.ndarray, faces: np.ndarray, face_normals: np.ndarr
         vf_idx=vf_idx,
         edge_pn=np.ascontiguousarray(epn),
         vert_pn=vpn,
+        bvh_order=bvh[0],
+        bvh_lo=bvh[1],
+        bvh_hi=bvh[2],
+        bvh_child=bvh[3],
+        bvh_span=bvh[4],
     )
-    for arr in (v, f, fn, tri, plane, face_adj, smooth_adj, vf_ptr, vf_idx, mesh.edge_pn, vpn):
+    for arr in (
+        v,
+        f,
+        fn,
+        tri,
+        plane,
+        face_adj,
+        smooth_adj,
+        vf_ptr,
+        vf_idx,
+        mesh.edge_pn,
+        vpn,
+        *bvh,
+    ):
         arr.setflags(write=False)
     return mesh
 
@@ -852,48 +852,6 @@ def _plane_data(tri: np.ndarray, normals: np.ndarray) -> np.ndarray:
 
     rows = [normals, dot(normals), U, dot(U), V, dot(V)]
     return np.ascontiguousarray(np.concatenate(rows, axis=1))
-
-
-def _surface_samples(tri: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray, float]:
-    """Points on every face such that every surface point is near one of its face's samples.
-
-    Each face is split into n^2 similar sub-triangles (n from its longest edge)
-    and sampled at their centroids; every point of a triangle lies within
-    2/3 of its longest edge of the centroid (a median is at most that edge).
-
-    Returns
-    -------
-    samples : (S, 3) float64, mm
-    sample_face : (S,) int32
-    radius : float, mm
-        Largest distance from a surface point to its face's nearest sample.
-    """
-    edges = np.linalg.norm(tri - tri[:, [1, 2, 0]], axis=2)
-    longest = edges.max(axis=1)
-    cover = longest * (2.0 / 3.0)
-    n = np.maximum(1, np.ceil(cover / spacing)).astype(np.int64)
-    radius = float((cover / n).max())
-    out_pts = []
-    out_face = []
-    for level in np.unique(n):
-        ids = np.flatnonzero(n == level)
-        ij = []
-        for i in range(level):
-            for j in range(level - i):
-                ij.append((i + 1.0 / 3.0, j + 1.0 / 3.0))
-                if i + j <= level - 2:
-                    ij.append((i + 2.0 / 3.0, j + 2.0 / 3.0))
-        uv = np.array(ij) / level  # (n^2, 2) barycentric (u along ab, v along ac)
-        t = tri[ids]
-        ab = t[:, 1] - t[:, 0]
-        ac = t[:, 2] - t[:, 0]
-        pts = (
-            t[:, None, 0] + uv[None, :, 0, None] * ab[:, None] + uv[None, :, 1, None] * ac[:, None]
-        )
-        out_pts.append(pts.reshape(-1, 3))
-        out_face.append(np.repeat(ids, len(uv)).astype(np.int32))
-    samples = np.ascontiguousarray(np.concatenate(out_pts))
-    return samples, np.concatenate(out_face), radius
 
 
 __all__ = ["Closest", "GridParams", "GridTree", "warmup", "FORMAT_VERSION"]

@@ -166,7 +166,7 @@ def cmd_info(args: argparse.Namespace) -> int:
         + (" (matches --cad)" if cad is not None else ""),
         f"tree hash     {info['tree_hash']}",
         f"parameters    spacing {p['spacing_mm']} mm, band {p['band_mm']} mm, "
-        f"block {p['block']}^3 cells, samples every {p['sample_spacing_mm']} mm",
+        f"block {p['block']}^3 cells",
         "bounds mm     " + "  ".join(str([round(x, 2) for x in row]) for row in info["bounds_mm"]),
         f"grid          {info['blocks']} blocks of {info['coarse_dims']} coarse, "
         f"{info['fine_cells']} fine cells ({info['mixed_cells']} with candidate lists, "

@@ -1,0 +1,245 @@
+"""Closest-point queries: GridTree against kd-trees and an exact ray-casting scene.
+
+On the generated 600 x 400 mm sheet-metal panel (flange, holes, character
+line, embossing), in one run:
+
+- 50,000 queries within 3 mm of the surface (both sides) and 2,000 queries
+  10-30 mm off it, in random order;
+- GridTree.query (exact local correction) against scipy's cKDTree
+  (workers=-1) and pykdtree on 1,000,000 area-uniform surface samples (the
+  nearest sample, an approximation) and Open3D's RaycastingScene exact
+  closest points (float32), when those peers import;
+- accuracy of every method against the exact closest point (Open3D's, or
+  trimesh's near the surface when Open3D is missing);
+- build time, tree memory and peak RSS for the panel and (when ../shared is
+  there) the 84k-face counter model, and the load time of a saved tree.
+
+Times are medians over repeats after a warm-up. Ratios are peer time / grid
+time. Exit status 1 when an accuracy check fails (speed is printed, as it
+depends on the machine's load).
+
+Run: ``python -m bench.bench_grid`` (or ``make bench``).
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import resource  # noqa: E402
+import statistics  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from collections.abc import Callable  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+N_NEAR = 50_000
+N_FAR = 2_000
+N_SAMPLES = 1_000_000
+SHARED_COUNTER = Path(__file__).resolve().parents[1].parent / "shared/data/cad/counter.unitsmm.STL"
+
+
+def _median_time(fn: Callable[[], object], repeats: int, warmup: int = 1) -> float:
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def _peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def _surface(cad, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:  # type: ignore[no-untyped-def]
+    tri = cad.vertices[cad.faces]
+    area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    f = rng.choice(len(area), n, p=area / area.sum())
+    uv = rng.random((n, 2))
+    flip = uv.sum(1) > 1
+    uv[flip] = 1 - uv[flip]
+    p = tri[f, 0] + uv[:, :1] * (tri[f, 1] - tri[f, 0]) + uv[:, 1:] * (tri[f, 2] - tri[f, 0])
+    return p, f
+
+
+def _queries(cad, n: int, lo: float, hi: float, rng: np.random.Generator) -> np.ndarray:  # type: ignore[no-untyped-def]
+    p, f = _surface(cad, n, rng)
+    d = rng.uniform(lo, hi, n) * rng.choice([-1.0, 1.0], n)
+    return np.ascontiguousarray(p + cad.face_normals[f] * d[:, None])
+
+
+def _open3d_scene(cad):  # type: ignore[no-untyped-def]
+    try:
+        import open3d as o3d
+    except Exception as exc:  # ImportError, or OSError for a missing libusb
+        print(f"note: Open3D peer skipped ({type(exc).__name__}: {exc})")
+        return None
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(
+        o3d.core.Tensor(cad.vertices.astype(np.float32)),
+        o3d.core.Tensor(cad.faces.astype(np.uint32)),
+    )
+
+    def closest(q: np.ndarray) -> np.ndarray:
+        out = scene.compute_closest_points(o3d.core.Tensor(q.astype(np.float32)))
+        return out["points"].numpy().astype(np.float64)
+
+    return closest
+
+
+def _exact_reference(cad, q: np.ndarray, o3d_closest) -> np.ndarray:  # type: ignore[no-untyped-def]
+    """Exact closest points: Open3D when present, else trimesh (slow far away)."""
+    if o3d_closest is not None:
+        return o3d_closest(q)
+    import trimesh
+
+    mesh = trimesh.Trimesh(cad.vertices, cad.faces, process=False)
+    return np.asarray(trimesh.proximity.closest_point(mesh, q)[0])
+
+
+def _errors(q: np.ndarray, got: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """|distance error| and closest-point displacement, mm."""
+    d_err = np.abs(np.linalg.norm(q - got, axis=1) - np.linalg.norm(q - ref, axis=1))
+    return d_err, np.linalg.norm(got - ref, axis=1)
+
+
+def main() -> int:
+    from scipy.spatial import cKDTree
+
+    from inspection.grid import GridTree, warmup
+    from inspection.panel import sheet_metal_panel
+
+    rng = np.random.default_rng(0)
+    compile_s = warmup()
+    cad = sheet_metal_panel()
+    print(
+        f"part: generated panel, {len(cad.faces)} faces, {cad.extents.round(1).tolist()} mm; "
+        f"kernels ready in {compile_s:.2f} s"
+    )
+
+    # ---- build, memory, save/load
+    rss0 = _peak_rss_mb()
+    t0 = time.perf_counter()
+    tree = GridTree.build(cad)
+    build_s = time.perf_counter() - t0
+    builds = [("panel", len(cad.faces), build_s, tree.nbytes, _peak_rss_mb() - rss0)]
+    with tempfile.TemporaryDirectory() as tmp:
+        path = tree.save(Path(tmp) / "panel.npz")
+        load_s = _median_time(lambda: GridTree.load(path, cad=cad), 5)
+        file_mb = path.stat().st_size / 1e6
+    counter_load_s = None
+    if SHARED_COUNTER.is_file():
+        from inspection.cad import load_cad
+
+        counter = load_cad(SHARED_COUNTER)
+        rss0 = _peak_rss_mb()
+        t0 = time.perf_counter()
+        ctree = GridTree.build(counter)
+        cbuild_s = time.perf_counter() - t0
+        drss = _peak_rss_mb() - rss0
+        builds.append(("counter", len(counter.faces), cbuild_s, ctree.nbytes, drss))
+        with tempfile.TemporaryDirectory() as tmp:
+            cpath = ctree.save(Path(tmp) / "counter.npz")
+            counter_load_s = _median_time(lambda: GridTree.load(cpath, cad=counter), 5)
+        del ctree
+    else:
+        print(f"note: {SHARED_COUNTER} not found; counter build skipped")
+
+    # ---- queries and peers
+    near = _queries(cad, N_NEAR, 0.0, 3.0, rng)
+    far = _queries(cad, N_FAR, 10.0, 30.0, rng)
+    samples, _ = _surface(cad, N_SAMPLES, rng)
+    t0 = time.perf_counter()
+    kd = cKDTree(samples)
+    kd_build_s = time.perf_counter() - t0
+    o3d_closest = _open3d_scene(cad)
+    ref_near = _exact_reference(cad, near, o3d_closest)
+    ref_far = _exact_reference(cad, far, o3d_closest)
+
+    methods: list[tuple[str, Callable[[np.ndarray], np.ndarray]]] = [
+        ("GridTree.query", lambda q: tree.query(q).points),
+        ("scipy cKDTree(workers=-1), 1M samples", lambda q: samples[kd.query(q, workers=-1)[1]]),
+    ]
+    try:
+        from pykdtree.kdtree import KDTree
+
+        pkd = KDTree(samples)
+        methods.append(("pykdtree, 1M samples", lambda q: samples[pkd.query(q, k=1)[1]]))
+    except ImportError as exc:
+        print(f"note: pykdtree peer skipped ({exc})")
+    if o3d_closest is not None:
+        methods.append(("Open3D RaycastingScene (exact, f32)", o3d_closest))
+
+    rows = []
+    for name, fn in methods:
+        repeats = 15 if name.startswith("GridTree") else 5
+        t_near = _median_time(lambda fn=fn: fn(near), repeats)
+        t_far = _median_time(lambda fn=fn: fn(far), max(3, repeats // 3))
+        e_near, _ = _errors(near, fn(near), ref_near)
+        e_far, disp_far = _errors(far, fn(far), ref_far)
+        rows.append((name, t_near, t_far, e_near, e_far, disp_far))
+
+    # ---- report
+    grid_near, grid_far = rows[0][1], rows[0][2]
+    print(f"\n{N_NEAR} queries within 3 mm, {N_FAR} queries 10-30 mm off (random order);")
+    print("errors against the exact closest point; ratio = method time / GridTree time\n")
+    head = (
+        f"{'method':40s} {'near ms':>8s} {'Mq/s':>6s} {'ratio':>7s} {'mean um':>9s} {'p99 um':>8s}"
+        f" | {'far ms':>7s} {'ratio':>6s} {'max disp mm':>11s}"
+    )
+    print(head)
+    print("-" * len(head))
+    for name, t_near, t_far, e_near, _e_far, disp_far in rows:
+        print(
+            f"{name:40s} {t_near * 1e3:8.2f} {N_NEAR / t_near / 1e6:6.1f} {t_near / grid_near:7.1f}"
+            f" {e_near.mean() * 1e3:9.3f} {np.percentile(e_near, 99) * 1e3:8.3f}"
+            f" | {t_far * 1e3:7.1f} {t_far / grid_far:6.1f} {disp_far.max():11.4f}"
+        )
+    print(f"\n(kd-tree build on 1M samples: {kd_build_s:.2f} s, not counted above)")
+
+    print(f"\n{'build':10s} {'faces':>7s} {'build s':>8s} {'tree MB':>8s} {'RSS +MB':>8s}")
+    for name, nf, bs, nbytes, drss in builds:
+        print(f"{name:10s} {nf:7d} {bs:8.2f} {nbytes / 1e6:8.1f} {drss:8.0f}")
+    print(f"peak RSS of this process: {_peak_rss_mb():.0f} MB")
+    print(f"panel tree file {file_mb:.1f} MB, load (with hash check) {load_s * 1e3:.0f} ms")
+    if counter_load_s is not None:
+        print(f"counter tree load (with hash check) {counter_load_s * 1e3:.0f} ms")
+
+    # ---- checks (Done-when figures)
+    _, _, _, e_near, e_far, disp_far = rows[0]
+    kd_ratio = rows[1][1] / grid_near
+    checks = [
+        ("near mean |error| <= 1 um", e_near.mean() <= 1e-3, True),
+        ("near p99 |error| <= 20 um", np.percentile(e_near, 99) <= 0.02, True),
+        # A far point can have several equally close points (a tie): then the
+        # distance, not the point, is what must agree.
+        (
+            "far closest point within 0.1 mm",
+            bool(np.all((disp_far <= 0.1) | (e_far <= 1e-3))),
+            True,
+        ),
+        (f"near speed >= 50x cKDTree (got {kd_ratio:.1f}x)", kd_ratio >= 50, False),
+    ]
+    if len(builds) > 1:
+        cb = builds[1][2]
+        checks.append((f"counter build <= 10 s (got {cb:.1f} s)", cb <= 10, False))
+    if counter_load_s is not None:
+        cl = counter_load_s
+        checks.append((f"counter load <= 0.2 s (got {cl:.3f} s)", cl <= 0.2, False))
+    print()
+    failed = False
+    for label, ok, is_accuracy in checks:
+        print(f"{'PASS' if ok else 'FAIL'}  {label}")
+        failed |= is_accuracy and not ok
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,362 @@
+"""GridTree against an exact brute-force oracle, on generated and shared CAD meshes."""
+
+from __future__ import annotations
+
+import json
+import zipfile
+
+import numpy as np
+import pytest
+import trimesh
+
+from inspection.cad import CadModel, load_cad
+from inspection.errors import InvalidInput, TreeMismatch
+from inspection.grid import FORMAT_VERSION, Closest, GridTree, warmup
+from inspection.panel import PanelSpec, sheet_metal_panel
+
+
+# ---------------------------------------------------------------------- oracle
+def brute_closest(points: np.ndarray, cad: CadModel) -> tuple[np.ndarray, np.ndarray]:
+    """Exact closest points and unsigned distances by testing every face (numpy only)."""
+    return _brute(points, cad.vertices[cad.faces], cad.face_normals)
+
+
+def _brute(points: np.ndarray, tri: np.ndarray, n: np.ndarray, chunk: int = 16):
+    """The closest point of a triangle is the foot on its plane when that lies
+    inside, else the closest point of one of its three edges."""
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    e1, e2 = b - a, c - a
+    g11, g12, g22 = (e1 * e1).sum(1), (e1 * e2).sum(1), (e2 * e2).sum(1)
+    det = g11 * g22 - g12 * g12
+    out_pts = np.empty_like(points)
+    out_d = np.empty(len(points))
+    for s in range(0, len(points), chunk):
+        p = points[s : s + chunk, None, :]  # (m, 1, 3)
+        r = p - a
+        d = (r * n).sum(-1)
+        foot = p - d[..., None] * n
+        rf = foot - a
+        r1, r2 = (rf * e1).sum(-1), (rf * e2).sum(-1)
+        u = (g22 * r1 - g12 * r2) / det
+        v = (g11 * r2 - g12 * r1) / det
+        inside = (u >= 0) & (v >= 0) & (u + v <= 1)
+        best = np.where(inside[..., None], foot, np.nan)
+        best_d2 = np.where(inside, d * d, np.inf)
+        for s0, s1 in ((a, b), (b, c), (c, a)):
+            e = s1 - s0
+            t = np.clip(((p - s0) * e).sum(-1) / (e * e).sum(-1), 0.0, 1.0)
+            q = s0 + t[..., None] * e
+            d2 = ((p - q) ** 2).sum(-1)
+            better = d2 < best_d2
+            best = np.where(better[..., None], q, best)
+            best_d2 = np.where(better, d2, best_d2)
+        k = best_d2.argmin(axis=1)
+        rows = np.arange(len(k))
+        out_pts[s : s + chunk] = best[rows, k]
+        out_d[s : s + chunk] = np.sqrt(best_d2[rows, k])
+    return out_pts, out_d
+
+
+def surface_samples(
+    cad: CadModel, n: int, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """Area-uniform random points on the surface and their faces."""
+    tri = cad.vertices[cad.faces]
+    area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    f = rng.choice(len(area), n, p=area / area.sum())
+    uv = rng.random((n, 2))
+    flip = uv.sum(1) > 1
+    uv[flip] = 1 - uv[flip]
+    p = tri[f, 0] + uv[:, :1] * (tri[f, 1] - tri[f, 0]) + uv[:, 1:] * (tri[f, 2] - tri[f, 0])
+    return p, f
+
+
+def offset_queries(cad, n, lo, hi, rng):
+    """Points at a distance in [lo, hi] mm along the face normal, on both sides."""
+    p, f = surface_samples(cad, n, rng)
+    dist = rng.uniform(lo, hi, n) * rng.choice([-1.0, 1.0], n)
+    return p + cad.face_normals[f] * dist[:, None]
+
+
+def check_against_oracle(tree: GridTree, cad: CadModel, q: np.ndarray, *, mean_mm, p99_mm, max_mm):
+    got = tree.query(q)
+    ref_pts, ref_d = brute_closest(q, cad)
+    err = np.abs(np.abs(got.distances) - ref_d)
+    assert err.mean() <= mean_mm, f"mean |error| {err.mean() * 1e3:.3f} um"
+    assert np.percentile(err, 99) <= p99_mm, f"p99 |error| {np.percentile(err, 99) * 1e3:.3f} um"
+    assert err.max() <= max_mm, f"max |error| {err.max() * 1e3:.3f} um"
+    # The returned point is at the returned distance, and lies on the returned face.
+    np.testing.assert_allclose(
+        np.linalg.norm(q - got.points, axis=1), np.abs(got.distances), atol=1e-9
+    )
+    tri = cad.vertices[cad.faces]
+    for p, f in zip(got.points[:50], got.face[:50], strict=True):
+        _, on_face = _brute(p[None], tri[[f]], cad.face_normals[[f]])
+        assert on_face[0] < 1e-9
+    return got, ref_pts, ref_d
+
+
+# -------------------------------------------------------------------- fixtures
+@pytest.fixture(scope="module")
+def small_panel() -> CadModel:
+    # A smaller panel of the same design keeps the brute-force oracle quick.
+    return sheet_metal_panel(PanelSpec().scaled(240.0, 160.0), name="small-panel")
+
+
+@pytest.fixture(scope="module")
+def panel_tree(small_panel) -> GridTree:
+    return GridTree.build(small_panel)
+
+
+@pytest.fixture(scope="module")
+def sphere() -> CadModel:
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=40.0)
+    return CadModel.from_mesh(mesh, name="sphere")
+
+
+@pytest.fixture(scope="module")
+def sphere_tree(sphere) -> GridTree:
+    return GridTree.build(sphere, spacing_mm=1.0, band_mm=3.0)
+
+
+# ----------------------------------------------------------------------- tests
+def test_warmup_compiles_and_returns_seconds():
+    assert warmup() >= 0.0
+
+
+def test_near_queries_match_oracle_on_panel(panel_tree, small_panel):
+    rng = np.random.default_rng(1)
+    q = offset_queries(small_panel, 400, 0.0, 3.0, rng) + rng.normal(0, 0.2, (400, 3))
+    check_against_oracle(panel_tree, small_panel, q, mean_mm=1e-3, p99_mm=0.02, max_mm=0.1)
+
+
+def test_far_queries_are_exact(panel_tree, small_panel):
+    rng = np.random.default_rng(2)
+    q = offset_queries(small_panel, 200, 10.0, 30.0, rng)
+    got, ref_pts, ref_d = check_against_oracle(
+        panel_tree, small_panel, q, mean_mm=1e-9, p99_mm=1e-9, max_mm=1e-9
+    )
+    # Ties aside (equidistant points), the closest point itself is the same.
+    assert np.median(np.linalg.norm(got.points - ref_pts, axis=1)) < 1e-9
+    assert np.percentile(np.linalg.norm(got.points - ref_pts, axis=1), 95) < 0.1
+
+
+def test_queries_outside_the_bounding_box(panel_tree, small_panel):
+    rng = np.random.default_rng(3)
+    centre = small_panel.bounds.mean(axis=0)
+    direction = rng.normal(size=(50, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    q = centre + direction * rng.uniform(200, 2000, (50, 1))
+    check_against_oracle(panel_tree, small_panel, q, mean_mm=1e-9, p99_mm=1e-9, max_mm=1e-9)
+
+
+def test_signed_distance_both_sides_of_the_panel(panel_tree, small_panel):
+    rng = np.random.default_rng(4)
+    p, f = surface_samples(small_panel, 400, rng)
+    d = rng.uniform(0.05, 1.0, 400) * rng.choice([-1.0, 1.0], 400)
+    got = panel_tree.query(p + small_panel.face_normals[f] * d[:, None])
+    # Small offsets along the normal of a gently curved sheet keep their side.
+    agree = np.sign(got.distances) == np.sign(d)
+    assert agree.mean() > 0.99
+    np.testing.assert_allclose(np.linalg.norm(got.normals, axis=1), 1.0, atol=1e-12)
+
+
+def test_signed_distance_inside_and_outside_a_closed_surface(sphere_tree, sphere):
+    rng = np.random.default_rng(5)
+    direction = rng.normal(size=(500, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    radius = rng.uniform(5.0, 80.0, 500)  # inside, near, and far outside
+    q = direction * radius[:, None]
+    got = sphere_tree.query(q)
+    _, ref_d = brute_closest(q, sphere)
+    inside = trimesh.Trimesh(sphere.vertices, sphere.faces).contains(q)
+    np.testing.assert_allclose(np.abs(got.distances), ref_d, atol=1e-9)
+    assert np.all((got.distances < 0) == inside)
+
+
+def test_signed_distance_off_edges_and_corners_of_a_box():
+    box = CadModel.from_mesh(trimesh.creation.box(extents=(60.0, 40.0, 20.0)), name="box")
+    tree = GridTree.build(box, spacing_mm=1.0, band_mm=3.0)
+    rng = np.random.default_rng(6)
+    q = rng.uniform(-35.0, 35.0, (3000, 3)) * [1.0, 0.75, 0.5]
+    inside = (np.abs(q) < [30.0, 20.0, 10.0]).all(axis=1)
+    outside_d = np.linalg.norm(np.maximum(np.abs(q) - [30.0, 20.0, 10.0], 0.0), axis=1)
+    inside_d = np.min([30.0, 20.0, 10.0] - np.abs(q), axis=1)
+    expected = np.where(inside, -inside_d, outside_d)
+    got = tree.query(q)
+    np.testing.assert_allclose(got.distances, expected, atol=1e-9)
+
+
+@pytest.mark.parametrize(
+    ("name", "scale"),
+    [
+        ("plate_holes.STL", 1.0),
+        ("plate_holes.STL", 0.5),
+        ("fandisk.obj", 180.0),
+        ("fandisk.obj", 60.0),
+        ("busted.STL", 30.0),
+        ("featuretype.STL", 60.0),
+        ("1002_tray_bottom.STL", 1.0),
+        ("counter.unitsmm.STL", 1.0),
+    ],
+)
+def test_shared_meshes_match_oracle(shared_cad, name, scale):
+    cad = load_cad(shared_cad(name), scale=scale)
+    tree = GridTree.build(cad)
+    rng = np.random.default_rng(7)
+    # Near the surface trimesh's exact closest point is quick enough for a
+    # statistically meaningful sample; far away the brute-force oracle is.
+    near = offset_queries(cad, 1500, 0.0, 3.0, rng) + rng.normal(0, 0.1, (1500, 3))
+    got = tree.query(near)
+    ref_pts, ref_d, _ = trimesh.proximity.closest_point(cad.to_trimesh(), near)
+    err = np.abs(np.abs(got.distances) - ref_d)
+    assert err.mean() <= 1e-3, f"mean |error| {err.mean() * 1e3:.3f} um"
+    assert np.percentile(err, 99) <= 0.02, f"p99 |error| {np.percentile(err, 99) * 1e3:.3f} um"
+    # Known tail: where a wall thinner than the cell passes between a cell's
+    # corners, a point beside it may get the wall's far side (well under 1 mm).
+    assert err.max() <= 1.0
+    far = offset_queries(cad, 40, 10.0, 30.0, rng)
+    check_against_oracle(tree, cad, far, mean_mm=1e-9, p99_mm=1e-9, max_mm=1e-9)
+
+
+def test_save_load_round_trip(tmp_path, panel_tree, small_panel):
+    path = panel_tree.save(tmp_path / "trees" / "panel.npz")
+    assert path.is_file()
+    assert not list(path.parent.glob("*.tmp"))
+    loaded = GridTree.load(path)
+    assert loaded.cad is None
+    assert loaded.hash == panel_tree.hash
+    assert loaded.cad_hash == small_panel.hash == panel_tree.cad_hash
+    assert loaded.params == panel_tree.params
+    assert loaded.nbytes == panel_tree.nbytes
+    np.testing.assert_array_equal(loaded.bounds, small_panel.bounds)
+    q = offset_queries(small_panel, 300, 0.0, 20.0, np.random.default_rng(8))
+    a, b = panel_tree.query(q), loaded.query(q)
+    for field in ("points", "normals", "distances", "face"):
+        np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
+    with_cad = GridTree.load(path, cad=small_panel)
+    assert with_cad.cad is small_panel
+
+
+def test_load_refuses_another_cad(tmp_path, panel_tree, sphere):
+    path = panel_tree.save(tmp_path / "panel.npz")
+    with pytest.raises(TreeMismatch, match="built for CAD"):
+        GridTree.load(path, cad=sphere)
+
+
+def test_load_refuses_another_format_version(tmp_path, sphere_tree):
+    path = sphere_tree.save(tmp_path / "sphere.npz")
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(arrays["meta"].tobytes())
+    meta["format_version"] = FORMAT_VERSION + 1
+    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+    np.savez(path, **arrays)
+    with pytest.raises(TreeMismatch, match="format version"):
+        GridTree.load(path)
+
+
+def test_load_rejects_files_that_are_not_trees(tmp_path):
+    with pytest.raises(InvalidInput, match="no such"):
+        GridTree.load(tmp_path / "missing.npz")
+    garbage = tmp_path / "garbage.npz"
+    garbage.write_bytes(b"not a tree at all")
+    with pytest.raises(InvalidInput, match="not a saved GridTree"):
+        GridTree.load(garbage)
+    other = tmp_path / "other.npz"
+    with zipfile.ZipFile(other, "w"):
+        pass
+    with pytest.raises(InvalidInput, match="not a saved GridTree"):
+        GridTree.load(other)
+
+
+def test_tree_hash_depends_on_parameters(sphere, sphere_tree):
+    other = GridTree.build(sphere, spacing_mm=1.5, band_mm=3.0)
+    assert other.cad_hash == sphere_tree.cad_hash
+    assert other.hash != sphere_tree.hash
+    # Same CAD and parameters: same tree, bit for bit.
+    assert GridTree.build(sphere, spacing_mm=1.0, band_mm=3.0).hash == sphere_tree.hash
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        np.zeros(3),
+        np.zeros((4, 2)),
+        np.zeros((2, 3, 1)),
+        np.array([[0.0, 0.0, np.nan]]),
+        np.array([[np.inf, 0.0, 0.0]]),
+        [["a", "b", "c"]],
+        None,
+    ],
+)
+def test_invalid_points_raise(sphere_tree, bad):
+    with pytest.raises(InvalidInput):
+        sphere_tree.query(bad)
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        {"spacing_mm": 0.0},
+        {"spacing_mm": -1.0},
+        {"spacing_mm": float("nan")},
+        {"band_mm": -1.0},
+        {"band_mm": float("inf")},
+        {"spacing_mm": "x"},
+    ],
+)
+def test_invalid_build_parameters_raise(sphere, kwargs):
+    with pytest.raises(InvalidInput):
+        GridTree.build(sphere, **kwargs)
+
+
+def test_build_refuses_non_models_and_huge_grids(sphere):
+    with pytest.raises(InvalidInput, match="CadModel"):
+        GridTree.build(sphere.to_trimesh())  # type: ignore[arg-type]
+    with pytest.raises(InvalidInput, match="in mm"):
+        GridTree.build(sphere, spacing_mm=1e-3)
+
+
+def test_empty_query_and_list_input(sphere_tree):
+    empty = sphere_tree.query(np.zeros((0, 3)))
+    assert isinstance(empty, Closest)
+    assert empty.points.shape == (0, 3) and empty.face.shape == (0,)
+    one = sphere_tree.query([[0.0, 0.0, 45.0]])
+    assert one.face.dtype == np.int64 and one.distances[0] == pytest.approx(45.0 - 40.0, abs=0.1)
+
+
+def test_inputs_not_mutated_and_order_irrelevant(sphere_tree):
+    rng = np.random.default_rng(9)
+    q = rng.uniform(-50, 50, (400, 3))
+    q_copy = q.copy()
+    q.setflags(write=False)
+    a = sphere_tree.query(q)
+    np.testing.assert_array_equal(q, q_copy)
+    perm = rng.permutation(len(q))
+    b = sphere_tree.query(q[perm])
+    np.testing.assert_array_equal(a.distances[perm], b.distances)
+    np.testing.assert_array_equal(a.points[perm], b.points)
+    # Non-contiguous and float32 input give the same answer.
+    c = sphere_tree.query(np.asfortranarray(q))
+    np.testing.assert_array_equal(a.distances, c.distances)
+
+
+def test_info_reports_sizes(panel_tree, small_panel):
+    info = panel_tree.info()
+    assert info["format_version"] == FORMAT_VERSION
+    assert info["cad_hash"] == small_panel.hash
+    assert info["faces"] == len(small_panel.faces)
+    assert info["nbytes"] == panel_tree.nbytes > 0
+    assert info["blocks"] == panel_tree.n_blocks > 0
+    # Sparse: far fewer fine cells than a dense grid over the bounding box.
+    dense = np.prod(np.ceil(small_panel.extents / panel_tree.params.spacing_mm) + 1)
+    assert info["fine_cells"] < dense
+    assert "GridTree" in repr(panel_tree)
+
+
+def test_progress_reaches_one(sphere):
+    seen: list[float] = []
+    GridTree.build(sphere, spacing_mm=1.0, band_mm=2.0, progress=seen.append)
+    assert seen and seen[-1] == pytest.approx(1.0)
+    assert all(b >= a for a, b in zip(seen, seen[1:], strict=False))
