@@ -531,3 +531,49 @@ def centre_errors(estimated: Rig, truth: Rig) -> npt.NDArray[np.float64]:
     tru = np.array([c.centre for c in truth.cameras])
     T = rigid_align(est, tru)
     return np.linalg.norm(est @ T[:3, :3].T + T[:3, 3] - tru, axis=1)
+
+
+def stereo_errors(
+    estimated: Rig, truth: Rig, *, steps: tuple[int, int, int] = (8, 6, 5)
+) -> dict[tuple[int, int], tuple[float, float]]:
+    """What calibration error costs a measurement: triangulation errors over the volume.
+
+    Points on a grid filling the measurement volume are projected with the
+    true cameras and triangulated (midpoint of the two rays) with the
+    estimated ones, for each stereo pair of ``estimated``; the errors are
+    taken after one rigid alignment of all points (a rigid offset of the
+    rig frame is taken out by registration to the CAD anyway).
+
+    Returns
+    -------
+    dict
+        ``(a, b) -> (rms_mm, max_mm)`` per stereo pair.
+    """
+    from .rig import VOLUME_MM, rigid_align
+
+    vx, vy, vz = VOLUME_MM
+    axes = [
+        np.linspace(-0.45 * vx, 0.45 * vx, steps[0]),
+        np.linspace(-0.45 * vy, 0.45 * vy, steps[1]),
+        np.linspace(0.0, vz, steps[2]),
+    ]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    out = {}
+    for a, b in estimated.stereo_pairs:
+        oa, da = estimated.cameras[a].rays(truth.cameras[a].project(grid))
+        ob, db = estimated.cameras[b].rays(truth.cameras[b].project(grid))
+        # closest points of the two rays (midpoint triangulation)
+        w0 = oa - ob
+        aa = (da * da).sum(1)
+        bb = (da * db).sum(1)
+        cc = (db * db).sum(1)
+        dd = (da * w0).sum(1)
+        ee = (db * w0).sum(1)
+        den = aa * cc - bb * bb
+        s = (bb * ee - cc * dd) / den
+        t = (aa * ee - bb * dd) / den
+        X = 0.5 * ((oa + s[:, None] * da) + (ob + t[:, None] * db))
+        T = rigid_align(X, grid)
+        err = np.linalg.norm(X @ T[:3, :3].T + T[:3, 3] - grid, axis=1)
+        out[(a, b)] = (float(np.sqrt(np.mean(err**2))), float(err.max()))
+    return out

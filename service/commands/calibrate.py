@@ -74,7 +74,12 @@ def _read_views(root: Path, names: tuple[str, ...]) -> list[list[np.ndarray]]:
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    from inspection.calibration import calibrate, centre_errors, render_calibration_views
+    from inspection.calibration import (
+        calibrate,
+        centre_errors,
+        render_calibration_views,
+        stereo_errors,
+    )
     from inspection.errors import InspectionError
     from inspection.pictures import write_png
     from inspection.rig import Rig
@@ -110,6 +115,11 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             + ", ".join(f"{e:.3f}" for e in err)
             + " mm"
         )
+        for (a, b), (rms, worst) in stereo_errors(cal.rig, truth).items():
+            print(
+                f"simulation check: pair {truth.names[a]}-{truth.names[b]} triangulates the volume "
+                f"with RMS {rms:.3f} mm, max {worst:.3f} mm (after one rigid alignment)"
+            )
     out = cal.rig.save(args.out)
     print(f"wrote {out} (calibration id {cal.rig.id})")
     return 0
