@@ -139,6 +139,15 @@ class Station:
         )
 
 
+def stages_for(cfg: LineConfig, name: str = "depth") -> Stages:
+    """The measuring stages of the line: ``depth`` (default) or ``flash`` (the four-camera rig)."""
+    from .pipeline import make_stages
+
+    return make_stages(
+        name, trees_dir=cfg.storage.trees_path(), rig_calibration=cfg.rig_calibration_path()
+    )
+
+
 def bus_settings(cfg: LineConfig, mode: str | None = None) -> bus.BusSettings:
     z = cfg.zenoh
     return bus.BusSettings(
@@ -367,10 +376,11 @@ def run_line(
     stop: threading.Event,
     *,
     parts_limit: int | None = None,
+    rig: str = "depth",
     out: Callable[[str], None] = print,
 ) -> int:
     """Run the whole simulated line until ``stop`` is set or ``parts_limit`` results arrived."""
-    h = start_line(cfg, parts_limit=parts_limit)
+    h = start_line(cfg, parts_limit=parts_limit, stages=stages_for(cfg, rig))
     try:
         where = [f"zenoh: listening on {', '.join(cfg.zenoh.listen) or 'nothing'}"]
         if h.api is not None:
@@ -397,9 +407,11 @@ def run_router(
     return 0
 
 
-def run_ingest(cfg: LineConfig, stop: threading.Event, *, count: int | None = None) -> int:
+def run_ingest(
+    cfg: LineConfig, stop: threading.Event, *, count: int | None = None, rig: str = "depth"
+) -> int:
     """The ingest adapter alone, publishing to the bus until ``stop`` (or ``count`` triggers)."""
-    station = Station.load(cfg, build_trees=False)
+    station = Station.load(cfg, stages_for(cfg, rig), build_trees=False)
     with contextlib.closing(bus.open_session(bus_settings(cfg))) as session:
         publisher = bus.frame_publisher(session, station.keys.frames(station.name))
         ingest = Ingest(station.simulated_rig(), publisher.put, period_s=cfg.line.trigger_period_s)
@@ -411,9 +423,9 @@ def run_ingest(cfg: LineConfig, stop: threading.Event, *, count: int | None = No
     return 0
 
 
-def run_worker(cfg: LineConfig, stop: threading.Event) -> int:
+def run_worker(cfg: LineConfig, stop: threading.Event, *, rig: str = "depth") -> int:
     """A worker alone: measures, publishes, stores and records until ``stop``."""
-    station = Station.load(cfg)
+    station = Station.load(cfg, stages_for(cfg, rig))
     with contextlib.closing(bus.open_session(bus_settings(cfg))) as session:
         store = ResultStore(cfg.storage.database_path())
         recorder = station.recorder()

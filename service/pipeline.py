@@ -16,6 +16,7 @@ import logging
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -136,14 +137,110 @@ def depth_stages(rig: Any | None = None) -> Stages:
     )
 
 
-def flash_stages_available() -> bool:
-    """Whether :mod:`inspection` provides the four-camera stages yet."""
-    import inspection
+@dataclass(frozen=True, eq=False)
+class FlashRig:
+    """The four-camera flash rig: the nominal rig the simulator renders with (the truth)
+    and the calibrated one the reconstruction measures with, plus its precomputed state."""
 
-    return all(
-        hasattr(inspection, n)
-        for n in ("simulate", "reconstruct", "align", "deviations", "GridTree", "Rig")
+    nominal: Any
+    calibrated: Any
+    reconstructor: Any
+
+
+def flash_stages(trees_dir: str | Path, rig_calibration: str | Path | None = None) -> Stages:
+    """The real stages: ``inspection.simulate``, ``reconstruct``, ``alignment.align``,
+    ``deviations`` on the part's CAD tree (cached in ``trees_dir``).
+
+    Parameters
+    ----------
+    trees_dir : path
+        Tree cache (the same one the API's part registry uses).
+    rig_calibration : path, optional
+        Calibrated rig (TOML); absent or missing file: ``Rig.default()``.
+    """
+    from inspection.alignment import align as inspection_align
+    from inspection.deviations import deviations as inspection_deviations
+    from inspection.reconstruct import Reconstructor
+    from inspection.reconstruct import reconstruct as inspection_reconstruct
+    from inspection.rig import Rig
+    from inspection.simulate import simulate
+
+    from . import inspect as measure
+    from .parts import LoadedPart, _alignment_model, build_or_load_tree
+
+    path = Path(rig_calibration) if rig_calibration else None
+    calibrated = Rig.load(path) if path is not None and path.is_file() else Rig.default()
+    rig = FlashRig(Rig.nominal(), calibrated, Reconstructor.build(calibrated))
+
+    def build_tree(cad: CadModel, spec: PartSpec) -> tuple[Any, str]:
+        tree = build_or_load_tree(cad, spec, Path(trees_dir))
+        part = LoadedPart(spec, cad, tree, tree.hash, _alignment_model(cad))
+        measure.warm_up(part)  # compile the kernels now, not on the first part
+        return part, tree.hash
+
+    def reconstruct(r: FlashRig, frames: list[np.ndarray]) -> Any:
+        return inspection_reconstruct(r.calibrated, frames, reconstructor=r.reconstructor)
+
+    def align(part: Any, points: np.ndarray, spec: PartSpec) -> Any:
+        return inspection_align(
+            part.tree,
+            points,
+            model=part.alignment_model,
+            cad=part.cad,
+            **measure._registration_kwargs(part),
+        )
+
+    def deviations(part: Any, points_cad: np.ndarray, spec: PartSpec) -> Any:
+        return inspection_deviations(part.tree, points_cad, measure.comparison_points(spec))
+
+    def render(r: FlashRig, mesh: trimesh.Trimesh, T: np.ndarray, seed: int) -> list[np.ndarray]:
+        return simulate(r.nominal, mesh, T, seed=seed)
+
+    def calibrations() -> list[dict[str, Any]]:
+        out = []
+        for cam in calibrated.cameras:
+            P = np.asarray(cam.K) @ np.hstack([np.asarray(cam.R), np.asarray(cam.t)[:, None]])
+            out.append(
+                {
+                    "name": cam.name,
+                    "width": cam.width,
+                    "height": cam.height,
+                    "K": np.asarray(cam.K).ravel().tolist(),
+                    "D": np.asarray(cam.dist).ravel().tolist(),
+                    "R": np.asarray(cam.R).ravel().tolist(),
+                    "P": P.ravel().tolist(),
+                }
+            )
+        return out
+
+    return Stages(
+        name="flash",
+        rig=rig,
+        calibration_id=calibrated.id,
+        reconstruct=reconstruct,
+        build_tree=build_tree,
+        align=align,
+        deviations=deviations,
+        render=render,
+        calibrations=calibrations,
     )
+
+
+STAGES = ("depth", "flash")
+
+
+def make_stages(
+    name: str = "depth",
+    *,
+    trees_dir: str | Path = "trees",
+    rig_calibration: str | Path | None = None,
+) -> Stages:
+    """Stages by name: ``depth`` (the simple depth rig) or ``flash`` (the four-camera rig)."""
+    if name == "depth":
+        return depth_stages()
+    if name == "flash":
+        return flash_stages(trees_dir, rig_calibration)
+    raise ValueError(f"stages must be one of {STAGES}, got {name!r}")
 
 
 def default_stages() -> Stages:

@@ -27,7 +27,7 @@ import numpy as np
 
 from .config import PartSpec
 from .models import InspectionResult
-from .pipeline import Pipeline, PreparedPart, Stages, default_stages, prepare_part
+from .pipeline import Pipeline, PreparedPart, Stages, default_stages, make_stages, prepare_part
 from .protocol import FrameSet, encode_frameset
 from .recorder import RecordedTrigger, read_recording
 
@@ -159,13 +159,17 @@ def replay(
     *,
     stages: Stages | None = None,
     parts_dir: str | Path = "configs/parts",
+    trees_dir: str | Path = "runs/trees",
     tolerances: Tolerances | None = None,
     on_result: Callable[[InspectionResult, InspectionResult], None] | None = None,
 ) -> ReplayReport:
     """Re-run every recorded FrameSet and compare with the logged results."""
     tol = tolerances or Tolerances()
     metadata, triggers = read_recording(paths)
-    stages = stages or default_stages()
+    if stages is None:
+        # Measure with what the recording was measured with.
+        name = metadata.get("rig", {}).get("stages", "depth")
+        stages = make_stages(name, trees_dir=trees_dir) if name != "depth" else default_stages()
     parts = parts_from_metadata(metadata, stages, Path(parts_dir))
     pipeline = Pipeline(stages, parts)
     report = ReplayReport(triggers=len(triggers))

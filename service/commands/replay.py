@@ -35,6 +35,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
         report = replay(
             files,
             parts_dir=args.parts_dir,
+            trees_dir=args.trees_dir,
             tolerances=Tolerances(args.transform_tol, args.deviation_tol),
         )
     except ReplayError as exc:
@@ -107,6 +108,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="wait up to S seconds for a frames subscriber before publishing",
     )
     p.add_argument("--parts-dir", default="configs/parts", help="where non-generated CAD files are")
+    p.add_argument("--trees-dir", default="runs/trees", help="tree cache (flash recordings)")
     p.add_argument("--transform-tol", type=float, default=1e-9)
     p.add_argument("--deviation-tol", type=float, default=1e-6, help="mm")
     p.set_defaults(func=cmd_replay)

@@ -1,0 +1,164 @@
+"""The running line: trigger-to-result latency on zenoh, and the highest sustained rate.
+
+Runs ``inspection run`` (the whole simulated line: ingest, worker, API, store,
+recorder in one process) as a subprocess and listens to its results as a
+zenoh client, the way any subscriber would. Latency is the result's arrival
+time minus its ``triggered_ns`` (both from this host's clock).
+
+1. At 0.5 Hz for ``BENCH_LINE_DURATION_S`` seconds (default 300; 40 with
+   ``BENCH_SMOKE=1``): p50 and p99 latency; the goal is p50 <= 1 s and
+   p99 <= 2 s on this 2-core machine.
+2. Rising rates, a short window each: the highest rate the line sustains
+   (no missed parts, and latency not growing from the first to the second
+   half of the window).
+
+Environment: BENCH_SMOKE, BENCH_LINE_DURATION_S, BENCH_LINE_RATES_HZ
+(comma-separated), BENCH_LINE_WINDOW_S.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@dataclass
+class Window:
+    period_s: float
+    latencies_s: list[float] = field(default_factory=list)
+    statuses: list[str] = field(default_factory=list)
+    started: float = 0.0
+
+    @property
+    def missed(self) -> int:
+        return sum(s == "missed" for s in self.statuses)
+
+    def pct(self, q: float) -> float:
+        return float(np.percentile(self.latencies_s, q)) if self.latencies_s else float("nan")
+
+    def sustained(self) -> bool:
+        """No missed part, and the second half's median latency is not running away."""
+        n = len(self.latencies_s)
+        if n < 4 or self.missed:
+            return False
+        first, second = self.latencies_s[: n // 2], self.latencies_s[n // 2 :]
+        return float(np.median(second)) <= 1.5 * float(np.median(first)) + 0.2
+
+
+def run_line(period_s: float, duration_s: float, warmup: int = 2) -> Window:
+    """Run the line at ``period_s`` and collect ``duration_s`` seconds of results."""
+    from service import bus
+    from service.protocol import Keys
+    from service.worker import result_from_json
+
+    port = _free_port()
+    win = Window(period_s)
+    with tempfile.TemporaryDirectory() as tmp:
+        env = {**os.environ, "INSPECTION_TRIGGER_PERIOD_S": str(period_s), "PYTHONUNBUFFERED": "1"}
+        cmd = [
+            sys.executable, "-m", "service.cli", "run",
+            "--config", str(ROOT / "configs" / "line.toml"),
+            "--data-dir", tmp, "--http-port", "0",
+            "--zenoh-listen", f"tcp/127.0.0.1:{port}",
+        ]  # fmt: skip
+        proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, text=True)
+        try:
+            assert proc.stdout is not None
+            for line in proc.stdout:
+                if line.startswith("the line is running"):
+                    break
+            else:
+                raise RuntimeError("the line did not start")
+            seen = [0]
+            lock = threading.Lock()
+
+            def on_result(sample) -> None:
+                now = time.time_ns()
+                r = result_from_json(sample.payload.to_bytes())
+                with lock:
+                    seen[0] += 1
+                    if seen[0] <= warmup:
+                        return
+                    if not win.started:
+                        win.started = time.monotonic()
+                    win.statuses.append(r.status.value)
+                    if r.status.value != "missed":
+                        win.latencies_s.append((now - r.triggered_ns) / 1e9)
+
+            settings = bus.BusSettings(mode="client", connect=(f"tcp/127.0.0.1:{port}",))
+            with bus.open_session(settings) as session:
+                sub = bus.RingSubscriber(session, Keys("line1").results(), on_result, capacity=1024)
+                stop = threading.Event()
+                deadline = time.monotonic() + duration_s + warmup * period_s + 60
+                while time.monotonic() < deadline:
+                    if win.started and time.monotonic() - win.started >= duration_s:
+                        break
+                    stop.wait(0.5)
+                sub.close()
+        finally:
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(60)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+    return win
+
+
+def main() -> int:
+    smoke = os.environ.get("BENCH_SMOKE") == "1"
+    duration = float(os.environ.get("BENCH_LINE_DURATION_S", "40" if smoke else "300"))
+    window = float(os.environ.get("BENCH_LINE_WINDOW_S", "20" if smoke else "45"))
+    rates = [
+        float(r)
+        for r in os.environ.get("BENCH_LINE_RATES_HZ", "1,2" if smoke else "1,1.5,2,3,4").split(",")
+    ]
+    print(f"line latency at 0.5 Hz over {duration:.0f} s (trigger -> result on zenoh)", flush=True)
+    base = run_line(2.0, duration)
+    p50, p99 = base.pct(50), base.pct(99)
+    print(
+        f"  n={len(base.latencies_s)} missed={base.missed} p50={p50:.3f} s p99={p99:.3f} s "
+        f"max={max(base.latencies_s, default=float('nan')):.3f} s   (goal p50 <= 1 s, p99 <= 2 s)",
+        flush=True,
+    )
+    print(f"\nsustained rate: {window:.0f} s per rate", flush=True)
+    print(
+        f"  {'rate Hz':>8} {'n':>4} {'missed':>6} {'p50 s':>7} {'p99 s':>7}  sustained", flush=True
+    )
+    best = 0.5 if base.sustained() else 0.0
+    for hz in rates:
+        w = run_line(1.0 / hz, window)
+        ok = w.sustained()
+        print(
+            f"  {hz:8.2f} {len(w.statuses):4d} {w.missed:6d} {w.pct(50):7.3f} {w.pct(99):7.3f}  "
+            f"{'yes' if ok else 'no'}",
+            flush=True,
+        )
+        if not ok:
+            break
+        best = hz
+    print(f"\nhighest sustained rate: {best:.2f} Hz", flush=True)
+    return 0 if p50 <= 1.0 and p99 <= 2.0 and not base.missed else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
