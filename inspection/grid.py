@@ -596,7 +596,7 @@ class GridTree:
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
         try:
             with os.fdopen(fd, "wb") as fh:
-                np.savez(fh, **arrays)
+                np.savez(fh, **arrays)  # type: ignore[arg-type]
             os.replace(tmp, path)
         except BaseException:
             Path(tmp).unlink(missing_ok=True)
@@ -739,15 +739,15 @@ def _mesh_arrays(vertices: np.ndarray, faces: np.ndarray, face_normals: np.ndarr
     key = np.minimum(a, b) * np.int64(nv) + np.maximum(a, b)
     order = np.argsort(key, kind="stable")
     ks = key[order]
-    face_adj = np.full(3 * nf, -1, dtype=np.int64)
+    adj_flat = np.full(3 * nf, -1, dtype=np.int64)
     start = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1]])
     group_len = np.diff(np.r_[start, len(ks)])
     group_of = np.repeat(np.arange(len(start)), group_len)
     pos = np.arange(len(ks)) - start[group_of]
     nxt = np.where(pos + 1 < group_len[group_of], np.arange(len(ks)) + 1, start[group_of])
     multi = group_len[group_of] > 1
-    face_adj[order[multi]] = order[nxt[multi]] // 3
-    face_adj = face_adj.reshape(nf, 3).astype(np.int32)
+    adj_flat[order[multi]] = order[nxt[multi]] // 3
+    face_adj = adj_flat.reshape(nf, 3).astype(np.int32)
 
     # Edge pseudo-normal: sum of the two face normals (one on a border edge).
     other = np.where(face_adj >= 0, face_adj, np.arange(nf)[:, None])

@@ -22,7 +22,7 @@ log = logging.getLogger(__name__)
 BUILTIN_PANEL = "builtin:panel"
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(subparsers: argparse._SubParsersAction) -> None:
     b = subparsers.add_parser(
         "build-tree",
         help="build the closest-point tree of a CAD model and save it",
