@@ -51,7 +51,9 @@ def create_app(
     bus : ResultHub, optional
         Fan-out of new results to ``/v1/stream``. Pass the one the worker or
         a zenoh subscriber publishes into; default: a new one, fed by the
-        API's own uploads.
+        API's own uploads. Call its ``close()`` *before* stopping the server:
+        uvicorn waits for open responses (event streams never end by
+        themselves) before it runs the app's shutdown.
     archive : DeviationArchive, optional
         Per-point deviations (for colour maps); default: under the data dir.
     checks : mapping of name to callable() -> bool, optional

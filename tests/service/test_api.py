@@ -14,6 +14,7 @@ import json
 import socket
 import threading
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -486,10 +487,15 @@ def server(app_parts):
     srv = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="on"))
     thread = threading.Thread(target=srv.run, kwargs={"sockets": [sock]}, daemon=True)
     thread.start()
-    yield port
+    open_after = []  # clients to close only once the server has stopped
+    yield SimpleNamespace(port=port, close_after=open_after)
+    # Streams end first: uvicorn waits for open responses before it stops.
+    app_parts[3].close()
     srv.should_exit = True
     thread.join(30)
     sock.close()
+    for c in open_after:
+        c.close()
     assert not thread.is_alive()
 
 
@@ -504,7 +510,7 @@ def call(port: int, method: str, path: str, body: bytes | None = None, headers=N
 
 
 def test_real_server_answers_and_streams(server, app_parts):
-    port = server
+    port = server.port
     hub = app_parts[3]
     status, _, body = call(port, "GET", "/v1/health")
     assert status == 200 and json.loads(body)["ready"] is True
@@ -512,6 +518,7 @@ def test_real_server_answers_and_streams(server, app_parts):
     assert status == 404 and json.loads(body)["error"]["code"] == "unknown_inspection"
 
     conn = http.client.HTTPConnection("127.0.0.1", port, timeout=60)
+    server.close_after.append(conn)
     conn.request("GET", f"/v1/stream?part={PART}")
     resp = conn.getresponse()
     assert resp.status == 200 and resp.getheader("content-type").startswith("text/event-stream")
@@ -525,12 +532,12 @@ def test_real_server_answers_and_streams(server, app_parts):
     assert event[0] == b"event: result\n"
     assert event[1] == f"id: {wanted.id}\n".encode()
     assert InspectionResult.model_validate_json(event[2][len(b"data: ") :]) == wanted
-    conn.close()
+    # The stream stays open: closing the hub must still let the server stop (teardown).
 
 
 def test_real_server_refuses_a_truncated_upload(server, app_parts):
     """A client that declares more bytes than it sends, then goes away, changes nothing."""
-    port = server
+    port = server.port
     store = app_parts[1]
     store.put(stored_result(1))
     boundary = "b0undary"
