@@ -130,7 +130,7 @@ def wait_for_subscribers(publisher: zenoh.Publisher, timeout_s: float) -> bool:
         lambda status: matched.set() if status.matching else None
     )
     try:
-        if publisher.matching_status.matching:
+        if publisher.matching_status.matching:  # type: ignore[attr-defined]  # stub says bool
             return True
         return matched.wait(timeout_s)
     finally:

@@ -120,7 +120,7 @@ def reconstruct(rig: DepthRig, frames: list[np.ndarray]) -> Cloud:
     x, y = rig.pixel_centres()
     seen = counts > 0
     pts = np.column_stack([x[seen], y[seen], counts[seen] * Z_UNIT_MM]).astype(np.float64)
-    report = {"points": int(len(pts)), "pixels": int(counts.size)}
+    report: dict[str, Any] = {"points": int(len(pts)), "pixels": int(counts.size)}
     if not len(pts):
         report["flags"] = ["empty"]
     return Cloud(pts, np.ones(len(pts)), report)
@@ -307,10 +307,10 @@ def deviations(
     for cp in comparison_points:
         pos = np.asarray(cp.position_mm, dtype=np.float64)
         nrm = np.asarray(cp.normal, dtype=np.float64)
-        near = (
+        near: np.ndarray = (
             np.asarray(cloud_tree.query_ball_point(pos, cp.radius_mm), np.int64)
-            if cloud_tree
-            else []
+            if cloud_tree is not None
+            else np.zeros(0, np.int64)
         )
         support = len(near)
         if support < cp.min_support:

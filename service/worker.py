@@ -148,7 +148,7 @@ class ZenohFrameSource:
         self._sub.close()
 
 
-ResultSink = Callable[[Outcome, FrameSet | None], None]
+ResultSink = Callable[[Outcome, FrameSet | None], object]
 """Called with each outcome (and its FrameSet when one was decoded)."""
 
 
