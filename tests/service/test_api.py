@@ -630,3 +630,19 @@ def test_uploaded_clouds_are_measured_and_stored(client, app_parts, line):
     res3 = InspectionResult.model_validate(r.json())
     assert res3.status == "pass"
     np.testing.assert_allclose(np.array(res3.transform), np.eye(4), atol=1e-3)
+
+
+@pytest.mark.parametrize("encoding", ["binary", "ascii"])
+def test_ply_and_npy_uploads_parse_to_the_same_points(encoding):
+    import trimesh
+
+    from service.api.clouds import cloud_format, parse_cloud
+
+    pts = np.random.default_rng(5).normal(size=(500, 3)) * 100
+    ply = trimesh.PointCloud(pts).export(file_type="ply", encoding=encoding)
+    assert cloud_format(ply) == "ply"
+    np.testing.assert_allclose(parse_cloud(ply), pts, rtol=1e-6, atol=1e-4)  # float32 in PLY
+    np.testing.assert_array_equal(parse_cloud(npy_bytes(pts)), pts)
+    structured = np.zeros(500, dtype=[("x", "f8"), ("y", "f8"), ("z", "f8"), ("i", "f4")])
+    structured["x"], structured["y"], structured["z"] = pts.T
+    np.testing.assert_array_equal(parse_cloud(npy_bytes(structured)), pts)
