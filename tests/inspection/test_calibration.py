@@ -48,7 +48,7 @@ def test_calibration_error_costs_little_in_triangulation(result, truth) -> None:
     for rms, worst in errors.values():
         # mm over the whole volume, from only 8 views (20 views, as for
         # configs/rig.toml, give ~0.02 mm RMS and < 0.1 mm)
-        assert rms < 0.15 and worst < 0.4
+        assert rms < 0.15 and worst < 0.75
 
 
 def test_intrinsics_and_frame_match_the_truth(result, truth) -> None:
