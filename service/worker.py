@@ -205,19 +205,27 @@ class Worker:
         self._thread = threading.Thread(target=self.run, name=f"worker-{self.station}", daemon=True)
         self._thread.start()
 
-    def stop(self, timeout_s: float = 30.0) -> None:
-        """Finish the job in hand and stop (waiting jobs are left in the queue)."""
+    def stop(self, timeout_s: float = 60.0) -> None:
+        """Stop after measuring what is already waiting (stop the source first).
+
+        The queue holds at most its capacity, so this ends; a trigger that was
+        accepted is measured, not dropped on the floor.
+        """
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout_s)
 
     def run(self) -> None:
-        """Process jobs until :meth:`stop`. Never raises."""
-        while not self._stop.is_set():
+        """Process jobs until :meth:`stop`, then what is still queued. Never raises."""
+        while True:
+            stopping = self._stop.is_set()
             try:
-                item = self.source.get(0.2)
-                if item is not None:
-                    self.handle(item)
+                item = self.source.get(0.0 if stopping else 0.2)
+                if item is None:
+                    if stopping:
+                        return
+                    continue
+                self.handle(item)
             except Exception:  # the loop must survive anything
                 log.exception("worker loop error")
 

@@ -197,3 +197,14 @@ def test_zenoh_worker_end_to_end(framesets):
             zw.close()
     assert [r.seq for r in got.results] == [0, 1, 2]
     assert [r.model_dump() for r in seen.results] == [r.model_dump() for r in got.results]
+
+
+def test_stop_measures_what_is_already_queued(framesets):
+    q = JobQueue(4)
+    got = Collect()
+    w = Worker(pipeline(), q, [got], line=LINE, station=STATION)
+    for fs in framesets[:3]:
+        q.put(job(fs))
+    w.start()
+    w.stop()
+    assert [r.seq for r in got.results] == [0, 1, 2]
