@@ -115,7 +115,7 @@ class Station:
         """MCAP metadata: effective config and hash, rig calibration, CAD and tree hashes."""
         return {
             "config": {"hash": self.cfg.hash(), "json": json.dumps(self.cfg.effective())},
-            "rig": {"stages": self.stages.name, "calibration_id": self.stages.calibration_id},
+            "rig": self.rig_metadata(),
             "cad": {
                 **{f"{n}.cad_hash": p.cad.hash for n, p in self.parts.items()},
                 **{f"{n}.tree_hash": p.tree_hash for n, p in self.parts.items()},
@@ -124,6 +124,16 @@ class Station:
             },
             "software": {"version": software_version()},
         }
+
+    def rig_metadata(self) -> dict[str, str]:
+        """The stages, calibration id and the calibration itself (TOML for the flash rig)."""
+        meta = {"stages": self.stages.name, "calibration_id": self.stages.calibration_id}
+        calibrated = getattr(self.stages.rig, "calibrated", None)
+        if calibrated is not None and hasattr(calibrated, "to_toml"):
+            meta["calibration_toml"] = calibrated.to_toml()
+        else:
+            meta["geometry"] = repr(self.stages.rig)
+        return meta
 
     def recorder(self, data_dir: Path | None = None) -> Recorder:
         st = self.cfg.storage
