@@ -237,27 +237,31 @@ def query_grid(
     ``status = STATUS_SLOW`` and untouched outputs.
     """
     n = points.shape[0]
-    nbx, nby, nbz = dims[0], dims[1], dims[2]
-    b3 = block * block * block
+    nby, nbz = dims[1], dims[2]
+    # block is a power of two: shifts and masks instead of integer division.
+    shift = 0
+    while (1 << shift) < block:
+        shift += 1
+    mask = block - 1
+    limx = float(dims[0] * block)
+    limy = float(dims[1] * block)
+    limz = float(dims[2] * block)
     for i in prange(n):
         px, py, pz = points[i, 0], points[i, 1], points[i, 2]
         gx = (px - origin[0]) * inv_h
         gy = (py - origin[1]) * inv_h
         gz = (pz - origin[2]) * inv_h
-        if not (gx >= 0.0 and gy >= 0.0 and gz >= 0.0):
+        # Also keeps far points from overflowing the integer conversion.
+        if not (0.0 <= gx < limx and 0.0 <= gy < limy and 0.0 <= gz < limz):
             status[i] = STATUS_SLOW
             continue
         ix, iy, iz = int(gx), int(gy), int(gz)
-        bx, by, bz = ix // block, iy // block, iz // block
-        if bx >= nbx or by >= nby or bz >= nbz:
-            status[i] = STATUS_SLOW
-            continue
-        b = coarse[(bx * nby + by) * nbz + bz]
+        b = coarse[((ix >> shift) * nby + (iy >> shift)) * nbz + (iz >> shift)]
         if b < 0:
             status[i] = STATUS_SLOW
             continue
-        lx, ly, lz = ix - bx * block, iy - by * block, iz - bz * block
-        code = cells[b * b3 + (lx * block + ly) * block + lz]
+        local = ((((ix & mask) << shift) + (iy & mask)) << shift) + (iz & mask)
+        code = cells[(np.int64(b) << (3 * shift)) + local]
         if code == CELL_UNKNOWN:
             status[i] = STATUS_SLOW
             continue

@@ -148,6 +148,11 @@ def test_queries_outside_the_bounding_box(panel_tree, small_panel):
     direction /= np.linalg.norm(direction, axis=1, keepdims=True)
     q = centre + direction * rng.uniform(200, 2000, (50, 1))
     check_against_oracle(panel_tree, small_panel, q, mean_mm=1e-9, p99_mm=1e-9, max_mm=1e-9)
+    # Points beyond the int64 range of grid cells must not wrap around into it.
+    huge = np.array([[1e20, 0.0, 0.0], [-3e19, 2e19, -1e19]])
+    got = panel_tree.query(huge)
+    np.testing.assert_allclose(np.abs(got.distances), np.linalg.norm(huge, axis=1), rtol=1e-9)
+    assert np.all((got.face >= 0) & (got.face < len(small_panel.faces)))
 
 
 def test_signed_distance_both_sides_of_the_panel(panel_tree, small_panel):
