@@ -4,8 +4,8 @@ Every measured point (already in the CAD frame) gets its signed distance to
 the CAD surface (positive on the outer side). At each named comparison point
 the measured points within its support radius are pooled and their signed
 distances, taken along the comparison point's normal, are averaged robustly
-(a Huber M-estimate of location with a MAD scale, so that a stray reflection
-in the support does not move the result). The deviation is checked against
+(a Tukey-biweight M-estimate of location with a MAD scale, so that a stray
+reflection in the support does not move the result). The deviation is checked against
 the point's signed tolerance; a comparison point with too few points in its
 support cannot be judged (``not_measurable``).
 """
@@ -49,8 +49,8 @@ MEASURED_KINDS = ("surface",)
 # comparison point's normal lie on another surface (a flange, the far side
 # of a thin wall) and are not pooled.
 _MIN_NORMAL_COS = 0.5
-# Huber's tuning constant (95 % efficiency under Gaussian noise).
-_HUBER_C = 1.345
+# Tukey's biweight constant (95 % efficiency under Gaussian noise).
+_TUKEY_C = 4.685
 
 
 class Verdict(enum.StrEnum):
@@ -316,15 +316,18 @@ class Deviations:
 
 
 def robust_location(
-    x: Scalars, *, c: float = _HUBER_C, iterations: int = 30
+    x: Scalars, *, c: float = _TUKEY_C, iterations: int = 50
 ) -> tuple[float, float]:
-    """Huber M-estimate of location with a fixed MAD scale.
+    """Tukey-biweight M-estimate of location with a fixed MAD scale.
+
+    Starts from the median, so a minority of gross outliers (a reflection in
+    the support) get zero weight instead of pulling the mean.
 
     Parameters
     ----------
     x : (n,) float64
     c : float
-        Huber's constant in units of the scale.
+        Tukey's constant in units of the scale.
 
     Returns
     -------
@@ -338,9 +341,9 @@ def robust_location(
     if scale <= 1e-12:
         return mu, scale
     for _ in range(iterations):
-        # IRLS for Huber's psi: weight 1 inside c scale, c scale / |r| outside.
-        r = np.abs(x - mu)
-        w = np.minimum(1.0, c * scale / np.maximum(r, 1e-300))
+        # IRLS with the biweight w = (1 - (r / c s)^2)^2 inside c s, 0 outside.
+        u = (x - mu) / (c * scale)
+        w = np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0)
         new = float(np.sum(w * x) / np.sum(w))
         if abs(new - mu) <= 1e-9 * scale:
             mu = new

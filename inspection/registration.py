@@ -529,6 +529,7 @@ def register(
     max_rejections: int = 10,
     subset_tolerance_factor: float = 100.0,
     residual: str = "distance",
+    max_extensions: int = 6,
 ) -> Registration:
     """Fit measured points to the CAD with robust point-to-plane ICP.
 
@@ -568,6 +569,15 @@ def register(
     subset_tolerance_factor : float
         The tolerances are this much looser while working on a subset: the
         last steps on every point finish the job.
+    residual : {"distance", "plane"}
+        ``"distance"``: the signed distance to the CAD, whose gradient is the
+        face normal on a face and points to the edge or corner beyond it (so
+        points overhanging an edge pull the part back); ``"plane"``: the
+        classic point-to-plane residual to the closest face's plane.
+    max_extensions : int
+        When consecutive steps keep the same direction (sliding along a weakly
+        constrained direction), up to this many doublings of the step are
+        tried; each is kept only if it lowers the cost.
 
     Returns
     -------
@@ -622,6 +632,22 @@ def register(
     cap = n_all if max_subset is None else min(n_all, int(max_subset))
     m = min(initial_subset, cap)
 
+    # Before any query: a cloud that lies, at the initial pose, far outside
+    # the CAD's bounding box cannot fit (and far queries are the slow ones).
+    bounds = getattr(tree, "bounds", None)
+    if bounds is not None:
+        b = np.asarray(bounds, dtype=np.float64)
+        if b.shape == (2, 3) and np.isfinite(b).all():
+            k0 = min(n_all, 4096)
+            X0 = _transform(T[:3, :3].copy(), T[:3, 3].copy(), P[:k0])
+            gap = np.linalg.norm(np.maximum(np.maximum(b[0] - X0, X0 - b[1]), 0.0), axis=1)
+            inside = int(np.sum((gap <= max_distance_mm) & (V[:k0] > 0)))
+            if inside < min(min_points, k0) or inside < 0.05 * k0:
+                raise InsufficientOverlap(
+                    f"only {inside} of {k0} sampled points lie within {max_distance_mm} mm "
+                    "of the CAD's bounding box at the initial pose"
+                )
+
     def evaluate(
         T_: Transform, lo: int, hi: int
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -644,6 +670,8 @@ def register(
     sigma = np.inf
     motion = 0.0
     lam = 1e-4
+    prev_delta = np.zeros(6)
+    extended = 0
     history: list[tuple[float, float]] = []
     sizes: list[int] = []
     accepted = rejected = 0
@@ -704,7 +732,27 @@ def register(
                     lam = max(lam / 3.0, 1e-9)
                 elif ratio < 0.25:
                     lam *= 2.0
+                T0 = T
                 T, X, Nrm, r = T1, X1, N1, r1
+                # Sliding along a weakly constrained direction: the robust
+                # weights keep each step about one inlier band long, so steps
+                # repeat in the same direction. Then try longer steps along
+                # it (2, 4, 8... times), keeping each only if the cost falls.
+                dn = float(np.sqrt(delta @ delta))
+                pn = float(np.sqrt(prev_delta @ prev_delta))
+                if dn > 0.0 and pn > 0.0 and delta @ prev_delta > 0.9 * dn * pn and dn > 0.5 * pn:
+                    scale = 1.0
+                    for _ext in range(max_extensions):
+                        Ts = _compose(T0, 2.0 * scale * omega, 2.0 * scale * t, center)
+                        Xs, Ns, rs, _ = evaluate(Ts, 0, m)
+                        es = _cost(rs, v, sigma, loss_id, c)
+                        if not es < e1:
+                            break
+                        scale *= 2.0
+                        T, X, Nrm, r, e1 = Ts, Xs, Ns, rs, es
+                    delta = scale * delta
+                    extended += scale > 1.0
+                prev_delta = delta
                 # RMS displacement of the points by this step, mm.
                 motion = float(np.sqrt(delta @ delta))
                 accepted += 1
@@ -775,11 +823,13 @@ def register(
     resid_out[perm] = r
     converged = stop is StopReason.CONVERGED
     log.debug(
-        "register: %s after %d iterations (%d accepted, %d rejected), rms %.4f mm, inliers %.3f",
+        "register: %s after %d iterations (%d accepted, %d rejected, %d extended), "
+        "rms %.4f mm, inliers %.3f",
         stop.value,
         iterations,
         accepted,
         rejected,
+        extended,
         rms,
         n_inl / n_all,
     )

@@ -58,7 +58,9 @@ def add_blobs(
     while moved.sum() < fraction * len(points) - 0.5:
         centre = points[rng.integers(len(points))]
         _, idx = kd.query(centre, k=min(len(points), 4 * per_blob))
-        idx = idx[~moved[idx]][: min(per_blob, int(round(fraction * len(points))) - int(moved.sum()))]
+        idx = idx[~moved[idx]][
+            : min(per_blob, int(round(fraction * len(points))) - int(moved.sum()))
+        ]
         height = rng.uniform(1.0, 5.0) * rng.choice([-1.0, 1.0])
         # Heights vary inside a blob (a smeared reflection), always 1-5 mm off.
         h = np.clip(height + rng.normal(scale=0.3, size=len(idx)), -5.0, 5.0)
