@@ -43,7 +43,7 @@ N_SAMPLES = 1_000_000
 SHARED_COUNTER = Path(__file__).resolve().parents[1].parent / "shared/data/cad/counter.unitsmm.STL"
 
 
-def _median_time(fn: Callable[[], object], repeats: int, warmup: int = 1) -> float:
+def _times(fn: Callable[[], object], repeats: int, warmup: int = 1) -> list[float]:
     for _ in range(warmup):
         fn()
     times = []
@@ -51,7 +51,11 @@ def _median_time(fn: Callable[[], object], repeats: int, warmup: int = 1) -> flo
         start = time.perf_counter()
         fn()
         times.append(time.perf_counter() - start)
-    return statistics.median(times)
+    return times
+
+
+def _median_time(fn: Callable[[], object], repeats: int, warmup: int = 1) -> float:
+    return statistics.median(_times(fn, repeats, warmup))
 
 
 def _peak_rss_mb() -> float:
@@ -180,27 +184,31 @@ def main() -> int:
     rows = []
     for name, fn in methods:
         repeats = 15 if name.startswith("GridTree") else 5
-        t_near = _median_time(lambda fn=fn: fn(near), repeats)
+        near_times = _times(lambda fn=fn: fn(near), repeats)
+        t_near, best_near = statistics.median(near_times), min(near_times)
         t_far = _median_time(lambda fn=fn: fn(far), max(3, repeats // 3))
         e_near, _ = _errors(near, fn(near), ref_near)
         e_far, disp_far = _errors(far, fn(far), ref_far)
-        rows.append((name, t_near, t_far, e_near, e_far, disp_far))
+        rows.append((name, t_near, t_far, e_near, e_far, disp_far, best_near))
 
     # ---- report
-    grid_near, grid_far = rows[0][1], rows[0][2]
+    grid_near, grid_far, grid_best = rows[0][1], rows[0][2], rows[0][6]
     print(f"\n{N_NEAR} queries within 3 mm, {N_FAR} queries 10-30 mm off (random order);")
-    print("errors against the exact closest point; ratio = method time / GridTree time\n")
+    print("errors against the exact closest point; ratio = method time / GridTree time")
+    print("(medians; 'best' is the fastest repeat, i.e. the least disturbed by other load)")
+    print(f"machine load average: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores\n")
     head = (
         f"{'method':40s} {'near ms':>8s} {'Mq/s':>6s} {'ratio':>7s} {'mean um':>9s} {'p99 um':>8s}"
-        f" | {'far ms':>7s} {'ratio':>6s} {'max disp mm':>11s}"
+        f" | {'far ms':>7s} {'ratio':>6s} {'max disp mm':>11s} | {'best ms':>7s} {'ratio':>6s}"
     )
     print(head)
     print("-" * len(head))
-    for name, t_near, t_far, e_near, _e_far, disp_far in rows:
+    for name, t_near, t_far, e_near, _e_far, disp_far, best in rows:
         print(
             f"{name:40s} {t_near * 1e3:8.2f} {N_NEAR / t_near / 1e6:6.1f} {t_near / grid_near:7.1f}"
             f" {e_near.mean() * 1e3:9.3f} {np.percentile(e_near, 99) * 1e3:8.3f}"
             f" | {t_far * 1e3:7.1f} {t_far / grid_far:6.1f} {disp_far.max():11.4f}"
+            f" | {best * 1e3:7.2f} {best / grid_best:6.1f}"
         )
     print(f"\n(kd-tree build on 1M samples: {kd_build_s:.2f} s, not counted above)")
 
@@ -213,8 +221,9 @@ def main() -> int:
         print(f"counter tree load (with hash check) {counter_load_s * 1e3:.0f} ms")
 
     # ---- checks (Done-when figures)
-    _, _, _, e_near, e_far, disp_far = rows[0]
+    _, _, _, e_near, e_far, disp_far, _ = rows[0]
     kd_ratio = rows[1][1] / grid_near
+    kd_best = rows[1][6] / grid_best
     checks = [
         ("near mean |error| <= 1 um", e_near.mean() <= 1e-3, True),
         ("near p99 |error| <= 20 um", np.percentile(e_near, 99) <= 0.02, True),
@@ -225,7 +234,8 @@ def main() -> int:
             bool(np.all((disp_far <= 0.1) | (e_far <= 1e-3))),
             True,
         ),
-        (f"near speed >= 50x cKDTree (got {kd_ratio:.1f}x)", kd_ratio >= 50, False),
+        (f"near speed >= 50x cKDTree, medians (got {kd_ratio:.1f}x)", kd_ratio >= 50, False),
+        (f"near speed >= 50x cKDTree, best runs (got {kd_best:.1f}x)", kd_best >= 50, False),
     ]
     if len(builds) > 1:
         cb = builds[1][2]
