@@ -355,3 +355,178 @@ def refine_pixels(left, right, wl, wr, px, py, d0, radius, iterations, out_d, ou
             out_d[i] = np.nan
             out_score[i] = -1.0
             out_step[i] = 99.0
+
+
+@njit(cache=True, nogil=True, parallel=True, fastmath=True)
+def refine_cyclopean(left, right, wl, wr, cl, cr, py, d0, radius, iterations, out_d, out_score, out_step):  # pragma: no cover
+    """Sub-pixel disparity at points of the cyclopean (mid-baseline) view.
+
+    The window is centred half-way between the two views: the left image is
+    sampled at ``c + d/2 + u`` and the right one at ``c - d/2 + u``. Matching
+    from one view only (the left window against the shifted right image)
+    shifts every depth edge and every slope towards the occluded side (the
+    "fattening" of window matchers), and with both pairs' baselines along x
+    that shift is the same for the whole cloud, an in-plane bias of the part's
+    position; the symmetric window cancels it to first order.
+
+    Model ``L(c + d/2 + u) ≈ g R(c - d/2 + u) + o`` per window, three
+    unknowns (d, g, o) by Gauss-Newton, Catmull-Rom interpolation of both
+    images, samples weighted by ``wl`` and ``wr`` (0 where saturated).
+
+    Parameters
+    ----------
+    left, right : (H, Wl), (H, Wr) float32
+        Locally normalised rectified images (crops).
+    wl, wr : float32, same shapes
+        Sample weights.
+    cl, cr : (N,) float64
+        Cyclopean x of each point in the left and in the right crop's columns.
+    py : (N,) int64
+        Row of each point (both crops).
+    d0 : (N,) float32
+        Initial disparities.
+    radius : int
+    iterations : int
+    out_d, out_score, out_step : (N,) float32
+        Refined disparity (NaN: failed), normalised correlation, last step.
+    """
+    H = left.shape[0]
+    Wl = left.shape[1]
+    Wr = right.shape[1]
+    n = py.shape[0]
+    for i in prange(n):
+        y = py[i]
+        d = float(d0[i])
+        g = 1.0
+        o = 0.0
+        score = -1.0
+        step = 99.0
+        ok = y - radius >= 0 and y + radius < H
+        for _ in range(iterations):
+            if not ok:
+                break
+            xl = cl[i] + 0.5 * d
+            xr = cr[i] - 0.5 * d
+            il = int(math.floor(xl))
+            ir = int(math.floor(xr))
+            if il - radius - 1 < 0 or il + radius + 2 >= Wl or ir - radius - 1 < 0 or ir + radius + 2 >= Wr:
+                ok = False
+                break
+            a = xl - il
+            a2 = a * a
+            a3 = a2 * a
+            lw0 = -0.5 * a3 + a2 - 0.5 * a
+            lw1 = 1.5 * a3 - 2.5 * a2 + 1.0
+            lw2 = -1.5 * a3 + 2.0 * a2 + 0.5 * a
+            lw3 = 0.5 * a3 - 0.5 * a2
+            lg0 = -1.5 * a2 + 2.0 * a - 0.5
+            lg1 = 4.5 * a2 - 5.0 * a
+            lg2 = -4.5 * a2 + 4.0 * a + 0.5
+            lg3 = 1.5 * a2 - a
+            b = xr - ir
+            b2 = b * b
+            b3 = b2 * b
+            rw0 = -0.5 * b3 + b2 - 0.5 * b
+            rw1 = 1.5 * b3 - 2.5 * b2 + 1.0
+            rw2 = -1.5 * b3 + 2.0 * b2 + 0.5 * b
+            rw3 = 0.5 * b3 - 0.5 * b2
+            rg0 = -1.5 * b2 + 2.0 * b - 0.5
+            rg1 = 4.5 * b2 - 5.0 * b
+            rg2 = -4.5 * b2 + 4.0 * b + 0.5
+            rg3 = 1.5 * b2 - b
+            s1 = 0.0
+            sl = 0.0
+            sr = 0.0
+            sll = 0.0
+            srr = 0.0
+            slr = 0.0
+            # Sums for the normal equations with j = dL/dd + g dR/dd... see below.
+            sj = 0.0
+            sjj = 0.0
+            sjr = 0.0
+            sje = 0.0
+            sre = 0.0
+            se = 0.0
+            for v in range(-radius, radius + 1):
+                yy = y + v
+                for u in range(-radius, radius + 1):
+                    xa = il + u
+                    xb = ir + u
+                    wt = wl[yy, xa] * wl[yy, xa + 1] * wr[yy, xb] * wr[yy, xb + 1]
+                    l0 = left[yy, xa - 1]
+                    l1 = left[yy, xa]
+                    l2 = left[yy, xa + 1]
+                    l3 = left[yy, xa + 2]
+                    r0 = right[yy, xb - 1]
+                    r1 = right[yy, xb]
+                    r2 = right[yy, xb + 1]
+                    r3 = right[yy, xb + 2]
+                    lv = lw0 * l0 + lw1 * l1 + lw2 * l2 + lw3 * l3
+                    lgr = lg0 * l0 + lg1 * l1 + lg2 * l2 + lg3 * l3
+                    rv = rw0 * r0 + rw1 * r1 + rw2 * r2 + rw3 * r3
+                    rgr = rg0 * r0 + rg1 * r1 + rg2 * r2 + rg3 * r3
+                    # e = L(c + d/2) - g R(c - d/2) - o;  de/dd = (L' + g R') / 2.
+                    e = lv - g * rv - o
+                    j = 0.5 * (lgr + g * rgr)
+                    s1 += wt
+                    sl += wt * lv
+                    sr += wt * rv
+                    sll += wt * lv * lv
+                    srr += wt * rv * rv
+                    slr += wt * lv * rv
+                    sj += wt * j
+                    sjj += wt * j * j
+                    sjr += wt * j * rv
+                    sje += wt * j * e
+                    sre += wt * rv * e
+                    se += wt * e
+            if s1 < 0.5 * (2 * radius + 1) ** 2:
+                ok = False
+                break
+            ml = sl / s1
+            mr = sr / s1
+            score = (slr / s1 - ml * mr) / math.sqrt(max((sll / s1 - ml * ml) * (srr / s1 - mr * mr), 1e-12))
+            # Gauss-Newton on Σ e² in (Δd, Δg, Δo): de = j Δd - r Δg - Δo, so
+            # [ Σjj  -Σjr  -Σj ] [Δd]     [ Σje ]
+            # [-Σjr   Σrr   Σr ] [Δg] = - [-Σre ]
+            # [ -Σj   Σr    Σ1 ] [Δo]     [ -Σe ]
+            a11 = sjj
+            a12 = -sjr
+            a13 = -sj
+            a22 = srr
+            a23 = sr
+            a33 = s1
+            b1 = -sje
+            b2_ = sre
+            b3_ = se
+            c11 = a22 * a33 - a23 * a23
+            c12 = a13 * a23 - a12 * a33
+            c13 = a12 * a23 - a13 * a22
+            det = a11 * c11 + a12 * c12 + a13 * c13
+            if abs(det) < 1e-12:
+                ok = False
+                break
+            c22 = a11 * a33 - a13 * a13
+            c23 = a12 * a13 - a11 * a23
+            c33 = a11 * a22 - a12 * a12
+            dd = (c11 * b1 + c12 * b2_ + c13 * b3_) / det
+            dg = (c12 * b1 + c22 * b2_ + c23 * b3_) / det
+            do = (c13 * b1 + c23 * b2_ + c33 * b3_) / det
+            if dd > 1.0:
+                dd = 1.0
+            elif dd < -1.0:
+                dd = -1.0
+            d += dd
+            g += dg
+            o += do
+            step = dd
+            if abs(dd) < 0.002:
+                break
+        if ok:
+            out_d[i] = d
+            out_score[i] = score
+            out_step[i] = step
+        else:
+            out_d[i] = np.nan
+            out_score[i] = -1.0
+            out_step[i] = 99.0

@@ -87,6 +87,12 @@ class ReconstructParams:
         Lucas-Kanade window at full resolution (odd).
     iterations : int
         Most Lucas-Kanade iterations per pixel (it stops earlier when converged).
+    symmetric : bool
+        Centre the matching windows in the cyclopean (mid-baseline) view
+        rather than in the left image, which cancels the shift of edges and
+        slopes towards the occluded side (see :func:`_stereo.refine_cyclopean`).
+    converged_px : float
+        Largest accepted last Gauss-Newton step (a pixel that still moves is dropped).
     stride : int
         Refine every ``stride``-th column of the rectified left image (1: every pixel).
     max_shift_px : float
@@ -113,6 +119,8 @@ class ReconstructParams:
     window: int = 9
     iterations: int = 5
     stride: int = 2
+    converged_px: float = 0.05
+    symmetric: bool = False
     max_shift_px: float = 1.5
     min_score: float = 0.85
     consistency_mm: float = 1.0
@@ -529,49 +537,74 @@ def _match_pair(pair: _stereo.RectifiedPair, fg_disparity: npt.NDArray[np.float3
     wl = (~sat_l[roi]).astype(np.float32)
     wr = (~sat_r[y0:y1, rx0:rx1]).astype(np.float32)
     todo = fg[roi] & ~sat_l[roi]
-    if p.stride > 1:
-        # Refine every stride-th column only (the windows overlap anyway).
-        todo[:, (np.arange(todo.shape[1]) + x0) % p.stride != 0] = False
     py, px = np.nonzero(todo)
     d_init = d_coarse[roi][py, px]
-    # In the crops, a left pixel x matches right x - d', with d' = d - x0 + rx0.
-    shift = float(rx0 - x0)
-    n = len(px)
-    d_ref = np.empty(n, np.float32)
-    score = np.empty(n, np.float32)
-    step = np.empty(n, np.float32)
-    _stereo.refine_pixels(left_n, right_n, wl, wr, px.astype(np.int64), py.astype(np.int64),
-                          (d_init + shift).astype(np.float32), p.window // 2, p.iterations, d_ref, score, step)
-    d_ref -= shift
+    if p.symmetric:
+        # Points on the cyclopean view's grid: c = x_left - d / 2 (full-image
+        # columns), every stride-th column; the coarse disparity of each comes
+        # from the left pixel that maps to it.
+        c = np.rint((px + x0) - 0.5 * d_init).astype(np.int64)
+        sel = c % p.stride == 0
+        c, py_, d_init = c[sel], py[sel], d_init[sel]
+        cl = (c - x0).astype(np.float64)
+        cr = (c - rx0).astype(np.float64)
+        n = len(c)
+        d_ref = np.empty(n, np.float32)
+        score = np.empty(n, np.float32)
+        step = np.empty(n, np.float32)
+        _stereo.refine_cyclopean(left_n, right_n, wl, wr, cl, cr, py_.astype(np.int64),
+                                 d_init.astype(np.float32), p.window // 2, p.iterations, d_ref, score, step)
+        x_left = c + 0.5 * d_ref.astype(np.float64)
+        rows = py_ + y0
+    else:
+        if p.stride > 1:
+            # Refine every stride-th column only (the windows overlap anyway).
+            sel = (px + x0) % p.stride == 0
+            px, py, d_init = px[sel], py[sel], d_init[sel]
+        # In the crops, a left pixel x matches right x - d', with d' = d - x0 + rx0.
+        shift = float(rx0 - x0)
+        n = len(px)
+        d_ref = np.empty(n, np.float32)
+        score = np.empty(n, np.float32)
+        step = np.empty(n, np.float32)
+        _stereo.refine_pixels(left_n, right_n, wl, wr, px.astype(np.int64), py.astype(np.int64),
+                              (d_init + shift).astype(np.float32), p.window // 2, p.iterations, d_ref, score, step)
+        d_ref -= shift
+        x_left = (px + x0).astype(np.float64)
+        rows = py + y0
     good = (np.isfinite(d_ref) & (score >= p.min_score) & (np.abs(d_ref - d_init) <= p.max_shift_px)
-            & (np.abs(step) < 0.05))
+            & (np.abs(step) < p.converged_px))
     timings[f"refine{k}"] = (time.perf_counter() - t) * 1e3
 
     t = time.perf_counter()
-    vx = px[good]
-    vy = py[good]
+    xg = x_left[good]
+    yg = rows[good].astype(np.float64)
     d = d_ref[good].astype(np.float64)
-    pts = pair.triangulate((vx + x0).astype(np.float64), (vy + y0).astype(np.float64), d)
+    pts = pair.triangulate(xg, yg, d)
     inside = np.all((pts >= lo) & (pts <= hi), axis=1) & (pts[:, 2] >= p.z_min_mm)
     pts = pts[inside]
     score = score[good][inside]
+    # The disparity map of the left view, for the other pair's consistency check.
     full = np.full(fg.shape, np.nan, np.float32)
-    full[vy[inside] + y0, vx[inside] + x0] = d[inside]
-    if p.stride > 1:
-        _fill_columns(full, p.stride)
+    xi = np.clip(np.rint(xg[inside]).astype(np.int64), 0, w_img - 1)
+    full[rows[good][inside], xi] = d[inside]
+    _fill_gaps(full, p.stride)
     timings[f"triangulate{k}"] = (time.perf_counter() - t) * 1e3
-    rep = PairReport(pair.name, coarse=n_coarse, foreground=n_fg, refined=len(vx), in_volume=len(pts),
+    rep = PairReport(pair.name, coarse=n_coarse, foreground=n_fg, refined=int(good.sum()), in_volume=len(pts),
                      disparity_range=(d_min, d_max))
     return _PairResult(rep, pts, score, full)
 
 
-def _fill_columns(disparity: npt.NDArray[np.float32], stride: int) -> None:
-    """Interpolate the columns skipped by ``stride`` along rows, in place (NaN where a neighbour is NaN)."""
-    ref = disparity[:, 0::stride]
-    for r in range(1, stride):
-        dst = disparity[:, r::stride]
-        m = min(dst.shape[1], ref.shape[1] - 1)
-        dst[:, :m] = ((stride - r) * ref[:, :m] + r * ref[:, 1 : m + 1]) / stride
+def _fill_gaps(disparity: npt.NDArray[np.float32], stride: int) -> None:
+    """Fill short gaps along rows (the columns not refined), in place, from measured neighbours."""
+    for _ in range(stride):
+        m = np.isfinite(disparity)
+        v = np.where(m, disparity, 0.0).astype(np.float32)
+        num = cv2.boxFilter(v, cv2.CV_32F, (3, 1), normalize=False, borderType=cv2.BORDER_CONSTANT)
+        den = cv2.boxFilter(m.astype(np.float32), cv2.CV_32F, (3, 1), normalize=False,
+                            borderType=cv2.BORDER_CONSTANT)
+        fill = ~m & (den >= 1.0)
+        disparity[fill] = num[fill] / den[fill]
 
 
 def _belt_disparity(pair: _stereo.RectifiedPair, z_mm: float) -> npt.NDArray[np.float32]:

@@ -125,6 +125,17 @@ def test_dent_is_visible(rig: Rig, reconstructor: Reconstructor) -> None:
     assert depth == pytest.approx(DENT_DEPTH_MM, abs=0.15)
 
 
+def test_cyclopean_windows_give_the_same_plane(reconstructor: Reconstructor, plate_frames,
+                                               plate_cloud: Cloud) -> None:
+    sym = Reconstructor.build(reconstructor.rig, ReconstructParams(symmetric=True))(plate_frames)
+    top = sym.points[np.abs(sym.points[:, 2] - PLATE_TOP_MM) < 1.0]
+    assert len(top) > 0.8 * len(plate_cloud)
+    assert abs(np.median(top[:, 2]) - PLATE_TOP_MM) < 0.03
+    # The same footprint as with left-view windows, to a fraction of a pixel (~0.8 mm).
+    for axis in (0, 1):
+        assert abs(np.median(top[:, axis]) - np.median(plate_cloud.points[:, axis])) < 0.3
+
+
 def test_prior_narrows_the_search(reconstructor: Reconstructor, plate_frames, plate_cloud: Cloud) -> None:
     prior = Prior(z_max_mm=60.0)
     cloud = reconstructor(plate_frames, prior=prior)
