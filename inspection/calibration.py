@@ -272,6 +272,17 @@ def calibrate(
     CalibrationError
         A camera saw too few boards, or a camera missed the reference view.
     """
+    # OpenCV's parallel loops sum in a varying order; one thread makes the
+    # result (and so the calibration id) the same bit for bit on every run.
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        return _calibrate(views, board, T_rig_board_ref, reference_view, template, source)
+    finally:
+        cv2.setNumThreads(threads)
+
+
+def _calibrate(views, board, T_rig_board_ref, reference_view, template, source) -> Calibration:
     spec = board if board is not None else CharucoSpec()
     tmpl = template if template is not None else Rig.nominal()
     n_cams = len(tmpl.cameras)

@@ -94,3 +94,8 @@ def test_bad_views_are_refused(views, truth) -> None:
     blank = [[np.zeros_like(im) for im in v] for v in images]
     with pytest.raises(CalibrationError, match="found the board"):
         calibrate(blank)
+
+
+def test_calibration_is_deterministic(views, result) -> None:
+    again = calibrate(views[0])
+    assert again.rig.id == result.rig.id
