@@ -174,7 +174,12 @@ def _rot_z(angle: float) -> np.ndarray:
 
 
 def _icp(
-    tree: SampleTree, pts: np.ndarray, T: np.ndarray, iters: int, max_dist: float
+    tree: SampleTree,
+    pts: np.ndarray,
+    T: np.ndarray,
+    iters: int,
+    max_dist: float,
+    tol_mm: float = 1e-7,
 ) -> tuple[np.ndarray, float, float, int, bool]:
     """Point-to-plane ICP with a distance gate; returns T, rms, inlier fraction, iterations."""
     rms = np.inf
@@ -203,7 +208,7 @@ def _icp(
         step = np.eye(4)
         step[:3, :3], step[:3, 3] = R, v
         T = step @ T
-        converged = abs(rms - new_rms) < 1e-7 or (theta < 1e-9 and np.linalg.norm(v) < 1e-7)
+        converged = abs(rms - new_rms) < tol_mm or (theta < 1e-9 and np.linalg.norm(v) < 1e-7)
         rms = new_rms
         if converged:
             return T, rms, frac, it, True
@@ -258,7 +263,8 @@ def align(
         T = np.eye(4)
         T[:3, :3] = R
         T[:3, 3] = c_cad - R @ c_data
-        T, rms, frac, _, _ = _icp(tree, coarse, T, 30, 4 * max_correspondence_mm)
+        # The coarse fit only has to pick the half turn and land in the basin.
+        T, rms, frac, _, _ = _icp(tree, coarse, T, 15, 4 * max_correspondence_mm, tol_mm=1e-3)
         score = rms / max(frac, 1e-3)
         if best is None or score < best[0]:
             best = (score, T)

@@ -57,7 +57,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     if cfg is None:
         return 2
     stop = _stop_on_signals()
-    return run_line(cfg, stop, parts_limit=args.parts, rig=args.rig)
+    return run_line(
+        cfg, stop, parts_limit=args.parts, rig=args.rig, out=lambda s: print(s, flush=True)
+    )
 
 
 def cmd_router(args: argparse.Namespace) -> int:
