@@ -1,0 +1,133 @@
+"""From flash frames to deviations: simulate -> reconstruct -> align -> deviations.
+
+Frames are rendered with ``Rig.nominal()`` (the truth) from a panel with dents
+of 0.3, 0.5 and 1.0 mm pressed into the rendered mesh, and measured with
+``Rig.default()`` (the calibrated rig), as on the line: calibration error
+included. The CAD is the undented panel.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from inspection.panel import PanelSpec, sheet_metal_panel
+from inspection.reconstruct import Reconstructor
+from inspection.rig import Rig
+from inspection.simulate import simulate
+
+alignment = pytest.importorskip("inspection.alignment", reason="inspection.alignment is not available")
+deviations_mod = pytest.importorskip("inspection.deviations", reason="inspection.deviations is not available")
+grid = pytest.importorskip("inspection.grid", reason="inspection.grid is not available")
+
+# Comparison sites on the panel's top (panel frame, mm) and the dent pressed in there.
+SITES = {
+    "dent_0.3": (-60.0, 30.0, 0.3),
+    "dent_0.5": (60.0, -70.0, 0.5),
+    "dent_1.0": (125.0, 10.0, 1.0),
+    "flat_a": (-120.0, 75.0, 0.0),
+    "flat_b": (10.0, 10.0, 0.0),
+}
+RADIUS_MM = 10.0
+# Dents are flat-bottomed within DENT_FLAT_MM (so the truth over the support
+# radius is the depth itself) and blend smoothly back to the surface at DENT_OUTER_MM.
+DENT_FLAT_MM = 16.0
+DENT_OUTER_MM = 30.0
+
+
+def _pose(x: float, y: float, deg: float) -> np.ndarray:
+    a = np.deg2rad(deg)
+    T = np.eye(4)
+    T[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
+    T[:3, 3] = (x, y, 0.0)
+    return T
+
+
+def _surface_at(mesh: trimesh.Trimesh, x: float, y: float) -> tuple[np.ndarray, np.ndarray]:
+    loc, _, tri = mesh.ray.intersects_location([[x, y, 500.0]], [[0.0, 0.0, -1.0]])
+    k = int(np.argmax(loc[:, 2]))
+    return loc[k], mesh.face_normals[tri[k]]
+
+
+def dented(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    """The mesh with the dents of SITES pressed in along the vertex normals (fine mesh around them)."""
+    out = mesh.copy()
+    centres = np.array([(x, y) for x, y, depth in SITES.values() if depth > 0])
+    for _ in range(2):  # 4 mm -> 1 mm edges around the dents
+        fc = out.triangles_center[:, :2]
+        near = np.min(np.linalg.norm(fc[:, None, :] - centres[None], axis=2), axis=1) < DENT_OUTER_MM + 6
+        v, f = trimesh.remesh.subdivide(out.vertices, out.faces, face_index=np.nonzero(near)[0])
+        out = trimesh.Trimesh(v, f, process=False)
+    v = out.vertices.copy()
+    normals = out.vertex_normals
+    top = v[:, 2] > 5.0  # the panel's top, not its flange
+    for x, y, depth in SITES.values():
+        if depth == 0:
+            continue
+        r = np.hypot(v[:, 0] - x, v[:, 1] - y)
+        s = np.clip((r - DENT_FLAT_MM) / (DENT_OUTER_MM - DENT_FLAT_MM), 0.0, 1.0)
+        profile = 1.0 - s * s * (3.0 - 2.0 * s)
+        v -= (depth * profile * top)[:, None] * normals
+    return trimesh.Trimesh(v, out.faces, process=False)
+
+
+@pytest.fixture(scope="module")
+def measured():
+    try:
+        line_rig = Rig.default()
+    except FileNotFoundError as exc:
+        pytest.skip(f"no calibrated rig: {exc}")
+    cad = sheet_metal_panel(PanelSpec().scaled(400.0, 260.0))
+    mesh = cad.to_trimesh()
+    cps = []
+    for name, (x, y, _) in SITES.items():
+        p, n = _surface_at(mesh, x, y)
+        cps.append(deviations_mod.ComparisonPoint(name, tuple(p), tuple(n), -0.2, 0.2, RADIUS_MM))
+    T_rig_part = _pose(40.0, -30.0, 25.0)
+    frames = simulate(Rig.nominal(), dented(mesh), T_rig_part, seed=11)
+    cloud = Reconstructor.build(line_rig)(frames)
+    tree = grid.GridTree.build(cad)
+    fit = alignment.align(tree, cloud.points, cad=cad, weights=cloud.weights)
+    T = fit.transform
+    dev = deviations_mod.deviations(tree, cloud.points @ T[:3, :3].T + T[:3, 3], cps)
+    return cad, cloud, T_rig_part, fit, dev
+
+
+def _pose_errors(cad, T_cad_rig: np.ndarray, T_rig_part: np.ndarray) -> tuple[float, float]:
+    """Rotation error (deg) and the largest displacement (mm) of the part's bounding-box corners."""
+    dT = T_cad_rig @ T_rig_part
+    angle = np.degrees(np.arccos(np.clip((np.trace(dT[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+    corners = trimesh.bounds.corners(cad.bounds)
+    moved = corners @ dT[:3, :3].T + dT[:3, 3] - corners
+    return float(angle), float(np.linalg.norm(moved, axis=1).max())
+
+
+def test_cloud_is_dense(measured) -> None:
+    _, cloud, *_ = measured
+    assert len(cloud) >= 100_000
+    assert "empty" not in cloud.report.flags
+
+
+def test_pose_rotation_recovered(measured) -> None:
+    cad, _, T_rig_part, fit, _ = measured
+    angle, _ = _pose_errors(cad, fit.transform, T_rig_part)
+    assert angle <= 0.05
+
+
+@pytest.mark.xfail(strict=False, reason=(
+    "in-plane position along the panel's length is off by 0.1-0.3 mm: the x-baseline pairs see the "
+    "walls facing +-x at grazing angles, so little in the cloud fixes the part along x"))
+def test_pose_translation_recovered(measured) -> None:
+    cad, _, T_rig_part, fit, _ = measured
+    _, shift = _pose_errors(cad, fit.transform, T_rig_part)
+    assert shift <= 0.1
+
+
+@pytest.mark.parametrize("name", list(SITES))
+def test_comparison_point_deviation(measured, name: str) -> None:
+    *_, dev = measured
+    result = {c.name: c for c in dev.comparison}[name]
+    truth = -SITES[name][2]  # pressed in: against the outward normal
+    assert result.support >= 100
+    assert result.deviation_mm == pytest.approx(truth, abs=0.05)
