@@ -519,15 +519,15 @@ def register(
     weights: Scalars | None = None,
     max_iterations: int = 60,
     seed: int = 0,
-    initial_subset: int = 1024,
-    max_subset: int | None = 16384,
+    initial_subset: int = 512,
+    max_subset: int | None = 8192,
     max_distance_mm: float = 50.0,
     min_points: int = 30,
     min_scale_mm: float = 1e-3,
-    tolerance_rad: float = 2e-6,
-    tolerance_mm: float = 5e-4,
+    tolerance_rad: float = 1e-5,
+    tolerance_mm: float = 2e-3,
     max_rejections: int = 10,
-    subset_tolerance_factor: float = 100.0,
+    subset_tolerance_factor: float = 10.0,
     residual: str = "distance",
     max_extensions: int = 6,
 ) -> Registration:
@@ -778,8 +778,15 @@ def register(
         # Subset phase: grow while the pose moves; once it has settled on the
         # largest subset, finish on every point (one or two cheap steps that
         # bring in the full data's statistics).
-        if tiny or small:
+        # Settled on this subset only once the scale has settled too: a scale
+        # still shrinking re-weights the points and moves the optimum.
+        settled = (tiny or small) and (
+            max(_robust_scale(r, V[:m], min_scale_mm), motion) >= 0.9 * sigma
+        )
+        if settled:
             m2 = n_all if m >= cap else cap
+        elif tiny or small:
+            continue
         elif not step_ok:
             # No lower cost on a small subset: more points smooth the cost.
             m2 = n_all if m >= cap else min(cap, 2 * m)
@@ -810,9 +817,11 @@ def register(
     if n_inl < min_points:
         raise InsufficientOverlap(f"only {n_inl} of {n_all} points fit the CAD after registration")
     rms = float(np.sqrt(np.mean(r[inl] ** 2)))
-    center, L = _weighted_centroid(X, V)
-    L = max(L, 1.0)
-    H, _, _ = _normal_equations(X, Nrm, r, V, sigma, loss_id, c, center, L)
+    if not (stop is StopReason.CONVERGED and tiny and m == n_all):
+        # The last normal matrix was built at another pose or on a subset.
+        center, L = _weighted_centroid(X, V)
+        L = max(L, 1.0)
+        H, _, _ = _normal_equations(X, Nrm, r, V, sigma, loss_id, c, center, L)
     eig, vec = np.linalg.eigh(H)
     eig = np.maximum(eig, 0.0)
     degenerate = vec[:, eig < _DEGENERATE_REL_EIG * max(float(eig[-1]), 1e-300)].T.copy()
