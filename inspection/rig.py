@@ -25,9 +25,10 @@ volume (0, 0, 100). Why this layout:
   stay close to the image rows and SGBM's disparity search is short. The two
   pairs look from opposite sides in y, so a flange or a hole wall hidden from
   one pair is usually seen by the other: the pairs complement each other's
-  occlusions. 500 mm of baseline gives ~1.6 mm of depth per pixel of
-  disparity at the belt: 0.1 px of matching gives ~0.16 mm per point, and
-  pooling at comparison points brings it below 0.05 mm.
+  occlusions. 500 mm of baseline at ~1.35 m gives ~2.2 mm of depth per
+  pixel of disparity at the belt (z^2 / (f b)): 0.1 px of matching gives
+  ~0.2 mm per point, and pooling the points within a comparison point's
+  support radius brings it below 0.05 mm.
 - **The ring pairs** cam0-cam2 and cam1-cam3 (600 mm baselines along y) are
   also usable (:attr:`Rig.ring_pairs`) where time allows: they see walls that
   face ±x, which the x pairs see at grazing angles.
