@@ -169,3 +169,34 @@ def test_bad_seed_and_options_are_refused(rig) -> None:
         RenderOptions(blur_px=-1.0)
     with pytest.raises(InvalidInput, match="Rig"):
         simulate("rig", box, np.eye(4))  # type: ignore[call-overload]
+
+
+_HASH_SCRIPT = """
+import hashlib, numpy as np, trimesh
+from inspection.rig import Rig
+from inspection.simulate import simulate
+box = trimesh.creation.box((300.0, 200.0, 30.0))
+box.apply_translation((0.0, 0.0, 15.0))
+images = simulate(Rig.nominal(320, 256), box, np.eye(4), seed=7)
+print(hashlib.sha256(b"".join(i.tobytes() for i in images)).hexdigest())
+"""
+
+
+def test_images_do_not_depend_on_the_thread_count() -> None:
+    import os
+    import subprocess
+    import sys
+
+    digests = set()
+    for threads in ("1", "2"):
+        env = dict(os.environ, NUMBA_NUM_THREADS=threads)
+        out = subprocess.run(
+            [sys.executable, "-c", _HASH_SCRIPT],
+            env=env,
+            capture_output=True,
+            text=True,
+            check=True,
+            timeout=300,
+        )
+        digests.add(out.stdout.strip())
+    assert len(digests) == 1
