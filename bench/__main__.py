@@ -19,7 +19,9 @@ def main(argv: list[str]) -> int:
     wanted = [f"bench_{a.removeprefix('bench_')}" for a in argv]
     unknown = sorted(set(wanted) - set(names))
     if unknown:
-        print(f"unknown benchmark(s): {', '.join(unknown)}; have: {', '.join(names)}", file=sys.stderr)
+        print(
+            f"unknown benchmark(s): {', '.join(unknown)}; have: {', '.join(names)}", file=sys.stderr
+        )
         return 2
     failed = []
     for name in wanted or names:

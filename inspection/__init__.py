@@ -2,12 +2,17 @@
 
 Reconstruct a point cloud from the rig's frames, align it to the part's CAD
 model through a precomputed closest-point grid, and measure deviations.
-Pure computation: numpy, scipy, numba, OpenCV, trimesh. Units are millimetres.
+Pure computation: numpy, scipy, numba, OpenCV, trimesh. Units are millimetres;
+transforms are 4x4 float64 arrays named by their frames (``T_cad_rig`` maps
+rig-frame points into the CAD frame).
 """
 
 from __future__ import annotations
 
+from .alignment import Alignment, align
 from .cad import CadModel, CadReport, load_cad
+from .calibration import calibrate
+from .deviations import ComparisonPoint, Deviations, deviations
 from .errors import (
     CadLoadError,
     CalibrationError,
@@ -17,16 +22,41 @@ from .errors import (
     ReconstructionError,
     TreeMismatch,
 )
+from .grid import Closest, GridTree, warmup
+from .panel import PanelSpec, sheet_metal_panel
+from .reconstruct import Cloud, reconstruct
+from .registration import Registration, StopReason, register
+from .rig import Camera, Rig
+from .simulate import simulate
 
 __all__ = [
+    "Alignment",
     "CadLoadError",
     "CadModel",
     "CadReport",
     "CalibrationError",
+    "Camera",
+    "Closest",
+    "Cloud",
+    "ComparisonPoint",
+    "Deviations",
+    "GridTree",
     "InspectionError",
     "InsufficientOverlap",
     "InvalidInput",
+    "PanelSpec",
     "ReconstructionError",
+    "Registration",
+    "Rig",
+    "StopReason",
     "TreeMismatch",
+    "align",
+    "calibrate",
+    "deviations",
     "load_cad",
+    "reconstruct",
+    "register",
+    "sheet_metal_panel",
+    "simulate",
+    "warmup",
 ]

@@ -166,9 +166,13 @@ class CadModel:
         )
 
     @classmethod
-    def from_mesh(cls, mesh: trimesh.Trimesh, *, name: str = "part", scale: float = 1.0) -> CadModel:
+    def from_mesh(
+        cls, mesh: trimesh.Trimesh, *, name: str = "part", scale: float = 1.0
+    ) -> CadModel:
         """Build a model from a trimesh mesh (already in stored units)."""
-        return cls.from_arrays(mesh.vertices, mesh.faces, name=name, source=f"<mesh {name}>", scale=scale)
+        return cls.from_arrays(
+            mesh.vertices, mesh.faces, name=name, source=f"<mesh {name}>", scale=scale
+        )
 
     def to_trimesh(self) -> trimesh.Trimesh:
         """A new trimesh mesh of this model (a copy; the model stays immutable)."""
@@ -189,7 +193,10 @@ class CadModel:
     def area(self) -> float:
         """Surface area, mm^2."""
         tri = self.vertices[self.faces]
-        return float(0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum())
+        return float(
+            0.5
+            * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum()
+        )
 
 
 def geometry_hash(vertices: np.ndarray, faces: np.ndarray) -> str:
@@ -227,7 +234,9 @@ def load_cad(path: str | Path, *, scale: float = 1.0, name: str | None = None) -
     suffix = p.suffix.lower()
     if suffix not in MESH_SUFFIXES and suffix not in STEP_SUFFIXES:
         known = ", ".join(sorted([*MESH_SUFFIXES, *STEP_SUFFIXES]))
-        raise CadLoadError(f"{p}: unknown CAD format {suffix or '(no suffix)'!r}; expected one of {known}")
+        raise CadLoadError(
+            f"{p}: unknown CAD format {suffix or '(no suffix)'!r}; expected one of {known}"
+        )
     if not p.is_file():
         raise CadLoadError(f"{p}: no such file")
     if p.stat().st_size == 0:
@@ -240,8 +249,12 @@ def load_cad(path: str | Path, *, scale: float = 1.0, name: str | None = None) -
     except Exception as exc:  # trimesh raises many kinds on bad bytes
         raise CadLoadError(f"{p}: cannot read as {suffix[1:].upper()}: {exc}") from exc
     if not isinstance(loaded, trimesh.Trimesh) or len(getattr(loaded, "faces", ())) == 0:
-        raise CadLoadError(f"{p}: no triangle faces could be read; is it really {suffix[1:].upper()}?")
-    return CadModel.from_arrays(loaded.vertices, loaded.faces, name=name, source=str(p), scale=scale)
+        raise CadLoadError(
+            f"{p}: no triangle faces could be read; is it really {suffix[1:].upper()}?"
+        )
+    return CadModel.from_arrays(
+        loaded.vertices, loaded.faces, name=name, source=str(p), scale=scale
+    )
 
 
 def _read_step(p: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -250,7 +263,8 @@ def _read_step(p: Path) -> tuple[np.ndarray, np.ndarray]:
         import cascadio
     except ImportError as exc:
         raise CadLoadError(
-            f"{p}: reading STEP needs the optional reader; install it with pip install 'inspection[step]'"
+            f"{p}: reading STEP needs the optional reader; "
+            "install it with pip install 'inspection[step]'"
         ) from exc
     with tempfile.TemporaryDirectory() as tmp:
         glb = Path(tmp) / "part.glb"
@@ -259,9 +273,12 @@ def _read_step(p: Path) -> tuple[np.ndarray, np.ndarray]:
             scene = trimesh.load(str(glb), file_type="glb", force="scene")
         except Exception as exc:
             raise CadLoadError(f"{p}: cannot read as STEP: {exc}") from exc
+    if not isinstance(scene, trimesh.Scene):
+        raise CadLoadError(f"{p}: the STEP reader gave no scene")
     meshes = [g for g in scene.dump() if isinstance(g, trimesh.Trimesh) and len(g.faces)]
     if not meshes:
         raise CadLoadError(f"{p}: the STEP file holds no surface geometry")
     mesh = trimesh.util.concatenate(meshes)
+    assert isinstance(mesh, trimesh.Trimesh)
     # cascadio writes glTF, whose unit is the metre.
     return np.asarray(mesh.vertices, dtype=np.float64) * 1000.0, np.asarray(mesh.faces)

@@ -173,7 +173,9 @@ def _validate(spec: PanelSpec) -> None:
             raise InvalidInput(f"hole at ({h.x_mm}, {h.y_mm}) is too close to the panel edge")
 
 
-def _axis(half: float, spacing: float, fine: float, features: list[tuple[float, float]]) -> np.ndarray:
+def _axis(
+    half: float, spacing: float, fine: float, features: list[tuple[float, float]]
+) -> np.ndarray:
     """Grid coordinates on [-half, half]: ``spacing`` apart, ``fine`` apart inside feature bands."""
     n = max(int(np.ceil(2 * half / spacing)), 2)
     coords = [np.linspace(-half, half, n + 1)]
@@ -241,7 +243,6 @@ def _panel_mesh(spec: PanelSpec) -> tuple[np.ndarray, np.ndarray]:
     rb = spec.bend_radius_mm
     n_bend = 8
     s_bend = np.linspace(0.0, np.pi / 2 * rb, n_bend + 1)[1:]
-    wall = spec.flange_mm - rb
     # Wall rings end at the flange's lower edge, z = 0, whatever the border's height.
     base = top[loop_vertex]
     m = len(loop_vertex)

@@ -33,7 +33,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="inspection",
         description="In-line shape inspection: CAD trees, registration, the simulated line.",
     )
-    parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv: debug)")
+    parser.add_argument(
+        "-v", "--verbose", action="count", default=0, help="more logging (-vv: debug)"
+    )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for module in dict.fromkeys(COMMANDS.values()):
         try:

@@ -15,8 +15,11 @@ def test_footprint_and_height(panel):
     spec = PanelSpec()
     extents = panel.extents
     # The flange bends outwards by its bend radius all round.
-    np.testing.assert_allclose(extents[:2], [spec.length_mm + 2 * spec.bend_radius_mm,
-                                             spec.width_mm + 2 * spec.bend_radius_mm], atol=1e-6)
+    np.testing.assert_allclose(
+        extents[:2],
+        [spec.length_mm + 2 * spec.bend_radius_mm, spec.width_mm + 2 * spec.bend_radius_mm],
+        atol=1e-6,
+    )
     assert panel.bounds[0, 2] == pytest.approx(0.0, abs=1e-9)
     top = panel_height(spec, np.array([0.0]), np.array([0.0]))[0]
     assert panel.bounds[1, 2] >= top
@@ -41,7 +44,9 @@ def test_single_manifold_sheet_with_one_boundary_per_hole(panel):
 def test_normals_face_the_visible_side(panel):
     centres = panel.vertices[panel.faces].mean(axis=1)
     spec = PanelSpec()
-    top = (np.abs(centres[:, 0]) < spec.length_mm / 2 - 1) & (np.abs(centres[:, 1]) < spec.width_mm / 2 - 1)
+    top = (np.abs(centres[:, 0]) < spec.length_mm / 2 - 1) & (
+        np.abs(centres[:, 1]) < spec.width_mm / 2 - 1
+    )
     assert (panel.face_normals[top, 2] > 0.5).all()
     wall = centres[:, 2] < spec.flange_mm - 2 * spec.bend_radius_mm
     outward = np.einsum("ij,ij->i", panel.face_normals[wall, :2], centres[wall, :2])
@@ -62,7 +67,8 @@ def test_surface_matches_the_height_function(panel):
     rng = np.random.default_rng(3)
     xy = rng.uniform([-250, -170], [250, 170], size=(200, 2))
     far_from_holes = np.all(
-        [np.hypot(xy[:, 0] - h.x_mm, xy[:, 1] - h.y_mm) > h.radius_mm + 10 for h in spec.holes], axis=0
+        [np.hypot(xy[:, 0] - h.x_mm, xy[:, 1] - h.y_mm) > h.radius_mm + 10 for h in spec.holes],
+        axis=0,
     )
     xy = xy[far_from_holes]
     mesh = panel.to_trimesh()
