@@ -142,3 +142,22 @@ def test_rigid_align_recovers_a_transform() -> None:
     b = a @ R.T + [10.0, -5.0, 3.0]
     T = rigid_align(a, b)
     assert np.allclose(T[:3, :3], R) and np.allclose(T[:3, 3], [10.0, -5.0, 3.0])
+
+
+def test_pictures_of_the_rig(rig: Rig, tmp_path) -> None:
+    import cv2
+
+    from inspection.pictures import draw_frames, draw_rig_layout, write_png
+
+    layout = draw_rig_layout(rig)
+    assert layout.ndim == 3 and layout.shape[2] == 3 and layout.dtype == np.uint8
+    path = write_png(tmp_path / "sub" / "layout.png", layout)
+    back = cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2RGB)
+    assert np.array_equal(back, layout)
+    grey = np.zeros((rig.cameras[0].height, rig.cameras[0].width), np.uint8)
+    tiled = draw_frames(rig, [grey] * 4, width=640)
+    assert tiled.shape[1] == 640
+    with pytest.raises(InvalidInput, match="uint8"):
+        write_png(tmp_path / "x.png", np.zeros((4, 4), np.float32))
+    with pytest.raises(InvalidInput, match="4 images"):
+        draw_frames(rig, [grey] * 3)
