@@ -64,8 +64,43 @@ from .errors import InvalidInput, TreeMismatch
 
 log = logging.getLogger(__name__)
 
-FORMAT_VERSION = 1
-"""Version of the saved file layout; bump when arrays or their meaning change."""
+FORMAT_VERSION = 2
+"""Version of the saved file layout; bump when arrays or their meaning change.
+
+1: the first layout. 2: adds the face hierarchy of the exact slow path
+(``bvh_order``, ``bvh_lo``, ``bvh_hi``, ``bvh_child``, ``bvh_span``).
+"""
+
+# Exactly these arrays and metadata keys make up a saved tree of this
+# version: a file with any missing or extra one was written by other code
+# and is refused rather than half read.
+_ARRAY_KEYS = frozenset(
+    {
+        "vertices",
+        "faces",
+        "face_normals",
+        "face_adj",
+        "smooth_adj",
+        "plane",
+        "vf_ptr",
+        "vf_idx",
+        "edge_pn",
+        "vert_pn",
+        "origin",
+        "dims",
+        "coarse",
+        "cells",
+        "mixed_ptr",
+        "mixed_faces",
+        "bvh_order",
+        "bvh_lo",
+        "bvh_hi",
+        "bvh_child",
+        "bvh_span",
+    }
+)
+_META_KEYS = frozenset({"format_version", "name", "cad_hash", "tree_hash", "params"})
+_PARAM_KEYS = frozenset({"spacing_mm", "band_mm", "block"})
 
 DEFAULT_SPACING_MM = 1.0
 DEFAULT_BAND_MM = 4.0
@@ -625,8 +660,9 @@ class GridTree:
         Raises
         ------
         TreeMismatch
-            The file is of another format version, or (with ``cad``) was
-            built for another geometry.
+            The file is of another format version, lacks or adds an array or
+            a metadata field of this version, or (with ``cad``) was built for
+            another geometry.
         InvalidInput
             The file is missing or not a saved tree.
         """
@@ -636,12 +672,9 @@ class GridTree:
         try:
             with np.load(path, allow_pickle=False) as z:
                 meta = json.loads(z["meta"].tobytes().decode())
-                version = meta.get("format_version")
-                if version != FORMAT_VERSION:
-                    raise TreeMismatch(
-                        f"{path}: tree format version {version}, this software reads "
-                        f"{FORMAT_VERSION}; rebuild it with `inspection build-tree`"
-                    )
+                if not isinstance(meta, dict):
+                    raise ValueError("meta is not a JSON object")
+                _check_layout(path, meta, set(z.files) - {"meta"})
                 a = {k: z[k] for k in z.files if k != "meta"}
         except (OSError, ValueError, KeyError, zipfile.BadZipFile, json.JSONDecodeError) as exc:
             raise InvalidInput(f"{path}: not a saved GridTree ({exc})") from exc
@@ -706,6 +739,32 @@ def warmup() -> float:
 
 
 # ---------------------------------------------------------------------- helpers
+def _check_layout(path: Path, meta: dict[str, Any], arrays: set[str]) -> None:
+    """Raise TreeMismatch unless a saved tree has this version's exact layout."""
+    version = meta.get("format_version")
+    if version != FORMAT_VERSION:
+        raise TreeMismatch(
+            f"{path}: tree format version {version}, this software reads "
+            f"{FORMAT_VERSION}; rebuild it with `inspection build-tree`"
+        )
+    params = meta.get("params")
+    problems = []
+    for what, have, want in (
+        ("array", arrays, _ARRAY_KEYS),
+        ("metadata field", set(meta), _META_KEYS),
+        ("parameter", set(params) if isinstance(params, dict) else set(), _PARAM_KEYS),
+    ):
+        if missing := sorted(want - have):
+            problems.append(f"missing {what}(s) {', '.join(missing)}")
+        if extra := sorted(have - want):
+            problems.append(f"unknown {what}(s) {', '.join(extra)}")
+    if problems:
+        raise TreeMismatch(
+            f"{path}: not a version {FORMAT_VERSION} tree ({'; '.join(problems)}); "
+            "rebuild it with `inspection build-tree`"
+        )
+
+
 def _positive(name: str, value: float) -> float:
     try:
         x = float(value)

@@ -249,15 +249,57 @@ def test_load_refuses_another_cad(tmp_path, panel_tree, sphere):
         GridTree.load(path, cad=sphere)
 
 
-def test_load_refuses_another_format_version(tmp_path, sphere_tree):
-    path = sphere_tree.save(tmp_path / "sphere.npz")
+def _rewrite(path, edit_arrays=None, edit_meta=None):
+    """Rewrite a saved tree with its arrays and metadata edited in place."""
     with np.load(path) as z:
         arrays = {k: z[k] for k in z.files}
     meta = json.loads(arrays["meta"].tobytes())
-    meta["format_version"] = FORMAT_VERSION + 1
+    if edit_meta is not None:
+        edit_meta(meta)
+    if edit_arrays is not None:
+        edit_arrays(arrays)
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
     np.savez(path, **arrays)
+
+
+@pytest.mark.parametrize("version", [FORMAT_VERSION + 1, FORMAT_VERSION - 1, 1, None])
+def test_load_refuses_another_format_version(tmp_path, sphere_tree, version):
+    path = sphere_tree.save(tmp_path / "sphere.npz")
+    _rewrite(path, edit_meta=lambda m: m.update(format_version=version))
     with pytest.raises(TreeMismatch, match="format version"):
+        GridTree.load(path)
+
+
+def test_load_refuses_a_first_version_file(tmp_path, sphere_tree):
+    # Version 1 files had no face hierarchy.
+    path = sphere_tree.save(tmp_path / "sphere.npz")
+
+    def drop_bvh(arrays):
+        for key in [k for k in arrays if k.startswith("bvh_")]:
+            del arrays[key]
+
+    _rewrite(path, drop_bvh, lambda m: m.update(format_version=1))
+    with pytest.raises(TreeMismatch, match="format version 1"):
+        GridTree.load(path)
+
+
+@pytest.mark.parametrize(
+    ("edit_arrays", "edit_meta", "message"),
+    [
+        (lambda a: a.pop("bvh_order"), None, "missing array.*bvh_order"),
+        (lambda a: a.update(extra=np.zeros(3)), None, "unknown array.*extra"),
+        (None, lambda m: m.pop("cad_hash"), "missing metadata field.*cad_hash"),
+        (None, lambda m: m.update(colour="red"), "unknown metadata field.*colour"),
+        (None, lambda m: m["params"].pop("block"), "missing parameter.*block"),
+        (None, lambda m: m["params"].update(depth=3), "unknown parameter.*depth"),
+    ],
+)
+def test_load_refuses_missing_or_unknown_fields(
+    tmp_path, sphere_tree, edit_arrays, edit_meta, message
+):
+    path = sphere_tree.save(tmp_path / "sphere.npz")
+    _rewrite(path, edit_arrays, edit_meta)
+    with pytest.raises(TreeMismatch, match=message):
         GridTree.load(path)
 
 
