@@ -15,6 +15,11 @@ and triangle edges stay straight where they are straight:
 
 The projector's shadow map is the same rasteriser run from the projector.
 
+The kernels are serial and release the GIL: :mod:`inspection.simulate` runs
+the cameras in parallel Python threads, which is safe under every numba
+threading layer (numba's own ``parallel=True`` under the "workqueue" layer
+aborts the process when two threads launch kernels at once).
+
 Internal module: callers are trusted (shapes and dtypes are checked in
 :mod:`inspection.simulate`).
 """
@@ -24,7 +29,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 # Fast-math without "nnan"/"ninf": infinities mark "no surface" in the kernels.
 _FAST = {"nsz", "arcp", "contract", "afn", "reassoc"}
@@ -182,7 +187,7 @@ def _belt_albedo(x, y, tex, texel_mm, belt_half_width, floor_albedo):  # pragma:
     )
 
 
-@njit(cache=True, parallel=True, fastmath=_FAST)
+@njit(cache=True, nogil=True, fastmath=_FAST)
 def shade_scene(  # pragma: no cover - compiled
     rays,
     kcam,
@@ -299,7 +304,7 @@ def shade_scene(  # pragma: no cover - compiled
     Hs, Ws = smap_z.shape
     fpx = kproj[0]
     nd = dirt_r.shape[0]
-    for i in prange(H):
+    for i in range(H):
         for j in range(W):
             xn = rays[i, j, 0]
             yn = rays[i, j, 1]
@@ -484,7 +489,7 @@ def shade_scene(  # pragma: no cover - compiled
                 flags[i, j] = fl
 
 
-@njit(cache=True, parallel=True, fastmath=_FAST)
+@njit(cache=True, nogil=True, fastmath=_FAST)
 def shade_board(  # pragma: no cover - compiled
     rays,
     Rbc,
@@ -545,7 +550,7 @@ def shade_board(  # pragma: no cover - compiled
     ndc = -C[2]
     Ht, Wt = board_tex.shape
     inv_n = 1.0 / (ss * ss)
-    for i in prange(H):
+    for i in range(H):
         for j in range(W):
             # Local Jacobian of the undistortion map: sub-pixel rays by a
             # first-order expansion (errors ~1e-7 px over a pixel).
@@ -621,7 +626,7 @@ def _splitmix64(x):  # pragma: no cover - compiled
     return x ^ (x >> np.uint64(31))
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True)
 def sensor_noise(img, key, shot, read2, out):  # pragma: no cover - compiled
     """Add shot and read noise, clip and quantise to 8 bits.
 
@@ -643,7 +648,7 @@ def sensor_noise(img, key, shot, read2, out):  # pragma: no cover - compiled
         Written.
     """
     H, W = img.shape
-    for i in prange(H):
+    for i in range(H):
         for j in range(W):
             s = img[i, j]
             if s < 0.0:
@@ -668,7 +673,7 @@ def sensor_noise(img, key, shot, read2, out):  # pragma: no cover - compiled
             out[i, j] = np.uint8(s)
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True)
 def belt_static(  # pragma: no cover - compiled
     rays,
     Rcr,
@@ -701,7 +706,7 @@ def belt_static(  # pragma: no cover - compiled
     ncy = Rcr[2, 1]
     ncz = Rcr[2, 2]
     ndc = -C[2]
-    for i in prange(H):
+    for i in range(H):
         for j in range(W):
             xn = rays[i, j, 0]
             yn = rays[i, j, 1]

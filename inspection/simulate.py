@@ -19,7 +19,8 @@ What a frame set contains, and why (each is a way real frames are hard):
   8-bit quantisation).
 
 Rendering: a numba z-buffer per camera into an undistorted buffer, then exact
-ray-plane intersections per real pixel (see :mod:`inspection._raster`). The
+ray-plane intersections per real pixel (see :mod:`inspection._raster`); the
+cameras render in parallel threads (as many as ``NUMBA_NUM_THREADS`` allows). The
 per-rig set-up (rays, pattern, belt texture; ~0.5 s) is done once by
 :meth:`Simulator.build`; :func:`simulate` keeps the last two simulators, keyed
 by the rig's content id.
@@ -31,10 +32,13 @@ from __future__ import annotations
 
 import logging
 import threading
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
-from typing import Any, Literal, overload
+from typing import Any, Literal, TypeVar, overload
 
 import cv2
+import numba
 import numpy as np
 import numpy.typing as npt
 
@@ -50,6 +54,9 @@ _TEXEL_MM = 0.5  # belt texture resolution
 _BELT_PERIOD_MM = 1024.0  # the belt texture repeats every metre or so
 _BOARD_PX_PER_MM = 8.0
 _FLOOR_ALBEDO = 0.04  # the machine floor beyond the belt's edges
+
+_T = TypeVar("_T")
+_R = TypeVar("_R")
 
 
 @dataclass(frozen=True)
@@ -207,8 +214,8 @@ class Simulator:
         p = rig.projector
         pattern = p.pattern.image(p.width, p.height)
         belt = _belt_texture(rig)
-        cams = []
-        for cam in rig.cameras:
+
+        def setup(cam: Camera) -> _CameraSetup:
             xy = cam.undistort(cam.pixel_grid())
             rays = xy.reshape(cam.height, cam.width, 2)
             kv = _kvec(cam.K)
@@ -242,9 +249,9 @@ class Simulator:
                 belt_q,
                 belt_alb,
             )
-            cams.append(
-                _CameraSetup(cam, rays, vignette, kv, ox, oy, shape, belt_irr, belt_q, belt_alb)
-            )
+            return _CameraSetup(cam, rays, vignette, kv, ox, oy, shape, belt_irr, belt_q, belt_alb)
+
+        cams = _per_camera(setup, list(rig.cameras))
         log.debug("simulator built for rig %s", rig.id)
         return cls(rig, cams, pattern, belt)
 
@@ -289,9 +296,10 @@ class Simulator:
         P = p.centre
         r0 = float(np.linalg.norm(P))
 
-        images: list[Image] = []
-        truths: list[CameraTruth] = []
-        for setup, stream in zip(self._cams, streams[1:], strict=True):
+        def one(
+            job: tuple[_CameraSetup, np.random.SeedSequence],
+        ) -> tuple[Image, CameraTruth | None]:
+            setup, stream = job
             cam = setup.camera
             zb, fb, sx, sy = _rasterize_view(
                 V, faces, cam.R, cam.t, setup.kvec, setup.ox, setup.oy, setup.buf_shape
@@ -353,13 +361,16 @@ class Simulator:
                 return_truth,
             )
             image = self._expose(out, opts, stream)
-            images.append(image)
-            if return_truth:
-                truths.append(
-                    CameraTruth(
-                        points, (flags & 1).astype(bool), (flags & 2).astype(bool), image == 255
-                    )
-                )
+            if not return_truth:
+                return image, None
+            truth = CameraTruth(
+                points, (flags & 1).astype(bool), (flags & 2).astype(bool), image == 255
+            )
+            return image, truth
+
+        results = _per_camera(one, list(zip(self._cams, streams[1:], strict=True)))
+        images = [image for image, _ in results]
+        truths = [truth for _, truth in results if truth is not None]
         return (images, truths) if return_truth else images
 
     # ----------------------------------------------------------------- boards
@@ -386,8 +397,9 @@ class Simulator:
         lo = np.array([-spec.rim_mm, -spec.rim_mm])
         hi = np.array([w + spec.rim_mm, h + spec.rim_mm])
         streams = np.random.SeedSequence(seed).spawn(len(self._cams))
-        images: list[Image] = []
-        for setup, stream in zip(self._cams, streams, strict=True):
+
+        def one(job: tuple[_CameraSetup, np.random.SeedSequence]) -> Image:
+            setup, stream = job
             cam = setup.camera
             T_cam_board = cam.T_cam_rig @ T
             R_cb = T_cam_board[:3, :3]
@@ -419,7 +431,9 @@ class Simulator:
             )
             # Calibration lighting is diffuse and even (the flash's slide would
             # cover the board with speckle): exposure set by the paper's white.
-            images.append(self._expose(out, replace(opts, lens_dirt_spots=0), stream))
+            return self._expose(out, replace(opts, lens_dirt_spots=0), stream)
+
+        images = _per_camera(one, list(zip(self._cams, streams, strict=True)))
         return images
 
     # ----------------------------------------------------------------- sensor
@@ -441,6 +455,22 @@ class Simulator:
             signal, key, float(opts.shot_noise), float(opts.read_noise_dn) ** 2, image
         )
         return image
+
+
+def _per_camera(fn: Callable[[_T], _R], jobs: list[_T]) -> list[_R]:
+    """Run ``fn`` over the cameras' jobs in parallel threads, results in order.
+
+    The numba kernels release the GIL, as do OpenCV and numpy's large
+    operations, so the threads run truly in parallel; numba's own threading
+    layer is not involved (see :mod:`inspection._raster`). Uses as many
+    threads as numba is allowed (``NUMBA_NUM_THREADS``). Every camera has its
+    own seed stream, so the result does not depend on the thread count.
+    """
+    workers = min(len(jobs), max(1, numba.get_num_threads()))
+    if workers <= 1:
+        return [fn(job) for job in jobs]
+    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="simulate") as pool:
+        return list(pool.map(fn, jobs))
 
 
 # ---------------------------------------------------------------------- public

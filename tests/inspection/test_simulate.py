@@ -200,3 +200,16 @@ def test_images_do_not_depend_on_the_thread_count() -> None:
         )
         digests.add(out.stdout.strip())
     assert len(digests) == 1
+
+
+def test_concurrent_calls_from_threads(rig, panel) -> None:
+    """The line renders in its ingest thread while other threads compute: no
+    crash whatever numba's threading layer, and the same images."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    T = _pose(0.0, 0.0, 0.0)
+    alone = simulate(rig, panel, T, seed=11)
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        results = list(pool.map(lambda _: simulate(rig, panel, T, seed=11), range(2)))
+    for images in results:
+        assert all(np.array_equal(a, b) for a, b in zip(alone, images, strict=True))
