@@ -152,7 +152,9 @@ def test_pictures_of_the_rig(rig: Rig, tmp_path) -> None:
     layout = draw_rig_layout(rig)
     assert layout.ndim == 3 and layout.shape[2] == 3 and layout.dtype == np.uint8
     path = write_png(tmp_path / "sub" / "layout.png", layout)
-    back = cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2RGB)
+    read = cv2.imread(str(path))
+    assert read is not None
+    back = cv2.cvtColor(read, cv2.COLOR_BGR2RGB)
     assert np.array_equal(back, layout)
     grey = np.zeros((rig.cameras[0].height, rig.cameras[0].width), np.uint8)
     tiled = draw_frames(rig, [grey] * 4, width=640)
