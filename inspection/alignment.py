@@ -180,12 +180,16 @@ class Candidate:
         Index into ``AlignmentModel.poses``.
     angle_deg : float
         The starting rotation about the vertical.
+    refined : bool
+        A finalist: refined on the CAD tree and scored against the other
+        finalists (scores of finalists and of the rest are not comparable).
     """
 
     transform: Transform
     score: float
     pose_index: int
     angle_deg: float
+    refined: bool = False
 
 
 @dataclass(frozen=True, eq=False)
@@ -198,8 +202,9 @@ class Alignment(Registration):
         Another pose, distinct from the chosen one, fits (almost) as well:
         the part looks symmetric to the sensor and the pose is not unique.
     candidates : tuple of Candidate
-        The distinct refined hypotheses, best first (the first is the one
-        refined into ``transform``).
+        The finalists (``refined``), best first, the first being the one
+        refined into ``transform``; then the other distinct hypotheses with
+        their coarse scores.
     """
 
     ambiguous: bool = False
@@ -359,6 +364,8 @@ def align(
     sample_points: int = 1500,
     refine_points: int = 500,
     ambiguity_ratio: float = 1.25,
+    finalist_ratio: float = 2.0,
+    n_finalists: int = 3,
     seed: int = 0,
     **register_kwargs: object,
 ) -> Alignment:
@@ -388,8 +395,12 @@ def align(
     refine_points : int
         Size of the (smaller) subsample used to refine them.
     ambiguity_ratio : float
-        A distinct candidate whose score is within this factor of the best
+        A distinct finalist whose score is within this factor of the best
         makes the result ambiguous.
+    finalist_ratio, n_finalists : float, int
+        Up to ``n_finalists`` candidates scoring within ``finalist_ratio`` of
+        the best after coarse refinement are refined again on the CAD tree
+        and compared.
     seed : int
     **register_kwargs
         Passed on to the final :func:`register`.
@@ -479,29 +490,74 @@ def align(
     if not refined:
         raise InsufficientOverlap("no pose hypothesis brings the cloud near the CAD")
 
-    # One truncation for all candidates: a few robust scales of the best fit.
-    sig = min(1.4826 * float(np.median(np.abs(r))) for r in residuals)
-    tau = 3.0 * max(sig, 0.01)
-    scored = sorted(
-        (
-            Candidate(
-                c.transform, float(np.mean(np.minimum(r * r, tau * tau))), c.pose_index, c.angle_deg
+    scored = _score(refined, residuals, refined=False)
+
+    # Finalists: the candidates that come close to the best are refined again
+    # on the CAD tree (exact distances) and re-scored, so that a hypothesis
+    # the coarse stage left a few degrees off is not mistaken for a rival.
+    finalists: list[Candidate] = []
+    final_res: list[np.ndarray] = []
+    for cand in scored:
+        if len(finalists) >= n_finalists or cand.score > finalist_ratio * scored[0].score:
+            break
+        try:
+            reg = register(
+                tree,
+                sub[:refine_points],
+                init=cand.transform,
+                loss="tukey",
+                max_iterations=40,
+                initial_subset=refine_points,
+                max_subset=None,
+                max_distance_mm=max(model.size_mm, 1.0),
+                seed=seed,
             )
-            for c, r in zip(refined, residuals, strict=True)
-        ),
-        key=lambda c: (c.score, c.pose_index, c.angle_deg),
-    )
-    best = scored[0]
-    ambiguous = len(scored) > 1 and scored[1].score <= ambiguity_ratio * best.score
+        except InsufficientOverlap:
+            continue
+        if any(
+            _pose_distance(reg.transform, f.transform, sub[:refine_points]) < 0.02 * model.size_mm
+            for f in finalists
+        ):
+            continue
+        finalists.append(Candidate(reg.transform, 0.0, cand.pose_index, cand.angle_deg))
+        final_res.append(reg.residuals)
+    if finalists:
+        ranked = _score(finalists, final_res, refined=True)
+    else:
+        ranked = scored[:1]
+    best = ranked[0]
+    ambiguous = len(ranked) > 1 and ranked[1].score <= ambiguity_ratio * best.score
     fine = register(
         tree, P, init=best.transform, loss=loss, weights=weights, seed=seed, **register_kwargs
     )
     log.debug(
-        "align: %d candidates, best %.4g, runner-up %s, ambiguous %s",
+        "align: %d candidates, %d finalists, best %.4g, runner-up %s, ambiguous %s",
         len(scored),
+        len(ranked),
         best.score,
-        f"{scored[1].score:.4g}" if len(scored) > 1 else "none",
+        f"{ranked[1].score:.4g}" if len(ranked) > 1 else "none",
         ambiguous,
     )
+    finals = {(f.pose_index, f.angle_deg) for f in ranked}
+    scored = ranked + [c for c in scored if (c.pose_index, c.angle_deg) not in finals]
     fields = {name: getattr(fine, name) for name in Registration.__dataclass_fields__}
     return Alignment(**fields, ambiguous=bool(ambiguous), candidates=tuple(scored))
+
+
+def _score(
+    cands: list[Candidate], residuals: list[np.ndarray], *, refined: bool
+) -> list[Candidate]:
+    """Re-score candidates with one truncation (3 robust scales of the best fit), best first."""
+    sig = min(1.4826 * float(np.median(np.abs(r))) for r in residuals)
+    tau = 3.0 * max(sig, 0.01)
+    out = [
+        Candidate(
+            c.transform,
+            float(np.mean(np.minimum(r * r, tau * tau))),
+            c.pose_index,
+            c.angle_deg,
+            refined,
+        )
+        for c, r in zip(cands, residuals, strict=True)
+    ]
+    return sorted(out, key=lambda c: (c.score, c.pose_index, c.angle_deg))
