@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import trimesh
@@ -322,7 +323,7 @@ def alignment_model(
     v, f, n = _geometry(cad)
     hull = trimesh.Trimesh(v, f, process=False).convex_hull
     transforms, probs = trimesh.poses.compute_stable_poses(hull, n_samples=1, threshold=0.0)
-    poses = []
+    poses: list[RestingPose] = []
     for k, (T, p) in enumerate(zip(transforms, probs, strict=True)):
         if p < min_probability or len(poses) >= max_poses:
             break
@@ -367,7 +368,7 @@ def align(
     finalist_ratio: float = 2.0,
     n_finalists: int = 3,
     seed: int = 0,
-    **register_kwargs: object,
+    **register_kwargs: Any,
 ) -> Alignment:
     """Find ``T_cad_data`` for a part lying anywhere, then refine it.
 
@@ -433,7 +434,7 @@ def align(
     trunc = 0.03 * model.size_mm
     angles = np.arange(n_angles) * (2.0 * np.pi / n_angles)
 
-    hyps: list[tuple[float, int, float, Transform]] = []
+    hyps: list[tuple[float, int, float, np.ndarray]] = []
     for k, pose in enumerate(model.poses):
         tpl = pose.template - pose.centroid
         scores = np.empty(n_angles)
@@ -447,7 +448,7 @@ def align(
             T_dc[:3, :3] = _rot_z(angles[a])
             T_dc[:3, 3] = c_data - _rot_z(angles[a]) @ pose.centroid
             T_dc = T_dc @ pose.transform
-            hyps.append((scores[a], k, float(np.degrees(angles[a])), np.linalg.inv(T_dc)))
+            hyps.append((float(scores[a]), k, float(np.degrees(angles[a])), np.linalg.inv(T_dc)))
     hyps.sort(key=lambda h: (h[0], h[1], h[2]))
 
     # Coarse refinement of the best hypotheses against the sampled surface.

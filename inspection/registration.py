@@ -1,14 +1,14 @@
-"""Robust fine registration of a measured cloud to the CAD: IRLS point-to-plane ICP.
+"""Robust fine registration of a measured cloud to the CAD: IRLS point-to-surface ICP.
 
 The fit finds ``T_cad_data``, the rigid transform that maps the measured
 points (data frame, e.g. the rig) into the CAD frame, by minimising a robust
-cost of the point-to-plane residuals
-
-    r_i(T) = n_i . (T p_i - q_i)
-
-where ``q_i`` is the closest CAD point of ``T p_i`` and ``n_i`` its unit face
-normal (both from the closest-point structure, re-queried at every pose). The
-cost is
+cost of the residuals ``r_i(T)``: by default the signed distance of ``T p_i``
+to the CAD surface, whose gradient is the face normal ``n_i`` where the
+closest point ``q_i`` lies inside a face (there it equals the point-to-plane
+residual ``n_i . (T p_i - q_i)``) and points towards the edge or corner
+beyond it otherwise, so that points overhanging a border pull the part back
+(``residual="plane"`` gives the classic point-to-plane ICP). Closest points
+come from the CAD tree, re-queried at every pose. The cost is
 
     E(T) = sum_i v_i sigma^2 rho(r_i / sigma) / sum_i v_i
 
@@ -34,9 +34,14 @@ ratio sits near or above 1 close to the optimum.
 
 Speed comes from a growing random subset of the points (a seeded
 permutation, each subset a prefix of the next, as in the published system):
-early iterations use a few hundred points, later ones up to
-``max_subset`` points; the final pose is evaluated once on every point to
-give per-point weights, the RMS and the inlier fraction.
+early iterations use a few hundred points, doubling up to ``max_subset``;
+once the pose and the scale have settled there, the last one or two
+iterations use every point (bringing in the full data's statistics and
+giving per-point weights, the RMS and the inlier fraction). When steps keep
+the same direction (sliding along a weakly constrained direction), longer
+steps along it are tried and kept only if they lower the cost. The scale
+shrinks no faster than the pose settles (it stays above the last step's
+motion), so that points misfit by that much are not yet taken for outliers.
 
 The cost only ever falls within an iteration (a step is accepted only if it
 lowers the cost). Across iterations it falls too while the subset stays the
@@ -94,10 +99,17 @@ class ClosestLike(Protocol):
         Index of the closest face.
     """
 
-    points: Points
-    normals: Vectors
-    distances: Scalars
-    face: np.ndarray
+    @property
+    def points(self) -> Points: ...
+
+    @property
+    def normals(self) -> Vectors: ...
+
+    @property
+    def distances(self) -> Scalars: ...
+
+    @property
+    def face(self) -> np.ndarray: ...
 
 
 @runtime_checkable
