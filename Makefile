@@ -4,7 +4,8 @@ PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 export OPENBLAS_NUM_THREADS ?= 1
-export NUMBA_THREADING_LAYER ?= workqueue
+# numba kernels are called from several threads (worker, API): the layer must be thread-safe.
+export NUMBA_THREADING_LAYER ?= threadsafe
 export NUMBA_CACHE_DIR ?= $(CURDIR)/.cache/numba
 
 HTTP_PORT   ?= 8000

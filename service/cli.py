@@ -7,10 +7,18 @@ imported only when the CLI starts, so ``inspection --help`` stays quick.
 
 from __future__ import annotations
 
-import argparse
-import importlib
-import logging
-import sys
+import os
+
+# Before numpy or numba load: one BLAS thread (the hot paths are small products
+# that spinning BLAS threads slow down), and a numba threading layer that stays
+# safe when the worker and the API run kernels from different threads at once.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("NUMBA_THREADING_LAYER", "threadsafe")
+
+import argparse  # noqa: E402
+import importlib  # noqa: E402
+import logging  # noqa: E402
+import sys  # noqa: E402
 
 # Subcommand -> module in service.commands, in the order --help lists them.
 COMMANDS = {

@@ -8,7 +8,12 @@ tests that need them skip with a reason instead of failing.
 from __future__ import annotations
 
 import os
-from pathlib import Path
+
+# As in the service's entry point: set before numpy and numba load.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("NUMBA_THREADING_LAYER", "threadsafe")
+
+from pathlib import Path  # noqa: E402
 
 import pytest
 
