@@ -208,3 +208,18 @@ def test_stop_measures_what_is_already_queued(framesets):
     w.start()
     w.stop()
     assert [r.seq for r in got.results] == [0, 1, 2]
+
+
+def test_bad_input_leaves_earlier_results_intact(tmp_path, framesets):
+    from service.line import store_sink
+    from service.store import ResultStore
+
+    with ResultStore(tmp_path / "r.sqlite") as store:
+        w, got = make_worker(sinks=[store_sink(store)])
+        w.handle(job(framesets[0]))
+        before = store.get(got.results[0].id)
+        for bad in bad_payloads(framesets[1]).values():
+            w.handle(job(bad))
+        w.handle(job(dataclasses.replace(framesets[2], part="nope")))
+        assert store.get(before.id) == before
+        assert store.count() == len({r.id for r in got.results})
