@@ -92,9 +92,18 @@ def _sgbm_peer(rec, frames):  # type: ignore[no-untyped-def]
         d_min, d_max = pair.disparity_range(rec.volume_lo, rec.volume_hi)
         lo = int(np.floor(d_min)) - 2
         num = int(np.ceil((d_max - lo + 2) / 16.0)) * 16
-        sgbm = cv2.StereoSGBM_create(minDisparity=lo, numDisparities=num, blockSize=5, P1=200, P2=800,
-                                     disp12MaxDiff=1, uniquenessRatio=10, speckleWindowSize=100,
-                                     speckleRange=2, mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
+        sgbm = cv2.StereoSGBM_create(
+            minDisparity=lo,
+            numDisparities=num,
+            blockSize=5,
+            P1=200,
+            P2=800,
+            disp12MaxDiff=1,
+            uniquenessRatio=10,
+            speckleWindowSize=100,
+            speckleRange=2,
+            mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+        )
         raw = sgbm.compute(left, right)
         d = raw.astype(np.float64) / 16.0
         fg = (raw > (lo - 1) * 16) & (d > rec.foreground_disparity[k])
@@ -131,23 +140,29 @@ def main() -> int:
         mesh = cad.to_trimesh()
         mesh.apply_transform(T)
         frames = simulate(truth, cad.to_trimesh(), T, seed=i)  # warm-up on the first pose
-        sim_times.append(_median_time(lambda: simulate(truth, cad.to_trimesh(), T, seed=i), 3))
+        sim_times.append(
+            _median_time(lambda T=T, i=i: simulate(truth, cad.to_trimesh(), T, seed=i), 3)
+        )
         for name, rec in recs.items():
             rec(frames)  # warm-up (numba loads its cached kernel)
             cloud = rec(frames)
             if name == "nominal":
-                rec_times.append(_median_time(lambda: rec(frames), 5))
+                rec_times.append(_median_time(lambda rec=rec, frames=frames: rec(frames), 5))
                 for key, v in cloud.report.timings_ms.items():
                     stage_ms.setdefault(key, []).append(v)
             dist = distances_to_mesh(mesh, cloud.points)
             rms, med, frac = _accuracy(dist)
-            rows.append((f"pose {i} ({x:+.0f}, {y:+.0f}, {deg:+.0f} deg)", name, len(cloud), frac, rms, med))
+            rows.append(
+                (f"pose {i} ({x:+.0f}, {y:+.0f}, {deg:+.0f} deg)", name, len(cloud), frac, rms, med)
+            )
             if name == "nominal":
                 ok &= len(cloud) >= MIN_POINTS and rms <= RMS_GOAL_MM
         if i == 0:
             rec = recs["nominal"]
             _sgbm_peer(rec, frames)
-            peer_times.append(_median_time(lambda: _sgbm_peer(rec, frames), 3))
+            peer_times.append(
+                _median_time(lambda rec=rec, frames=frames: _sgbm_peer(rec, frames), 3)
+            )
             peer_pts = _sgbm_peer(rec, frames)
             rms, med, frac = _accuracy(distances_to_mesh(mesh, peer_pts))
             rows.append(("pose 0, peer: full-res SGBM", "nominal", len(peer_pts), frac, rms, med))
@@ -162,14 +177,24 @@ def main() -> int:
     print()
     print(f"Reconstructor.build: {build_s * 1e3:.0f} ms (once per rig)")
     print(f"simulate (four 1280x1024 frames):     {sim_s * 1e3:7.0f} ms  (median over poses)")
-    print(f"reconstruct (four 1280x1024 frames):  {rec_s * 1e3:7.0f} ms  goal <= {TIME_GOAL_S * 1e3:.0f} ms")
-    print(f"peer full-res SGBM, two pairs:        {peer_s * 1e3:7.0f} ms  ratio reconstruct/peer "
-          f"{rec_s / peer_s:.2f}")
-    print("reconstruct stages (median ms): " + ", ".join(
-        f"{k} {statistics.median(v):.0f}" for k, v in stage_ms.items()))
+    print(
+        f"reconstruct (four 1280x1024 frames):  {rec_s * 1e3:7.0f} ms  "
+        f"goal <= {TIME_GOAL_S * 1e3:.0f} ms"
+    )
+    print(
+        f"peer full-res SGBM, two pairs:        {peer_s * 1e3:7.0f} ms  ratio reconstruct/peer "
+        f"{rec_s / peer_s:.2f}"
+    )
+    print(
+        "reconstruct stages (median ms): "
+        + ", ".join(f"{k} {statistics.median(v):.0f}" for k, v in stage_ms.items())
+    )
     ok &= rec_s <= TIME_GOAL_S
-    print(f"checks: points >= {MIN_POINTS}, RMS <= {RMS_GOAL_MM} mm (nominal rig), time <= {TIME_GOAL_S} s:",
-          "pass" if ok else "FAIL")
+    print(
+        f"checks: points >= {MIN_POINTS}, RMS <= {RMS_GOAL_MM} mm (nominal rig), "
+        f"time <= {TIME_GOAL_S} s:",
+        "pass" if ok else "FAIL",
+    )
     return 0 if ok else 1
 
 

@@ -27,9 +27,9 @@ import math
 from dataclasses import dataclass
 
 import cv2
-from numba import njit, prange
 import numpy as np
 import numpy.typing as npt
+from numba import njit, prange
 
 from .rig import Camera
 
@@ -114,14 +114,17 @@ class RectifiedPair:
 
     def disparity_range(self, lo: F64, hi: F64) -> tuple[float, float]:
         """Disparities spanned by the box ``lo``..``hi`` (rig frame, mm)."""
-        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        corners = np.array(
+            [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+        )
         z = self.to_rect(corners)[:, 2]
         d = self.fb / z + self.offset_px
         return float(d.min()), float(d.max())
 
 
-def rectify_pair(cam_l: Camera, cam_r: Camera, left: int, right: int, lo: F64, hi: F64,
-                 margin_px: int = 8) -> RectifiedPair:
+def rectify_pair(
+    cam_l: Camera, cam_r: Camera, left: int, right: int, lo: F64, hi: F64, margin_px: int = 8
+) -> RectifiedPair:
     """Build the belt-facing rectification of one pair (see the module docstring).
 
     Parameters
@@ -146,7 +149,9 @@ def rectify_pair(cam_l: Camera, cam_r: Camera, left: int, right: int, lo: F64, h
     ey = np.cross(ez, ex)
     R = np.stack([ex, ey, ez])
     f = float(np.mean([cam_l.K[0, 0], cam_l.K[1, 1], cam_r.K[0, 0], cam_r.K[1, 1]]))
-    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    corners = np.array(
+        [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+    )
     # Ideal (principal-point-free) rectified coordinates of the volume in both views.
     xs, ys = [], []
     for c in (c_l, c_r):
@@ -155,7 +160,9 @@ def rectify_pair(cam_l: Camera, cam_r: Camera, left: int, right: int, lo: F64, h
         ys.append(f * p[:, 1] / p[:, 2])
     cx_l = margin_px - float(xs[0].min())
     cx_r = margin_px - float(xs[1].min())
-    width = int(math.ceil(max(xs[0].max() - xs[0].min(), xs[1].max() - xs[1].min()))) + 2 * margin_px
+    width = (
+        int(math.ceil(max(xs[0].max() - xs[0].min(), xs[1].max() - xs[1].min()))) + 2 * margin_px
+    )
     y_all = np.concatenate(ys)
     cy = margin_px - float(y_all.min())
     height = int(math.ceil(y_all.max() - y_all.min())) + 2 * margin_px
@@ -163,11 +170,14 @@ def rectify_pair(cam_l: Camera, cam_r: Camera, left: int, right: int, lo: F64, h
     for cam, cx in ((cam_l, cx_l), (cam_r, cx_r)):
         K_new = np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
         R_cam_rect = R @ cam.R.T  # camera -> rectified (OpenCV's R argument)
-        m1, m2 = cv2.initUndistortRectifyMap(cam.K, cam.dist, R_cam_rect, K_new, (width, height), cv2.CV_32FC1)
-        maps.append((m1, m2))
+        m1, m2 = cv2.initUndistortRectifyMap(
+            cam.K, cam.dist, R_cam_rect, K_new, (width, height), cv2.CV_32FC1
+        )
+        maps.append((np.asarray(m1, np.float32), np.asarray(m2, np.float32)))
     R.setflags(write=False)
-    return RectifiedPair(left, right, R, c_l.copy(), baseline, f, cx_l, cx_r, cy, (width, height),
-                         maps[0], maps[1])
+    return RectifiedPair(
+        left, right, R, c_l.copy(), baseline, f, cx_l, cx_r, cy, (width, height), maps[0], maps[1]
+    )
 
 
 def local_normalise(img: F32, window: int) -> F32:
@@ -180,9 +190,14 @@ def local_normalise(img: F32, window: int) -> F32:
     return ((img - mean) / np.sqrt(var + 4.0)).astype(np.float32)
 
 
-def coarse_disparity(left_u8: npt.NDArray[np.uint8], right_u8: npt.NDArray[np.uint8], d_min: float,
-                     d_max: float, block: int) -> F32:
-    """SGBM (3-way) disparity at half resolution, returned at full resolution in pixels (NaN = none).
+def coarse_disparity(
+    left_u8: npt.NDArray[np.uint8],
+    right_u8: npt.NDArray[np.uint8],
+    d_min: float,
+    d_max: float,
+    block: int,
+) -> F32:
+    """SGBM (3-way) disparity at half resolution, returned at full resolution (px, NaN = none).
 
     Parameters
     ----------
@@ -198,20 +213,30 @@ def coarse_disparity(left_u8: npt.NDArray[np.uint8], right_u8: npt.NDArray[np.ui
     rh = cv2.pyrDown(right_u8)
     lo = int(math.floor(d_min / 2.0)) - 2
     num = int(math.ceil((d_max / 2.0 - lo + 2) / 16.0)) * 16
-    sgbm = cv2.StereoSGBM_create(
-        minDisparity=lo, numDisparities=num, blockSize=block,
-        P1=8 * block * block, P2=32 * block * block, disp12MaxDiff=1, preFilterCap=31,
-        uniquenessRatio=10, speckleWindowSize=40, speckleRange=2, mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+    sgbm = cv2.StereoSGBM.create(
+        minDisparity=lo,
+        numDisparities=num,
+        blockSize=block,
+        P1=8 * block * block,
+        P2=32 * block * block,
+        disp12MaxDiff=1,
+        preFilterCap=31,
+        uniquenessRatio=10,
+        speckleWindowSize=40,
+        speckleRange=2,
+        mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
     )
     raw = sgbm.compute(lh, rh)
     disp = raw.astype(np.float32) * np.float32(2.0 / 16.0)
     disp[raw <= (lo - 1) * 16] = np.nan
     # Half-resolution pixel i sits at full-resolution pixel 2i (pyrDown's sampling).
-    return cv2.resize(disp, (w, h), interpolation=cv2.INTER_NEAREST)
+    return np.asarray(cv2.resize(disp, (w, h), interpolation=cv2.INTER_NEAREST), dtype=np.float32)
 
 
 @njit(cache=True, nogil=True, parallel=True, fastmath=True)
-def refine_pixels(left, right, wl, wr, px, py, d0, radius, iterations, out_d, out_score, out_step):  # pragma: no cover
+def refine_pixels(
+    left, right, wl, wr, px, py, d0, radius, iterations, out_d, out_score, out_step
+):  # pragma: no cover
     """Sub-pixel disparity of each listed pixel: Gauss-Newton on its own window.
 
     For each pixel the window of the left image is matched against the right
@@ -358,7 +383,9 @@ def refine_pixels(left, right, wl, wr, px, py, d0, radius, iterations, out_d, ou
 
 
 @njit(cache=True, nogil=True, parallel=True, fastmath=True)
-def refine_cyclopean(left, right, wl, wr, cl, cr, py, d0, radius, iterations, out_d, out_score, out_step):  # pragma: no cover
+def refine_cyclopean(
+    left, right, wl, wr, cl, cr, py, d0, radius, iterations, out_d, out_score, out_step
+):  # pragma: no cover
     """Sub-pixel disparity at points of the cyclopean (mid-baseline) view.
 
     The window is centred half-way between the two views: the left image is
@@ -409,7 +436,12 @@ def refine_cyclopean(left, right, wl, wr, cl, cr, py, d0, radius, iterations, ou
             xr = cr[i] - 0.5 * d
             il = int(math.floor(xl))
             ir = int(math.floor(xr))
-            if il - radius - 1 < 0 or il + radius + 2 >= Wl or ir - radius - 1 < 0 or ir + radius + 2 >= Wr:
+            if (
+                il - radius - 1 < 0
+                or il + radius + 2 >= Wl
+                or ir - radius - 1 < 0
+                or ir + radius + 2 >= Wr
+            ):
                 ok = False
                 break
             a = xl - il
@@ -485,7 +517,9 @@ def refine_cyclopean(left, right, wl, wr, cl, cr, py, d0, radius, iterations, ou
                 break
             ml = sl / s1
             mr = sr / s1
-            score = (slr / s1 - ml * mr) / math.sqrt(max((sll / s1 - ml * ml) * (srr / s1 - mr * mr), 1e-12))
+            score = (slr / s1 - ml * mr) / math.sqrt(
+                max((sll / s1 - ml * ml) * (srr / s1 - mr * mr), 1e-12)
+            )
             # Gauss-Newton on Σ e² in (Δd, Δg, Δo): de = j Δd - r Δg - Δo, so
             # [ Σjj  -Σjr  -Σj ] [Δd]     [ Σje ]
             # [-Σjr   Σrr   Σr ] [Δg] = - [-Σre ]

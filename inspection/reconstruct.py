@@ -93,6 +93,9 @@ class ReconstructParams:
         slopes towards the occluded side (see :func:`_stereo.refine_cyclopean`).
     converged_px : float
         Largest accepted last Gauss-Newton step (a pixel that still moves is dropped).
+    ring_pairs : bool
+        Also match the rig's ring pairs (baselines along y), which see the walls
+        facing +-x that the stereo pairs see at grazing angles; doubles the time.
     stride : int
         Refine every ``stride``-th column of the rectified left image (1: every pixel).
     max_shift_px : float
@@ -121,6 +124,7 @@ class ReconstructParams:
     stride: int = 2
     converged_px: float = 0.05
     symmetric: bool = False
+    ring_pairs: bool = False
     max_shift_px: float = 1.5
     min_score: float = 0.85
     consistency_mm: float = 1.0
@@ -139,12 +143,21 @@ class ReconstructParams:
             raise InvalidInput("ReconstructParams.iterations must be an int in [1, 50]")
         if not (0.0 <= self.z_min_mm < self.z_max_mm and math.isfinite(self.z_max_mm)):
             raise InvalidInput("ReconstructParams needs 0 <= z_min_mm < z_max_mm (finite)")
-        for name in ("volume_margin_mm", "max_shift_px", "consistency_mm", "dark_dn", "min_contrast_dn"):
+        for name in (
+            "volume_margin_mm",
+            "max_shift_px",
+            "consistency_mm",
+            "dark_dn",
+            "min_contrast_dn",
+            "converged_px",
+        ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise InvalidInput(f"ReconstructParams.{name} must be finite and >= 0")
         if not (-1.0 <= self.min_score < 1.0 and 0.0 < self.saturated_fraction <= 1.0):
-            raise InvalidInput("ReconstructParams needs -1 <= min_score < 1 and 0 < saturated_fraction <= 1")
+            raise InvalidInput(
+                "ReconstructParams needs -1 <= min_score < 1 and 0 < saturated_fraction <= 1"
+            )
 
 
 @dataclass(frozen=True)
@@ -270,7 +283,8 @@ class Cloud:
     weights : (N,) float64 in [0, 1]
         Per-point quality: match score times cross-pair confirmation.
     pair : (N,) int8
-        Index into :attr:`Rig.stereo_pairs` of the pair that measured each point.
+        Index of the pair that measured each point, into :attr:`Reconstructor.pairs`
+        (the rig's stereo pairs, then its ring pairs when they are used).
     report : ReconstructionReport
     rig_id : str
         Calibration id of the rig used.
@@ -326,10 +340,14 @@ class Reconstructor:
         lo = np.array([-VOLUME_MM[0] / 2 - m, -VOLUME_MM[1] / 2 - m, 0.0])
         hi = np.array([VOLUME_MM[0] / 2 + m, VOLUME_MM[1] / 2 + m, params.z_max_mm])
         pairs = []
-        for a, b in rig.stereo_pairs:
+        wanted = rig.stereo_pairs + (rig.ring_pairs if params.ring_pairs else ())
+        for a, b in wanted:
             ca, cb = rig.cameras[a], rig.cameras[b]
-            # The left camera of a rectified pair is the one at lower x (x grows to the right).
-            if ca.centre[0] > cb.centre[0]:
+            # The "left" camera of a rectified pair is the one at the lower end of
+            # the baseline's main direction (rectified x grows along it).
+            base = cb.centre - ca.centre
+            k = int(np.argmax(np.abs(base[:2])))
+            if base[k] < 0:
                 a, b, ca, cb = b, a, cb, ca
             pairs.append(_stereo.rectify_pair(ca, cb, a, b, lo, hi))
         # The belt at z = 0 seen through a rectified pixel has the disparity of
@@ -337,17 +355,28 @@ class Reconstructor:
         # the plane z = z_min (less the coarse matching's own uncertainty, ~1 mm).
         z_fg = max(params.z_min_mm - 1.5, 0.0)
         fg = tuple(_belt_disparity(pair, z_fg) for pair in pairs)
-        log.debug("reconstructor built for rig %s: %s", rig.id,
-                  [(p.name, p.size, round(p.baseline_mm, 1)) for p in pairs])
+        log.debug(
+            "reconstructor built for rig %s: %s",
+            rig.id,
+            [(p.name, p.size, round(p.baseline_mm, 1)) for p in pairs],
+        )
         return cls(rig, params, tuple(pairs), lo, hi, fg)
 
-    def __call__(self, frames: Sequence[npt.NDArray[np.uint8]], *, prior: Prior | None = None) -> Cloud:
+    def __call__(
+        self, frames: Sequence[npt.NDArray[np.uint8]], *, prior: Prior | None = None
+    ) -> Cloud:
         """Reconstruct one frame set; see :func:`reconstruct`."""
         return _run(self, frames, prior)
 
 
-def reconstruct(rig: Rig, frames: Sequence[npt.NDArray[np.uint8]], *, prior: Prior | Any | None = None,
-                params: ReconstructParams | None = None, reconstructor: Reconstructor | None = None) -> Cloud:
+def reconstruct(
+    rig: Rig,
+    frames: Sequence[npt.NDArray[np.uint8]],
+    *,
+    prior: Prior | Any | None = None,
+    params: ReconstructParams | None = None,
+    reconstructor: Reconstructor | None = None,
+) -> Cloud:
     """Reconstruct a point cloud of the part from the four flash frames.
 
     Parameters
@@ -393,11 +422,14 @@ def reconstruct(rig: Rig, frames: Sequence[npt.NDArray[np.uint8]], *, prior: Pri
 
 # -- the pipeline -------------------------------------------------------------
 
+
 def _check_frames(rig: Rig, frames: Any) -> list[npt.NDArray[np.uint8]]:
     if isinstance(frames, np.ndarray) and frames.ndim == 3:
         frames = list(frames)
     if not isinstance(frames, (list, tuple)):
-        raise InvalidInput(f"frames must be a sequence of {len(rig.cameras)} images, got {type(frames).__name__}")
+        raise InvalidInput(
+            f"frames must be a sequence of {len(rig.cameras)} images, got {type(frames).__name__}"
+        )
     if len(frames) != len(rig.cameras):
         raise InvalidInput(f"need {len(rig.cameras)} frames (one per camera), got {len(frames)}")
     out = []
@@ -409,7 +441,9 @@ def _check_frames(rig: Rig, frames: Any) -> list[npt.NDArray[np.uint8]]:
         if img.ndim != 2:
             raise InvalidInput(f"frame {i} must be a 2-D grey image, got shape {img.shape}")
         if img.shape != cam.shape:
-            raise InvalidInput(f"frame {i} has shape {img.shape}, camera {cam.name} takes {cam.shape} (H, W)")
+            raise InvalidInput(
+                f"frame {i} has shape {img.shape}, camera {cam.name} takes {cam.shape} (H, W)"
+            )
         out.append(np.ascontiguousarray(img))
     return out
 
@@ -471,12 +505,28 @@ def _run(rec: Reconstructor, frames: Any, prior: Prior | None) -> Cloud:
         t1 = time.perf_counter()
         if not (usable[pair.left] and usable[pair.right]):
             bad = [rig.cameras[i].name for i in (pair.left, pair.right) if not usable[i]]
-            results.append(_PairResult(PairReport(pair.name, skipped=f"unusable frame(s): {', '.join(bad)}"),
-                                       np.zeros((0, 3)), np.zeros(0, np.float32)))
+            results.append(
+                _PairResult(
+                    PairReport(pair.name, skipped=f"unusable frame(s): {', '.join(bad)}"),
+                    np.zeros((0, 3)),
+                    np.zeros(0, np.float32),
+                )
+            )
             all_flags.add(FLAG_PAIR_SKIPPED)
             continue
-        results.append(_match_pair(pair, rec.foreground_disparity[k], imgs[pair.left], imgs[pair.right],
-                                   lo, hi, p, timings, k))
+        results.append(
+            _match_pair(
+                pair,
+                rec.foreground_disparity[k],
+                imgs[pair.left],
+                imgs[pair.right],
+                lo,
+                hi,
+                p,
+                timings,
+                k,
+            )
+        )
         timings[f"pair{pair.name}"] = (time.perf_counter() - t1) * 1e3
 
     t2 = time.perf_counter()
@@ -485,18 +535,30 @@ def _run(rec: Reconstructor, frames: Any, prior: Prior | None) -> Cloud:
     timings["total"] = (time.perf_counter() - t0) * 1e3
     if len(points) == 0:
         all_flags.add(FLAG_EMPTY)
-    report = ReconstructionReport(tuple(sorted(all_flags)), tuple(frame_flags), tuple(reports), len(points), timings)
-    log.debug("reconstructed %d points in %.0f ms, flags %s", len(points), timings["total"], report.flags)
+    report = ReconstructionReport(
+        tuple(sorted(all_flags)), tuple(frame_flags), tuple(reports), len(points), timings
+    )
+    log.debug(
+        "reconstructed %d points in %.0f ms, flags %s", len(points), timings["total"], report.flags
+    )
     return Cloud(points, weights, which, report, rig.id)
 
 
-def _match_pair(pair: _stereo.RectifiedPair, fg_disparity: npt.NDArray[np.float32], img_l: npt.NDArray[np.uint8], img_r: npt.NDArray[np.uint8],
-                lo: npt.NDArray[np.float64], hi: npt.NDArray[np.float64], p: ReconstructParams,
-                timings: dict[str, float], k: int) -> _PairResult:
+def _match_pair(
+    pair: _stereo.RectifiedPair,
+    fg_disparity: npt.NDArray[np.float32],
+    img_l: npt.NDArray[np.uint8],
+    img_r: npt.NDArray[np.uint8],
+    lo: npt.NDArray[np.float64],
+    hi: npt.NDArray[np.float64],
+    p: ReconstructParams,
+    timings: dict[str, float],
+    k: int,
+) -> _PairResult:
     t = time.perf_counter()
     # Rectify in float32 so that the refinement sees no second quantisation.
-    left = cv2.remap(img_l.astype(np.float32), *pair.maps_left, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-    right = cv2.remap(img_r.astype(np.float32), *pair.maps_right, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+    left = _rectify(img_l, pair.maps_left)
+    right = _rectify(img_r, pair.maps_right)
     sat_l = left >= _SATURATION_DN - 0.5
     sat_r = right >= _SATURATION_DN - 0.5
     left_u8 = np.clip(left + 0.5, 0, 255).astype(np.uint8)
@@ -519,8 +581,11 @@ def _match_pair(pair: _stereo.RectifiedPair, fg_disparity: npt.NDArray[np.float3
     fg = coarse_ok & (d_coarse > fg_disparity)
     n_fg = int(fg.sum())
     if n_fg == 0:
-        return _PairResult(PairReport(pair.name, coarse=n_coarse, disparity_range=(d_min, d_max)),
-                           np.zeros((0, 3)), np.zeros(0, np.float32))
+        return _PairResult(
+            PairReport(pair.name, coarse=n_coarse, disparity_range=(d_min, d_max)),
+            np.zeros((0, 3)),
+            np.zeros(0, np.float32),
+        )
     ys, xs = np.nonzero(fg)
     pad = p.window + p.norm_window
     h_img, w_img = fg.shape
@@ -552,8 +617,21 @@ def _match_pair(pair: _stereo.RectifiedPair, fg_disparity: npt.NDArray[np.float3
         d_ref = np.empty(n, np.float32)
         score = np.empty(n, np.float32)
         step = np.empty(n, np.float32)
-        _stereo.refine_cyclopean(left_n, right_n, wl, wr, cl, cr, py_.astype(np.int64),
-                                 d_init.astype(np.float32), p.window // 2, p.iterations, d_ref, score, step)
+        _stereo.refine_cyclopean(
+            left_n,
+            right_n,
+            wl,
+            wr,
+            cl,
+            cr,
+            py_.astype(np.int64),
+            d_init.astype(np.float32),
+            p.window // 2,
+            p.iterations,
+            d_ref,
+            score,
+            step,
+        )
         x_left = c + 0.5 * d_ref.astype(np.float64)
         rows = py_ + y0
     else:
@@ -567,13 +645,29 @@ def _match_pair(pair: _stereo.RectifiedPair, fg_disparity: npt.NDArray[np.float3
         d_ref = np.empty(n, np.float32)
         score = np.empty(n, np.float32)
         step = np.empty(n, np.float32)
-        _stereo.refine_pixels(left_n, right_n, wl, wr, px.astype(np.int64), py.astype(np.int64),
-                              (d_init + shift).astype(np.float32), p.window // 2, p.iterations, d_ref, score, step)
+        _stereo.refine_pixels(
+            left_n,
+            right_n,
+            wl,
+            wr,
+            px.astype(np.int64),
+            py.astype(np.int64),
+            (d_init + shift).astype(np.float32),
+            p.window // 2,
+            p.iterations,
+            d_ref,
+            score,
+            step,
+        )
         d_ref -= shift
         x_left = (px + x0).astype(np.float64)
         rows = py + y0
-    good = (np.isfinite(d_ref) & (score >= p.min_score) & (np.abs(d_ref - d_init) <= p.max_shift_px)
-            & (np.abs(step) < p.converged_px))
+    good = (
+        np.isfinite(d_ref)
+        & (score >= p.min_score)
+        & (np.abs(d_ref - d_init) <= p.max_shift_px)
+        & (np.abs(step) < p.converged_px)
+    )
     timings[f"refine{k}"] = (time.perf_counter() - t) * 1e3
 
     t = time.perf_counter()
@@ -590,9 +684,24 @@ def _match_pair(pair: _stereo.RectifiedPair, fg_disparity: npt.NDArray[np.float3
     full[rows[good][inside], xi] = d[inside]
     _fill_gaps(full, p.stride)
     timings[f"triangulate{k}"] = (time.perf_counter() - t) * 1e3
-    rep = PairReport(pair.name, coarse=n_coarse, foreground=n_fg, refined=int(good.sum()), in_volume=len(pts),
-                     disparity_range=(d_min, d_max))
+    rep = PairReport(
+        pair.name,
+        coarse=n_coarse,
+        foreground=n_fg,
+        refined=int(good.sum()),
+        in_volume=len(pts),
+        disparity_range=(d_min, d_max),
+    )
     return _PairResult(rep, pts, score, full)
+
+
+def _rectify(
+    img: npt.NDArray[np.uint8], maps: tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]
+) -> npt.NDArray[np.float32]:
+    out = cv2.remap(
+        img.astype(np.float32), maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT
+    )
+    return np.asarray(out, dtype=np.float32)
 
 
 def _fill_gaps(disparity: npt.NDArray[np.float32], stride: int) -> None:
@@ -601,8 +710,13 @@ def _fill_gaps(disparity: npt.NDArray[np.float32], stride: int) -> None:
         m = np.isfinite(disparity)
         v = np.where(m, disparity, 0.0).astype(np.float32)
         num = cv2.boxFilter(v, cv2.CV_32F, (3, 1), normalize=False, borderType=cv2.BORDER_CONSTANT)
-        den = cv2.boxFilter(m.astype(np.float32), cv2.CV_32F, (3, 1), normalize=False,
-                            borderType=cv2.BORDER_CONSTANT)
+        den = cv2.boxFilter(
+            m.astype(np.float32),
+            cv2.CV_32F,
+            (3, 1),
+            normalize=False,
+            borderType=cv2.BORDER_CONSTANT,
+        )
         fill = ~m & (den >= 1.0)
         disparity[fill] = num[fill] / den[fill]
 
@@ -622,8 +736,9 @@ def _belt_disparity(pair: _stereo.RectifiedPair, z_mm: float) -> npt.NDArray[np.
     return np.where(depth > 0, d, np.inf).astype(np.float32)
 
 
-def _fuse(rec: Reconstructor, results: list[_PairResult], p: ReconstructParams
-          ) -> tuple[Points, Scalars, npt.NDArray[np.int8], list[PairReport]]:
+def _fuse(
+    rec: Reconstructor, results: list[_PairResult], p: ReconstructParams
+) -> tuple[Points, Scalars, npt.NDArray[np.int8], list[PairReport]]:
     """Cross-pair check, averaging and weights (see the module docstring).
 
     A point confirmed by the other pair is replaced by the mean of itself and
@@ -636,7 +751,9 @@ def _fuse(rec: Reconstructor, results: list[_PairResult], p: ReconstructParams
         if len(res.points) == 0:
             reports.append(res.report)
             continue
-        quality = np.clip((res.score.astype(np.float64) - p.min_score) / (0.95 - p.min_score), 0.0, 1.0)
+        quality = np.clip(
+            (res.score.astype(np.float64) - p.min_score) / (0.95 - p.min_score), 0.0, 1.0
+        )
         factor = np.full(len(res.points), 0.6)
         drop = np.zeros(len(res.points), bool)
         confirmed = np.zeros(len(res.points), bool)
@@ -665,16 +782,28 @@ def _fuse(rec: Reconstructor, results: list[_PairResult], p: ReconstructParams
         w_out.append((quality * factor)[keep])
         which_out.append(np.full(int(keep.sum()), k, np.int8))
         r = res.report
-        reports.append(PairReport(r.pair, r.coarse, r.foreground, r.refined, r.in_volume,
-                                  int(confirmed.sum()), int((~confirmed & keep).sum()), int(drop.sum()),
-                                  r.disparity_range, r.skipped))
+        reports.append(
+            PairReport(
+                r.pair,
+                r.coarse,
+                r.foreground,
+                r.refined,
+                r.in_volume,
+                int(confirmed.sum()),
+                int((~confirmed & keep).sum()),
+                int(drop.sum()),
+                r.disparity_range,
+                r.skipped,
+            )
+        )
     if not pts_out:
         return np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int8), reports
     return np.concatenate(pts_out), np.concatenate(w_out), np.concatenate(which_out), reports
 
 
-def _depth_in_other(pair: _stereo.RectifiedPair, disparity: npt.NDArray[np.float32], points: Points
-                    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+def _depth_in_other(
+    pair: _stereo.RectifiedPair, disparity: npt.NDArray[np.float32], points: Points
+) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
     """Depth of points, and of the other pair's surface on the same rays, in the other pair's frame.
 
     The other pair's disparity map is interpolated bilinearly where the four
@@ -699,7 +828,7 @@ def _depth_in_other(pair: _stereo.RectifiedPair, disparity: npt.NDArray[np.float
     q01 = disparity[yi, xi + 1]
     q10 = disparity[yi + 1, xi]
     q11 = disparity[yi + 1, xi + 1]
-    bil = (q00 * (1 - fx) * (1 - fy) + q01 * fx * (1 - fy) + q10 * (1 - fx) * fy + q11 * fx * fy)
+    bil = q00 * (1 - fx) * (1 - fy) + q01 * fx * (1 - fy) + q10 * (1 - fx) * fy + q11 * fx * fy
     near = disparity[yi + np.rint(fy).astype(np.int64), xi + np.rint(fx).astype(np.int64)]
     d[inside] = np.where(np.isfinite(bil), bil, near)
     z_other = np.full(len(points), np.nan)
@@ -709,6 +838,7 @@ def _depth_in_other(pair: _stereo.RectifiedPair, disparity: npt.NDArray[np.float
 
 
 # -- pictures -----------------------------------------------------------------
+
 
 def deviation_colours(values: npt.ArrayLike, limit_mm: float) -> npt.NDArray[np.uint8]:
     """Diverging colours for signed deviations: blue (-limit) - white (0) - red (+limit).
@@ -736,8 +866,13 @@ def deviation_colours(values: npt.ArrayLike, limit_mm: float) -> npt.NDArray[np.
     return np.rint(rgb * 255).astype(np.uint8)
 
 
-def write_ply(path: str | os.PathLike[str], points: npt.ArrayLike | Cloud,
-              deviations: npt.ArrayLike | None = None, *, limit_mm: float = 0.5) -> Path:
+def write_ply(
+    path: str | os.PathLike[str],
+    points: npt.ArrayLike | Cloud,
+    deviations: npt.ArrayLike | None = None,
+    *,
+    limit_mm: float = 0.5,
+) -> Path:
     """Write a point cloud as binary PLY, coloured by deviation when given.
 
     Any PLY viewer (MeshLab, CloudCompare, Open3D) shows it. Each vertex has
@@ -781,7 +916,14 @@ def write_ply(path: str | os.PathLike[str], points: npt.ArrayLike | Cloud,
         rgb = np.stack([g, g, g], axis=1)
     else:
         rgb = np.full((n, 3), 200, np.uint8)
-    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    fields = [
+        ("x", "<f4"),
+        ("y", "<f4"),
+        ("z", "<f4"),
+        ("red", "u1"),
+        ("green", "u1"),
+        ("blue", "u1"),
+    ]
     if dev is not None:
         fields.append(("deviation", "<f4"))
     rec = np.empty(n, dtype=fields)

@@ -17,8 +17,12 @@ from inspection.reconstruct import Reconstructor
 from inspection.rig import Rig
 from inspection.simulate import simulate
 
-alignment = pytest.importorskip("inspection.alignment", reason="inspection.alignment is not available")
-deviations_mod = pytest.importorskip("inspection.deviations", reason="inspection.deviations is not available")
+alignment = pytest.importorskip(
+    "inspection.alignment", reason="inspection.alignment is not available"
+)
+deviations_mod = pytest.importorskip(
+    "inspection.deviations", reason="inspection.deviations is not available"
+)
 grid = pytest.importorskip("inspection.grid", reason="inspection.grid is not available")
 
 # Comparison sites on the panel's top (panel frame, mm) and the dent pressed in there.
@@ -51,12 +55,15 @@ def _surface_at(mesh: trimesh.Trimesh, x: float, y: float) -> tuple[np.ndarray, 
 
 
 def dented(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
-    """The mesh with the dents of SITES pressed in along the vertex normals (fine mesh around them)."""
+    """The mesh with the dents of SITES pressed in along vertex normals (refined around them)."""
     out = mesh.copy()
     centres = np.array([(x, y) for x, y, depth in SITES.values() if depth > 0])
     for _ in range(2):  # 4 mm -> 1 mm edges around the dents
         fc = out.triangles_center[:, :2]
-        near = np.min(np.linalg.norm(fc[:, None, :] - centres[None], axis=2), axis=1) < DENT_OUTER_MM + 6
+        near = (
+            np.min(np.linalg.norm(fc[:, None, :] - centres[None], axis=2), axis=1)
+            < DENT_OUTER_MM + 6
+        )
         v, f = trimesh.remesh.subdivide(out.vertices, out.faces, face_index=np.nonzero(near)[0])
         out = trimesh.Trimesh(v, f, process=False)
     v = out.vertices.copy()
@@ -115,9 +122,15 @@ def test_pose_rotation_recovered(measured) -> None:
     assert angle <= 0.05
 
 
-@pytest.mark.xfail(strict=False, reason=(
-    "in-plane position along the panel's length is off by 0.1-0.3 mm: the x-baseline pairs see the "
-    "walls facing +-x at grazing angles, so little in the cloud fixes the part along x"))
+@pytest.mark.xfail(
+    strict=False,
+    reason=(
+        "the part's corners come out 0.2-0.3 mm off in the plane: window matching puts surfaces "
+        "past depth edges and bends (up to half a window on outlines facing a pair), and those "
+        "edges are what fixes a flat panel in its plane (exact surface points with 0.1 mm noise "
+        "align to 0.013 mm)"
+    ),
+)
 def test_pose_translation_recovered(measured) -> None:
     cad, _, T_rig_part, fit, _ = measured
     _, shift = _pose_errors(cad, fit.transform, T_rig_part)
