@@ -277,11 +277,13 @@ class Ingest:
             if delay > 0 and self.stop_event.wait(delay):
                 break
             if delay < -self.period_s:
-                # Behind by more than a period: the line is slower than the
-                # trigger; skip ahead rather than fire a burst.
+                # Behind by more than a period: parts went by without being
+                # captured. Skip ahead rather than fire a burst, and spend their
+                # seq numbers so the worker records them as missed.
                 skipped = int(-delay // self.period_s)
-                log.warning("ingest is %d triggers behind; skipping ahead", skipped)
+                log.warning("ingest fell %d triggers behind; those parts are missed", skipped)
                 k += skipped
+                self.seq += skipped
             try:
                 self.trigger()
             except Exception:

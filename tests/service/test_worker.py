@@ -223,3 +223,29 @@ def test_bad_input_leaves_earlier_results_intact(tmp_path, framesets):
         w.handle(job(dataclasses.replace(framesets[2], part="nope")))
         assert store.get(before.id) == before
         assert store.count() == len({r.id for r in got.results})
+
+
+def test_ingest_spends_seq_numbers_of_triggers_it_could_not_fire():
+    from service.ingest import Ingest
+
+    class Slow:
+        """A source whose first capture takes three trigger periods."""
+
+        def __init__(self) -> None:
+            self.release = threading.Event()
+            self.calls = 0
+
+        def capture(self, seq, triggered_ns):
+            self.calls += 1
+            if self.calls == 1:
+                self.release.wait(0.35)  # the capture is slow: the conveyor moves on
+            return rig().capture(seq, triggered_ns)
+
+    sent = []
+    ing = Ingest(Slow(), sent.append, period_s=0.1)
+    ing.run(count=4)
+    from service.protocol import decode_frameset
+
+    seqs = [decode_frameset(b).seq for b in sent]
+    assert seqs[0] == 0 and seqs[1] >= 3 and seqs == sorted(seqs)
+    assert ing.seq == seqs[-1] + 1
