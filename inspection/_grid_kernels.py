@@ -37,16 +37,62 @@ INTERIOR_FLAG = 1 << 30
 FACE_MASK = INTERIOR_FLAG - 1
 _MAX_PLANE_STEPS = 6
 
+# Layout of a face record, one row of the (F, REC_WIDTH) float64 array the
+# queries read: everything a query needs of one face in three adjacent cache
+# lines (rows are 192 bytes, 64-byte aligned), instead of one line or two in
+# each of several arrays.
+REC_WIDTH = 24
+REC_TRI = 12  # corners a, b, c (9 values); columns 0..11 are the plane row
+REC_SMOOTH = 21  # smooth_adj of the three edges, as floats (-1.0: none)
+
 
 @njit(cache=True)
 def closest_on_triangle(px, py, pz, tri, f):
-    """Closest point to p on triangle f (Ericson, Real-Time Collision Detection, 5.1.5).
+    """Closest point to p on triangle f of ``tri`` (F, 3, 3).
 
     Returns (cx, cy, cz, d2, region) with d2 the squared distance.
     """
-    ax, ay, az = tri[f, 0, 0], tri[f, 0, 1], tri[f, 0, 2]
-    bx, by, bz = tri[f, 1, 0], tri[f, 1, 1], tri[f, 1, 2]
-    cx, cy, cz = tri[f, 2, 0], tri[f, 2, 1], tri[f, 2, 2]
+    return _closest(
+        px,
+        py,
+        pz,
+        tri[f, 0, 0],
+        tri[f, 0, 1],
+        tri[f, 0, 2],
+        tri[f, 1, 0],
+        tri[f, 1, 1],
+        tri[f, 1, 2],
+        tri[f, 2, 0],
+        tri[f, 2, 1],
+        tri[f, 2, 2],
+    )
+
+
+@njit(cache=True, inline="always")
+def closest_on_record(px, py, pz, rec, f):
+    """:func:`closest_on_triangle` with the corners read from face record f (see REC_*)."""
+    return _closest(
+        px,
+        py,
+        pz,
+        rec[f, REC_TRI],
+        rec[f, REC_TRI + 1],
+        rec[f, REC_TRI + 2],
+        rec[f, REC_TRI + 3],
+        rec[f, REC_TRI + 4],
+        rec[f, REC_TRI + 5],
+        rec[f, REC_TRI + 6],
+        rec[f, REC_TRI + 7],
+        rec[f, REC_TRI + 8],
+    )
+
+
+@njit(cache=True, inline="always")
+def _closest(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
+    """Closest point to p on triangle abc (Ericson, Real-Time Collision Detection, 5.1.5).
+
+    Returns (cx, cy, cz, d2, region) with d2 the squared distance.
+    """
     abx, aby, abz = bx - ax, by - ay, bz - az
     acx, acy, acz = cx - ax, cy - ay, cz - az
     apx, apy, apz = px - ax, py - ay, pz - az
@@ -108,12 +154,11 @@ def _walk_and_finish(
     qz,
     d2,
     region,
-    tri,
+    rec,
     faces,
     face_adj,
     vf_ptr,
     vf_idx,
-    face_normals,
     edge_pn,
     vert_pn,
     out_pts,
@@ -142,7 +187,7 @@ def _walk_and_finish(
                 g = int(face_adj[f, e])
                 if g < 0:
                     continue
-                rx, ry, rz, e2, rg = closest_on_triangle(px, py, pz, tri, g)
+                rx, ry, rz, e2, rg = closest_on_record(px, py, pz, rec, g)
                 if e2 < b2 * (1.0 - 1e-12) - 1e-18:
                     bf, bx, by, bz, b2, br = g, rx, ry, rz, e2, rg
             if bf != f:
@@ -151,7 +196,7 @@ def _walk_and_finish(
         elif region >= 4:
             g = int(face_adj[f, region - 4])
             if g >= 0 and g != f:
-                rx, ry, rz, e2, rg = closest_on_triangle(px, py, pz, tri, g)
+                rx, ry, rz, e2, rg = closest_on_record(px, py, pz, rec, g)
                 if e2 < d2 * (1.0 - 1e-12) - 1e-18:
                     f, qx, qy, qz, d2, region = g, rx, ry, rz, e2, rg
                     moved = True
@@ -162,7 +207,7 @@ def _walk_and_finish(
                 g = int(vf_idx[k])
                 if g == f:
                     continue
-                rx, ry, rz, e2, rg = closest_on_triangle(px, py, pz, tri, g)
+                rx, ry, rz, e2, rg = closest_on_record(px, py, pz, rec, g)
                 if e2 < b2 * (1.0 - 1e-12) - 1e-18:
                     bf, bx, by, bz, b2, br = g, rx, ry, rz, e2, rg
             if bf != f:
@@ -171,7 +216,7 @@ def _walk_and_finish(
         if not moved:
             break
     if region == 0:
-        nx, ny, nz = face_normals[f, 0], face_normals[f, 1], face_normals[f, 2]
+        nx, ny, nz = rec[f, 0], rec[f, 1], rec[f, 2]
     elif region >= 4:
         e = region - 4
         nx, ny, nz = edge_pn[f, e, 0], edge_pn[f, e, 1], edge_pn[f, e, 2]
@@ -183,9 +228,9 @@ def _walk_and_finish(
     out_pts[i, 0] = qx
     out_pts[i, 1] = qy
     out_pts[i, 2] = qz
-    out_nrm[i, 0] = face_normals[f, 0]
-    out_nrm[i, 1] = face_normals[f, 1]
-    out_nrm[i, 2] = face_normals[f, 2]
+    out_nrm[i, 0] = rec[f, 0]
+    out_nrm[i, 1] = rec[f, 1]
+    out_nrm[i, 2] = rec[f, 2]
     out_dist[i] = d if s >= 0.0 else -d
     out_face[i] = f
 
@@ -199,8 +244,55 @@ def _plane_foot(px, py, pz, plane, f):
     return (u >= 0.0 and v >= 0.0 and u + v <= 1.0), d, u, v
 
 
+@njit(cache=True)
+def _shift_of(block):
+    shift = 0
+    while (1 << shift) < block:
+        shift += 1
+    return shift
+
+
+@njit(cache=True)
+def block_order(points, origin, inv_h, block, dims, coarse, n_blocks):
+    """Query rows grouped by fine block (a stable counting sort): (N,) int64.
+
+    Queries arrive in any order; visiting them block by block makes the
+    reads of the cell codes and of the faces they name local, where a random
+    order would miss the cache on nearly every one. Points outside the fine
+    blocks come last.
+    """
+    n = points.shape[0]
+    shift = _shift_of(block)
+    nby, nbz = dims[1], dims[2]
+    limx = float(dims[0] * block)
+    limy = float(dims[1] * block)
+    limz = float(dims[2] * block)
+    key = np.empty(n, dtype=np.int32)
+    start = np.zeros(n_blocks + 2, dtype=np.int64)
+    for i in range(n):
+        gx = (points[i, 0] - origin[0]) * inv_h
+        gy = (points[i, 1] - origin[1]) * inv_h
+        gz = (points[i, 2] - origin[2]) * inv_h
+        b = n_blocks
+        if 0.0 <= gx < limx and 0.0 <= gy < limy and 0.0 <= gz < limz:
+            c = coarse[((int(gx) >> shift) * nby + (int(gy) >> shift)) * nbz + (int(gz) >> shift)]
+            if c >= 0:
+                b = c
+        key[i] = b
+        start[b + 1] += 1
+    for b in range(n_blocks + 1):
+        start[b + 1] += start[b]
+    order = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        b = key[i]
+        order[start[b]] = i
+        start[b] += 1
+    return order
+
+
 @njit(cache=True, parallel=True)
 def query_grid(
+    order,
     points,
     origin,
     inv_h,
@@ -210,14 +302,11 @@ def query_grid(
     cells,
     mixed_ptr,
     mixed_faces,
-    tri,
-    plane,
-    smooth_adj,
+    rec,
     faces,
     face_adj,
     vf_ptr,
     vf_idx,
-    face_normals,
     edge_pn,
     vert_pn,
     out_pts,
@@ -230,7 +319,7 @@ def query_grid(
 
     A cell with one face first tries the face's plane: when the foot point
     falls inside the triangle (barycentric test with the precomputed dual
-    basis in ``plane``) it is the exact closest point on that face and the
+    basis in the face record ``rec``) it is the exact closest point on that face and the
     answer costs a dozen multiply-adds. Otherwise, and for cells with a
     candidate list, the exact point-to-triangle test and the walk decide.
     Points whose cell is unknown or outside the grid get
@@ -239,14 +328,13 @@ def query_grid(
     n = points.shape[0]
     nby, nbz = dims[1], dims[2]
     # block is a power of two: shifts and masks instead of integer division.
-    shift = 0
-    while (1 << shift) < block:
-        shift += 1
+    shift = _shift_of(block)
     mask = block - 1
     limx = float(dims[0] * block)
     limy = float(dims[1] * block)
     limz = float(dims[2] * block)
-    for i in prange(n):
+    for j in prange(n):
+        i = order[j]
         px, py, pz = points[i, 0], points[i, 1], points[i, 2]
         gx = (px - origin[0]) * inv_h
         gy = (py - origin[1]) * inv_h
@@ -271,8 +359,8 @@ def query_grid(
             if code & INTERIOR_FLAG:
                 # Every point of this cell has its foot inside face f: the
                 # plane gives the answer without any test.
-                nx, ny, nz = plane[f, 0], plane[f, 1], plane[f, 2]
-                d = px * nx + py * ny + pz * nz - plane[f, 3]
+                nx, ny, nz = rec[f, 0], rec[f, 1], rec[f, 2]
+                d = px * nx + py * ny + pz * nz - rec[f, 3]
                 out_pts[i, 0] = px - d * nx
                 out_pts[i, 1] = py - d * ny
                 out_pts[i, 2] = pz - d * nz
@@ -282,7 +370,7 @@ def query_grid(
                 out_dist[i] = d
                 out_face[i] = f
                 continue
-            hit, d, u, v = _plane_foot(px, py, pz, plane, f)
+            hit, d, u, v = _plane_foot(px, py, pz, rec, f)
             g = f
             prev = -1
             for _ in range(_MAX_PLANE_STEPS):
@@ -298,16 +386,16 @@ def query_grid(
                     e = 2
                 else:
                     e = 0
-                nxt = int(smooth_adj[g, e])
+                nxt = int(rec[g, REC_SMOOTH + e])
                 if nxt < 0 or nxt == prev:
                     break
                 prev = g
                 g = nxt
-                hit, d, u, v = _plane_foot(px, py, pz, plane, g)
+                hit, d, u, v = _plane_foot(px, py, pz, rec, g)
             if hit:
                 f = g
             if hit:
-                nx, ny, nz = plane[f, 0], plane[f, 1], plane[f, 2]
+                nx, ny, nz = rec[f, 0], rec[f, 1], rec[f, 2]
                 out_pts[i, 0] = px - d * nx
                 out_pts[i, 1] = py - d * ny
                 out_pts[i, 2] = pz - d * nz
@@ -317,18 +405,65 @@ def query_grid(
                 out_dist[i] = d
                 out_face[i] = f
                 continue
-            qx, qy, qz, d2, region = closest_on_triangle(px, py, pz, tri, f)
+            qx, qy, qz, d2, region = closest_on_record(px, py, pz, rec, f)
         else:
             m = -code - 2
+            k0, k1 = mixed_ptr[m], mixed_ptr[m + 1]
+            # First the candidates' planes: a foot inside its triangle is
+            # that face's exact distance, and |plane distance| bounds every
+            # other face's distance from below, so most candidates never
+            # need the full point-to-triangle test.
             f = -1
-            qx = qy = qz = 0.0
             d2 = np.inf
-            region = 0
-            for k in range(mixed_ptr[m], mixed_ptr[m + 1]):
+            fd = 0.0
+            for k in range(k0, k1):
                 g = int(mixed_faces[k])
-                rx, ry, rz, e2, rg = closest_on_triangle(px, py, pz, tri, g)
+                hit, d, u, v = _plane_foot(px, py, pz, rec, g)
+                if hit and d * d < d2:
+                    f, d2, fd = g, d * d, d
+            region = 0
+            qx = qy = qz = 0.0
+            if f >= 0:
+                qx = px - fd * rec[f, 0]
+                qy = py - fd * rec[f, 1]
+                qz = pz - fd * rec[f, 2]
+            for k in range(k0, k1):
+                g = int(mixed_faces[k])
+                hit, d, u, v = _plane_foot(px, py, pz, rec, g)
+                if hit or d * d >= d2:
+                    continue
+                rx, ry, rz, e2, rg = closest_on_record(px, py, pz, rec, g)
                 if e2 < d2:
                     f, qx, qy, qz, d2, region = g, rx, ry, rz, e2, rg
+            if region == 0:
+                # A foot inside f: a closer face can only lie across one of
+                # f's edges. Across a smooth edge it would be closer by at
+                # most distance * angle^2 (the single-face cells' bound), so
+                # only sharp edges are looked across, each first bounded by
+                # its plane.
+                g_best = -1
+                for e in range(3):
+                    g = int(face_adj[f, e])
+                    if g < 0 or rec[f, REC_SMOOTH + e] >= 0.0:
+                        continue
+                    hit, d, u, v = _plane_foot(px, py, pz, rec, g)
+                    if d * d >= d2:
+                        continue
+                    rx, ry, rz, e2, rg = closest_on_record(px, py, pz, rec, g)
+                    if e2 < d2:
+                        g_best, qx, qy, qz, d2, region = g, rx, ry, rz, e2, rg
+                if g_best < 0:
+                    nx, ny, nz = rec[f, 0], rec[f, 1], rec[f, 2]
+                    out_pts[i, 0] = qx
+                    out_pts[i, 1] = qy
+                    out_pts[i, 2] = qz
+                    out_nrm[i, 0] = nx
+                    out_nrm[i, 1] = ny
+                    out_nrm[i, 2] = nz
+                    out_dist[i] = fd
+                    out_face[i] = f
+                    continue
+                f = g_best
         _walk_and_finish(
             i,
             px,
@@ -340,73 +475,11 @@ def query_grid(
             qz,
             d2,
             region,
-            tri,
+            rec,
             faces,
             face_adj,
             vf_ptr,
             vf_idx,
-            face_normals,
-            edge_pn,
-            vert_pn,
-            out_pts,
-            out_nrm,
-            out_dist,
-            out_face,
-        )
-
-
-@njit(cache=True, parallel=True)
-def query_candidates(
-    points,
-    rows,
-    cand_faces,
-    tri,
-    faces,
-    face_adj,
-    vf_ptr,
-    vf_idx,
-    face_normals,
-    edge_pn,
-    vert_pn,
-    out_pts,
-    out_nrm,
-    out_dist,
-    out_face,
-):
-    """Slow path: exact minimum over candidate faces cand_faces[j] (repeats allowed) for
-    points[j], then the walk; written to row rows[j] of the outputs."""
-    for j in prange(points.shape[0]):
-        px, py, pz = points[j, 0], points[j, 1], points[j, 2]
-        f = -1
-        qx = qy = qz = 0.0
-        d2 = np.inf
-        region = 0
-        last = -1
-        for k in range(cand_faces.shape[1]):
-            g = int(cand_faces[j, k])
-            if g == last:
-                continue
-            last = g
-            rx, ry, rz, e2, rg = closest_on_triangle(px, py, pz, tri, g)
-            if e2 < d2:
-                f, qx, qy, qz, d2, region = g, rx, ry, rz, e2, rg
-        _walk_and_finish(
-            rows[j],
-            px,
-            py,
-            pz,
-            f,
-            qx,
-            qy,
-            qz,
-            d2,
-            region,
-            tri,
-            faces,
-            face_adj,
-            vf_ptr,
-            vf_idx,
-            face_normals,
             edge_pn,
             vert_pn,
             out_pts,
@@ -753,12 +826,11 @@ def query_bvh(
     hi,
     child,
     span,
-    tri,
+    rec,
     faces,
     face_adj,
     vf_ptr,
     vf_idx,
-    face_normals,
     edge_pn,
     vert_pn,
     out_pts,
@@ -787,7 +859,7 @@ def query_bvh(
             if c0 < 0:
                 for k in range(span[node, 0], span[node, 1]):
                     g = int(order[k])
-                    rx, ry, rz, e2, rg = closest_on_triangle(px, py, pz, tri, g)
+                    rx, ry, rz, e2, rg = closest_on_record(px, py, pz, rec, g)
                     if e2 < d2:
                         f, qx, qy, qz, d2, region = g, rx, ry, rz, e2, rg
                 continue
@@ -812,12 +884,11 @@ def query_bvh(
             qz,
             d2,
             region,
-            tri,
+            rec,
             faces,
             face_adj,
             vf_ptr,
             vf_idx,
-            face_normals,
             edge_pn,
             vert_pn,
             out_pts,

@@ -193,6 +193,7 @@ class _Mesh:
     bvh_hi: np.ndarray  # (N, 3) float64
     bvh_child: np.ndarray  # (N, 2) int32: children, -1 for a leaf
     bvh_span: np.ndarray  # (N, 2) int32: a leaf's [start, end) in bvh_order
+    rec: np.ndarray  # (F, K.REC_WIDTH) float64: packed face records (derived, not saved)
 
 
 class GridTree:
@@ -245,6 +246,7 @@ class GridTree:
         # the kernels twice.
         for arr in (origin, dims, coarse, cells, mixed_ptr, mixed_faces):
             arr.setflags(write=False)
+        self._n_blocks = int((coarse >= 0).sum())
         self.hash = tree_hash if tree_hash is not None else self._content_hash()
 
     # ------------------------------------------------------------------ build
@@ -427,7 +429,17 @@ class GridTree:
         out_face = np.empty(n, dtype=np.int64)
         status = np.empty(n, dtype=np.uint8)
         if n:
+            order = K.block_order(
+                p,
+                self._origin,
+                1.0 / self.params.spacing_mm,
+                self.params.block,
+                self._dims,
+                self._coarse,
+                self._n_blocks,
+            )
             K.query_grid(
+                order,
                 p,
                 self._origin,
                 1.0 / self.params.spacing_mm,
@@ -437,14 +449,11 @@ class GridTree:
                 self._cells,
                 self._mixed_ptr,
                 self._mixed_faces,
-                m.tri,
-                m.plane,
-                m.smooth_adj,
+                m.rec,
                 m.faces,
                 m.face_adj,
                 m.vf_ptr,
                 m.vf_idx,
-                m.face_normals,
                 m.edge_pn,
                 m.vert_pn,
                 out_pts,
@@ -469,12 +478,11 @@ class GridTree:
             m.bvh_hi,
             m.bvh_child,
             m.bvh_span,
-            m.tri,
+            m.rec,
             m.faces,
             m.face_adj,
             m.vf_ptr,
             m.vf_idx,
-            m.face_normals,
             m.edge_pn,
             m.vert_pn,
             out_pts,
@@ -508,7 +516,7 @@ class GridTree:
     @property
     def n_blocks(self) -> int:
         """Fine blocks allocated near the surface."""
-        return int((self._coarse >= 0).sum())
+        return self._n_blocks
 
     @property
     def n_mixed_cells(self) -> int:
@@ -526,6 +534,7 @@ class GridTree:
             m.tri,
             m.plane,
             m.smooth_adj,
+            m.rec,
             m.face_adj,
             m.vf_ptr,
             m.vf_idx,
@@ -705,8 +714,9 @@ class GridTree:
             bvh_hi=a["bvh_hi"],
             bvh_child=a["bvh_child"],
             bvh_span=a["bvh_span"],
+            rec=_face_records(a["plane"], tri, a["smooth_adj"]),
         )
-        for arr in (*a.values(), tri):
+        for arr in (*a.values(), tri, mesh.rec):
             arr.setflags(write=False)
         return cls(
             mesh=mesh,
@@ -866,8 +876,10 @@ def _mesh_arrays(vertices: np.ndarray, faces: np.ndarray, face_normals: np.ndarr
         bvh_hi=bvh[2],
         bvh_child=bvh[3],
         bvh_span=bvh[4],
+        rec=_face_records(plane, tri, smooth_adj),
     )
     for arr in (
+        mesh.rec,
         v,
         f,
         fn,
@@ -883,6 +895,25 @@ def _mesh_arrays(vertices: np.ndarray, faces: np.ndarray, face_normals: np.ndarr
     ):
         arr.setflags(write=False)
     return mesh
+
+
+def _face_records(plane: np.ndarray, tri: np.ndarray, smooth_adj: np.ndarray) -> np.ndarray:
+    """(F, K.REC_WIDTH) float64 face records for the queries, rows 64-byte aligned.
+
+    Columns: the plane row (see :func:`_plane_data`), the corners a, b, c,
+    and the smooth neighbours as floats (exact: face counts are < 2^30).
+    """
+    nf = len(plane)
+    width = K.REC_WIDTH
+    # Over-allocate and start at a 64-byte boundary so that each 192-byte
+    # record spans exactly three cache lines.
+    raw = np.empty(nf * width + 8, dtype=np.float64)
+    skip = (-raw.ctypes.data % 64) // 8
+    rec = raw[skip : skip + nf * width].reshape(nf, width)
+    rec[:, :12] = plane
+    rec[:, K.REC_TRI : K.REC_TRI + 9] = tri.reshape(nf, 9)
+    rec[:, K.REC_SMOOTH : K.REC_SMOOTH + 3] = smooth_adj
+    return rec
 
 
 def _smooth_adjacency(face_adj: np.ndarray, normals: np.ndarray) -> np.ndarray:
