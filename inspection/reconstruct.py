@@ -22,9 +22,12 @@ The algorithm, per stereo pair of :attr:`Rig.stereo_pairs` (cam0-cam1, cam2-cam3
 
 Then the two pairs are **fused**: each point is looked up in the other pair's
 refined disparity map. A point seen by both within ``consistency_mm`` is
-confirmed (full weight); a point that lies in front of the surface the other
-pair sees (a free-space violation: typically a wrong match at a reflection or
-dirt) is dropped; a point the other pair cannot see keeps a reduced weight.
+confirmed and averaged with the other pair's surface on the same ray (full
+weight; the two pairs' matching errors are independent); a point that lies in
+front of the surface the other pair sees (a free-space violation: a wrong match
+at a reflection or dirt, or a surface dragged past an outline by the matching
+window, where the other pair's coarse matching sees the belt) is dropped; a
+point the other pair cannot see keeps a reduced weight.
 
 Weights in [0, 1] combine the match score and this cross-pair confirmation, so
 that registration can down-weight doubtful points.
@@ -93,6 +96,9 @@ class ReconstructParams:
         slopes towards the occluded side (see :func:`_stereo.refine_cyclopean`).
     converged_px : float
         Largest accepted last Gauss-Newton step (a pixel that still moves is dropped).
+    free_space_mm : float
+        A point this far in front of the surface another pair's coarse
+        matching sees along the same ray (the belt, say) is dropped.
     ring_pairs : bool
         Also match the rig's ring pairs (baselines along y), which see the walls
         facing +-x that the stereo pairs see at grazing angles; doubles the time.
@@ -125,6 +131,7 @@ class ReconstructParams:
     converged_px: float = 0.05
     symmetric: bool = False
     ring_pairs: bool = False
+    free_space_mm: float = 2.0
     max_shift_px: float = 1.5
     min_score: float = 0.85
     consistency_mm: float = 1.0
@@ -150,6 +157,7 @@ class ReconstructParams:
             "dark_dn",
             "min_contrast_dn",
             "converged_px",
+            "free_space_mm",
         ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
@@ -477,6 +485,7 @@ class _PairResult:
     points: npt.NDArray[np.float64]
     score: npt.NDArray[np.float32]
     disparity: npt.NDArray[np.float32] | None = None  # full rectified size, NaN where none
+    coarse: npt.NDArray[np.float32] | None = None  # SGBM's, belt included, NaN where none
 
 
 def _run(rec: Reconstructor, frames: Any, prior: Prior | None) -> Cloud:
@@ -585,6 +594,8 @@ def _match_pair(
             PairReport(pair.name, coarse=n_coarse, disparity_range=(d_min, d_max)),
             np.zeros((0, 3)),
             np.zeros(0, np.float32),
+            None,
+            d_coarse,
         )
     ys, xs = np.nonzero(fg)
     pad = p.window + p.norm_window
@@ -692,7 +703,7 @@ def _match_pair(
         in_volume=len(pts),
         disparity_range=(d_min, d_max),
     )
-    return _PairResult(rep, pts, score, full)
+    return _PairResult(rep, pts, score, full, d_coarse)
 
 
 def _rectify(
@@ -759,9 +770,19 @@ def _fuse(
         confirmed = np.zeros(len(res.points), bool)
         fused = res.points.copy()
         for j, other in enumerate(results):
-            if j == k or other.disparity is None:
+            if j == k:
                 continue
             pair = rec.pairs[j]
+            if other.coarse is not None:
+                # Free space seen by the other pair's coarse matching, belt included:
+                # a point well in front of what the other pair sees there would
+                # have hidden it. This removes the surfaces that windows drag past
+                # an outline facing this pair, where the other pair sees the belt.
+                z, z_coarse = _depth_in_other(pair, other.coarse, res.points)
+                seen_c = np.isfinite(z_coarse)
+                drop |= seen_c & (z_coarse - z > p.free_space_mm)
+            if other.disparity is None:
+                continue
             z, z_other = _depth_in_other(pair, other.disparity, res.points)
             seen = np.isfinite(z_other)
             dz = np.where(seen, z_other - z, 0.0)
