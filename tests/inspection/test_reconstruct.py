@@ -181,6 +181,16 @@ def test_prior_narrows_the_search(
     )
 
 
+def test_mesh_as_prior(rig: Rig, reconstructor: Reconstructor, plate_frames) -> None:
+    cloud = reconstruct(
+        rig, plate_frames, prior=plate_mesh(PLATE_TOP_MM), reconstructor=reconstructor
+    )
+    top = cloud.points[np.abs(cloud.points[:, 2] - PLATE_TOP_MM) < 1.0]
+    assert len(top) > 50_000
+    # The plate is 40 mm thick: the search stops ~10 mm above it.
+    assert cloud.points[:, 2].max() < PLATE_TOP_MM + 12.0
+
+
 def test_prior_from_cad() -> None:
     cad = sheet_metal_panel(PanelSpec().scaled(400, 260))
     prior = Prior.from_cad(cad)
