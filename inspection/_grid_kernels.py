@@ -12,6 +12,8 @@ tri : (F, 3, 3) float64, mm
 Region codes returned by :func:`closest_on_triangle`: 0 interior,
 1, 2, 3 the corners a, b, c, and 4, 5, 6 the edges ab, bc, ca (edge e of a
 face joins its corners e and (e + 1) % 3).
+Faces are numbered in the tree's own (spatial) order; ``face_id`` maps that
+number to the CAD model's face index, which is what the queries return.
 Cell codes of the fine grid: ``>= 0`` a face that is closest to all eight
 corners of the cell, ``-1`` unknown (a corner lies outside the computed band:
 use the exact slow path), ``<= -2`` mixed: ``-code - 2`` indexes a list of
@@ -36,6 +38,9 @@ _MAX_WALK = 32
 INTERIOR_FLAG = 1 << 30
 FACE_MASK = INTERIOR_FLAG - 1
 _MAX_PLANE_STEPS = 6
+# Queries per chunk of the two-pass fast path: the chunk's cells and face
+# records stay in the first-level caches between the passes.
+QUERY_CHUNK = 64
 
 # Layout of a face record, one row of the (F, REC_WIDTH) float64 array the
 # queries read: everything a query needs of one face in three adjacent cache
@@ -161,6 +166,7 @@ def _walk_and_finish(
     vf_idx,
     edge_pn,
     vert_pn,
+    face_id,
     out_pts,
     out_nrm,
     out_dist,
@@ -232,7 +238,7 @@ def _walk_and_finish(
     out_nrm[i, 1] = rec[f, 1]
     out_nrm[i, 2] = rec[f, 2]
     out_dist[i] = d if s >= 0.0 else -d
-    out_face[i] = f
+    out_face[i] = face_id[f]
 
 
 @njit(cache=True)
@@ -309,11 +315,13 @@ def query_grid(
     vf_idx,
     edge_pn,
     vert_pn,
+    face_id,
     out_pts,
     out_nrm,
     out_dist,
     out_face,
     status,
+    sink,
 ):
     """Fast path: cell lookup, exact distance to the cell's face(s), local walk.
 
@@ -333,160 +341,220 @@ def query_grid(
     limx = float(dims[0] * block)
     limy = float(dims[1] * block)
     limz = float(dims[2] * block)
-    for j in prange(n):
-        i = order[j]
-        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
-        gx = (px - origin[0]) * inv_h
-        gy = (py - origin[1]) * inv_h
-        gz = (pz - origin[2]) * inv_h
-        # Also keeps far points from overflowing the integer conversion.
-        if not (0.0 <= gx < limx and 0.0 <= gy < limy and 0.0 <= gz < limz):
-            status[i] = STATUS_SLOW
-            continue
-        ix, iy, iz = int(gx), int(gy), int(gz)
-        b = coarse[((ix >> shift) * nby + (iy >> shift)) * nbz + (iz >> shift)]
-        if b < 0:
-            status[i] = STATUS_SLOW
-            continue
-        local = ((((ix & mask) << shift) + (iy & mask)) << shift) + (iz & mask)
-        code = cells[(np.int64(b) << (3 * shift)) + local]
-        if code == CELL_UNKNOWN:
-            status[i] = STATUS_SLOW
-            continue
-        status[i] = STATUS_DONE
-        if code >= 0:
-            f = int(code & FACE_MASK)
-            if code & INTERIOR_FLAG:
-                # Every point of this cell has its foot inside face f: the
-                # plane gives the answer without any test.
-                nx, ny, nz = rec[f, 0], rec[f, 1], rec[f, 2]
-                d = px * nx + py * ny + pz * nz - rec[f, 3]
-                out_pts[i, 0] = px - d * nx
-                out_pts[i, 1] = py - d * ny
-                out_pts[i, 2] = pz - d * nz
-                out_nrm[i, 0] = nx
-                out_nrm[i, 1] = ny
-                out_nrm[i, 2] = nz
-                out_dist[i] = d
-                out_face[i] = f
-                continue
-            hit, d, u, v = _plane_foot(px, py, pz, rec, f)
-            g = f
-            prev = -1
-            for _ in range(_MAX_PLANE_STEPS):
-                if hit:
-                    break
-                # The foot left the triangle: step across the edge opposite
-                # the most negative barycentric coordinate, if that edge is
-                # smooth (a patch where plane feet are the exact answer).
-                la = 1.0 - u - v
-                if la <= u and la <= v:
-                    e = 1
-                elif u <= v:
-                    e = 2
-                else:
-                    e = 0
-                nxt = int(rec[g, REC_SMOOTH + e])
-                if nxt < 0 or nxt == prev:
-                    break
-                prev = g
-                g = nxt
-                hit, d, u, v = _plane_foot(px, py, pz, rec, g)
+    for c in prange(sink.shape[0]):
+        j0 = c * QUERY_CHUNK
+        j1 = min(n, j0 + QUERY_CHUNK)
+        # Pass 1: the cell codes of a chunk, and a first touch of the face
+        # record or candidate list each names. These loads do not depend on
+        # one another, so the memory system serves many at once; pass 2 then
+        # finds them in cache instead of waiting for each in turn.
+        codes = np.empty(QUERY_CHUNK, dtype=np.int32)
+        acc = 0.0
+        for j in range(j0, j1):
+            i = order[j]
+            gx = (points[i, 0] - origin[0]) * inv_h
+            gy = (points[i, 1] - origin[1]) * inv_h
+            gz = (points[i, 2] - origin[2]) * inv_h
+            code = CELL_UNKNOWN
+            # Also keeps far points from overflowing the integer conversion.
+            if 0.0 <= gx < limx and 0.0 <= gy < limy and 0.0 <= gz < limz:
+                ix, iy, iz = int(gx), int(gy), int(gz)
+                b = coarse[((ix >> shift) * nby + (iy >> shift)) * nbz + (iz >> shift)]
+                if b >= 0:
+                    local = ((((ix & mask) << shift) + (iy & mask)) << shift) + (iz & mask)
+                    code = cells[(np.int64(b) << (3 * shift)) + local]
+            codes[j - j0] = code
+            if code >= 0:
+                f = int(code & FACE_MASK)
+                acc += rec[f, 3] + rec[f, 11]
+            elif code != CELL_UNKNOWN:
+                acc += mixed_faces[mixed_ptr[-code - 2]]
+        # Kept so that the compiler cannot drop the touches.
+        sink[c] = acc
+        for j in range(j0, j1):
+            _query_one(
+                order[j],
+                codes[j - j0],
+                points,
+                mixed_ptr,
+                mixed_faces,
+                rec,
+                faces,
+                face_adj,
+                vf_ptr,
+                vf_idx,
+                edge_pn,
+                vert_pn,
+                face_id,
+                out_pts,
+                out_nrm,
+                out_dist,
+                out_face,
+                status,
+            )
+
+
+@njit(cache=True, inline="always")
+def _query_one(
+    i,
+    code,
+    points,
+    mixed_ptr,
+    mixed_faces,
+    rec,
+    faces,
+    face_adj,
+    vf_ptr,
+    vf_idx,
+    edge_pn,
+    vert_pn,
+    face_id,
+    out_pts,
+    out_nrm,
+    out_dist,
+    out_face,
+    status,
+):
+    """Row i of the fast path, given the code of its cell (see :func:`query_grid`)."""
+    px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+    if code == CELL_UNKNOWN:
+        status[i] = STATUS_SLOW
+        return
+    status[i] = STATUS_DONE
+    if code >= 0:
+        f = int(code & FACE_MASK)
+        if code & INTERIOR_FLAG:
+            # Every point of this cell has its foot inside face f: the
+            # plane gives the answer without any test.
+            nx, ny, nz = rec[f, 0], rec[f, 1], rec[f, 2]
+            d = px * nx + py * ny + pz * nz - rec[f, 3]
+            out_pts[i, 0] = px - d * nx
+            out_pts[i, 1] = py - d * ny
+            out_pts[i, 2] = pz - d * nz
+            out_nrm[i, 0] = nx
+            out_nrm[i, 1] = ny
+            out_nrm[i, 2] = nz
+            out_dist[i] = d
+            out_face[i] = face_id[f]
+            return
+        hit, d, u, v = _plane_foot(px, py, pz, rec, f)
+        g = f
+        prev = -1
+        for _ in range(_MAX_PLANE_STEPS):
             if hit:
-                f = g
-            if hit:
-                nx, ny, nz = rec[f, 0], rec[f, 1], rec[f, 2]
-                out_pts[i, 0] = px - d * nx
-                out_pts[i, 1] = py - d * ny
-                out_pts[i, 2] = pz - d * nz
-                out_nrm[i, 0] = nx
-                out_nrm[i, 1] = ny
-                out_nrm[i, 2] = nz
-                out_dist[i] = d
-                out_face[i] = f
+                break
+            # The foot left the triangle: step across the edge opposite
+            # the most negative barycentric coordinate, if that edge is
+            # smooth (a patch where plane feet are the exact answer).
+            la = 1.0 - u - v
+            if la <= u and la <= v:
+                e = 1
+            elif u <= v:
+                e = 2
+            else:
+                e = 0
+            nxt = int(rec[g, REC_SMOOTH + e])
+            if nxt < 0 or nxt == prev:
+                break
+            prev = g
+            g = nxt
+            hit, d, u, v = _plane_foot(px, py, pz, rec, g)
+        if hit:
+            f = g
+        if hit:
+            nx, ny, nz = rec[f, 0], rec[f, 1], rec[f, 2]
+            out_pts[i, 0] = px - d * nx
+            out_pts[i, 1] = py - d * ny
+            out_pts[i, 2] = pz - d * nz
+            out_nrm[i, 0] = nx
+            out_nrm[i, 1] = ny
+            out_nrm[i, 2] = nz
+            out_dist[i] = d
+            out_face[i] = face_id[f]
+            return
+        qx, qy, qz, d2, region = closest_on_record(px, py, pz, rec, f)
+    else:
+        m = -code - 2
+        k0, k1 = mixed_ptr[m], mixed_ptr[m + 1]
+        # First the candidates' planes: a foot inside its triangle is
+        # that face's exact distance, and |plane distance| bounds every
+        # other face's distance from below, so most candidates never
+        # need the full point-to-triangle test.
+        f = -1
+        d2 = np.inf
+        fd = 0.0
+        for k in range(k0, k1):
+            g = int(mixed_faces[k])
+            hit, d, u, v = _plane_foot(px, py, pz, rec, g)
+            if hit and d * d < d2:
+                f, d2, fd = g, d * d, d
+        region = 0
+        qx = qy = qz = 0.0
+        if f >= 0:
+            qx = px - fd * rec[f, 0]
+            qy = py - fd * rec[f, 1]
+            qz = pz - fd * rec[f, 2]
+        for k in range(k0, k1):
+            g = int(mixed_faces[k])
+            hit, d, u, v = _plane_foot(px, py, pz, rec, g)
+            if hit or d * d >= d2:
                 continue
-            qx, qy, qz, d2, region = closest_on_record(px, py, pz, rec, f)
-        else:
-            m = -code - 2
-            k0, k1 = mixed_ptr[m], mixed_ptr[m + 1]
-            # First the candidates' planes: a foot inside its triangle is
-            # that face's exact distance, and |plane distance| bounds every
-            # other face's distance from below, so most candidates never
-            # need the full point-to-triangle test.
-            f = -1
-            d2 = np.inf
-            fd = 0.0
-            for k in range(k0, k1):
-                g = int(mixed_faces[k])
+            rx, ry, rz, e2, rg = closest_on_record(px, py, pz, rec, g)
+            if e2 < d2:
+                f, qx, qy, qz, d2, region = g, rx, ry, rz, e2, rg
+        if region == 0:
+            # A foot inside f: a closer face can only lie across one of
+            # f's edges. Across a smooth edge it would be closer by at
+            # most distance * angle^2 (the single-face cells' bound), so
+            # only sharp edges are looked across, each first bounded by
+            # its plane.
+            g_best = -1
+            for e in range(3):
+                g = int(face_adj[f, e])
+                if g < 0 or rec[f, REC_SMOOTH + e] >= 0.0:
+                    continue
                 hit, d, u, v = _plane_foot(px, py, pz, rec, g)
-                if hit and d * d < d2:
-                    f, d2, fd = g, d * d, d
-            region = 0
-            qx = qy = qz = 0.0
-            if f >= 0:
-                qx = px - fd * rec[f, 0]
-                qy = py - fd * rec[f, 1]
-                qz = pz - fd * rec[f, 2]
-            for k in range(k0, k1):
-                g = int(mixed_faces[k])
-                hit, d, u, v = _plane_foot(px, py, pz, rec, g)
-                if hit or d * d >= d2:
+                if d * d >= d2:
                     continue
                 rx, ry, rz, e2, rg = closest_on_record(px, py, pz, rec, g)
                 if e2 < d2:
-                    f, qx, qy, qz, d2, region = g, rx, ry, rz, e2, rg
-            if region == 0:
-                # A foot inside f: a closer face can only lie across one of
-                # f's edges. Across a smooth edge it would be closer by at
-                # most distance * angle^2 (the single-face cells' bound), so
-                # only sharp edges are looked across, each first bounded by
-                # its plane.
-                g_best = -1
-                for e in range(3):
-                    g = int(face_adj[f, e])
-                    if g < 0 or rec[f, REC_SMOOTH + e] >= 0.0:
-                        continue
-                    hit, d, u, v = _plane_foot(px, py, pz, rec, g)
-                    if d * d >= d2:
-                        continue
-                    rx, ry, rz, e2, rg = closest_on_record(px, py, pz, rec, g)
-                    if e2 < d2:
-                        g_best, qx, qy, qz, d2, region = g, rx, ry, rz, e2, rg
-                if g_best < 0:
-                    nx, ny, nz = rec[f, 0], rec[f, 1], rec[f, 2]
-                    out_pts[i, 0] = qx
-                    out_pts[i, 1] = qy
-                    out_pts[i, 2] = qz
-                    out_nrm[i, 0] = nx
-                    out_nrm[i, 1] = ny
-                    out_nrm[i, 2] = nz
-                    out_dist[i] = fd
-                    out_face[i] = f
-                    continue
-                f = g_best
-        _walk_and_finish(
-            i,
-            px,
-            py,
-            pz,
-            f,
-            qx,
-            qy,
-            qz,
-            d2,
-            region,
-            rec,
-            faces,
-            face_adj,
-            vf_ptr,
-            vf_idx,
-            edge_pn,
-            vert_pn,
-            out_pts,
-            out_nrm,
-            out_dist,
-            out_face,
-        )
+                    g_best, qx, qy, qz, d2, region = g, rx, ry, rz, e2, rg
+            if g_best < 0:
+                nx, ny, nz = rec[f, 0], rec[f, 1], rec[f, 2]
+                out_pts[i, 0] = qx
+                out_pts[i, 1] = qy
+                out_pts[i, 2] = qz
+                out_nrm[i, 0] = nx
+                out_nrm[i, 1] = ny
+                out_nrm[i, 2] = nz
+                out_dist[i] = fd
+                out_face[i] = face_id[f]
+                return
+            f = g_best
+    _walk_and_finish(
+        i,
+        px,
+        py,
+        pz,
+        f,
+        qx,
+        qy,
+        qz,
+        d2,
+        region,
+        rec,
+        faces,
+        face_adj,
+        vf_ptr,
+        vf_idx,
+        edge_pn,
+        vert_pn,
+        face_id,
+        out_pts,
+        out_nrm,
+        out_dist,
+        out_face,
+    )
 
 
 @njit(cache=True)
@@ -833,6 +901,7 @@ def query_bvh(
     vf_idx,
     edge_pn,
     vert_pn,
+    face_id,
     out_pts,
     out_nrm,
     out_dist,
@@ -891,6 +960,7 @@ def query_bvh(
             vf_idx,
             edge_pn,
             vert_pn,
+            face_id,
             out_pts,
             out_nrm,
             out_dist,

@@ -64,11 +64,12 @@ from .errors import InvalidInput, TreeMismatch
 
 log = logging.getLogger(__name__)
 
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 """Version of the saved file layout; bump when arrays or their meaning change.
 
 1: the first layout. 2: adds the face hierarchy of the exact slow path
 (``bvh_order``, ``bvh_lo``, ``bvh_hi``, ``bvh_child``, ``bvh_span``).
+3: faces in the tree's own spatial order, ``face_id`` maps them to the CAD's.
 """
 
 # Exactly these arrays and metadata keys make up a saved tree of this
@@ -97,6 +98,7 @@ _ARRAY_KEYS = frozenset(
         "bvh_hi",
         "bvh_child",
         "bvh_span",
+        "face_id",
     }
 )
 _META_KEYS = frozenset({"format_version", "name", "cad_hash", "tree_hash", "params"})
@@ -193,6 +195,7 @@ class _Mesh:
     bvh_hi: np.ndarray  # (N, 3) float64
     bvh_child: np.ndarray  # (N, 2) int32: children, -1 for a leaf
     bvh_span: np.ndarray  # (N, 2) int32: a leaf's [start, end) in bvh_order
+    face_id: np.ndarray  # (F,) int64: the CAD face index of each (spatially ordered) face
     rec: np.ndarray  # (F, K.REC_WIDTH) float64: packed face records (derived, not saved)
 
 
@@ -247,6 +250,14 @@ class GridTree:
         for arr in (origin, dims, coarse, cells, mixed_ptr, mixed_faces):
             arr.setflags(write=False)
         self._n_blocks = int((coarse >= 0).sum())
+        # The public faces and normals are in the CAD's order, the mesh's in
+        # the tree's own.
+        self._cad_faces = np.empty_like(mesh.faces)
+        self._cad_faces[mesh.face_id] = mesh.faces
+        self._cad_normals = np.empty_like(mesh.face_normals)
+        self._cad_normals[mesh.face_id] = mesh.face_normals
+        self._cad_faces.setflags(write=False)
+        self._cad_normals.setflags(write=False)
         self.hash = tree_hash if tree_hash is not None else self._content_hash()
 
     # ------------------------------------------------------------------ build
@@ -296,7 +307,6 @@ class GridTree:
         if not math.isfinite(band_mm) or band_mm < 0:
             raise InvalidInput(f"band_mm must be a finite number >= 0, got {band_mm!r}")
         t0 = time.perf_counter()
-        mesh = _mesh_arrays(cad.vertices, cad.faces, cad.face_normals)
         h = spacing_mm
         block_mm = BLOCK * h
         # Nodes within `reach` of the surface get their exact closest face. A
@@ -314,6 +324,13 @@ class GridTree:
             )
         origin = lo_box.astype(np.float64)
 
+        # Number the faces in the raster order of the blocks holding their
+        # centroids, the order in which a query batch visits the blocks: the
+        # face records a batch reads then lie close together in memory.
+        centroid = cad.vertices[cad.faces].mean(axis=1)
+        cb = np.clip(((centroid - origin) // block_mm).astype(np.int64), 0, dims - 1)
+        face_id = np.argsort((cb[:, 0] * dims[1] + cb[:, 1]) * dims[2] + cb[:, 2], kind="stable")
+        mesh = _mesh_arrays(cad.vertices, cad.faces[face_id], cad.face_normals[face_id], face_id)
         tri = mesh.tri
         lo = tri.min(axis=1) - reach
         hi = tri.max(axis=1) + reach
@@ -456,11 +473,13 @@ class GridTree:
                 m.vf_idx,
                 m.edge_pn,
                 m.vert_pn,
+                m.face_id,
                 out_pts,
                 out_nrm,
                 out_dist,
                 out_face,
                 status,
+                np.empty((n + K.QUERY_CHUNK - 1) // K.QUERY_CHUNK),
             )
             slow = np.flatnonzero(status != K.STATUS_DONE)
             if len(slow):
@@ -485,6 +504,7 @@ class GridTree:
             m.vf_idx,
             m.edge_pn,
             m.vert_pn,
+            m.face_id,
             out_pts,
             out_nrm,
             out_dist,
@@ -499,13 +519,13 @@ class GridTree:
 
     @property
     def faces(self) -> Faces:
-        """(F, 3) int64: the CAD faces (read-only)."""
-        return self._mesh.faces
+        """(F, 3) int64: the CAD faces, in the CAD model's order (read-only)."""
+        return self._cad_faces
 
     @property
     def face_normals(self) -> Vectors:
-        """(F, 3) float64: unit face normals (read-only)."""
-        return self._mesh.face_normals
+        """(F, 3) float64: unit face normals, in the CAD model's order (read-only)."""
+        return self._cad_normals
 
     @property
     def bounds(self) -> np.ndarray:
@@ -535,6 +555,7 @@ class GridTree:
             m.plane,
             m.smooth_adj,
             m.rec,
+            m.face_id,
             m.face_adj,
             m.vf_ptr,
             m.vf_idx,
@@ -604,6 +625,7 @@ class GridTree:
             "bvh_hi": m.bvh_hi,
             "bvh_child": m.bvh_child,
             "bvh_span": m.bvh_span,
+            "face_id": m.face_id,
         }
 
     def _content_hash(self) -> str:
@@ -714,6 +736,7 @@ class GridTree:
             bvh_hi=a["bvh_hi"],
             bvh_child=a["bvh_child"],
             bvh_span=a["bvh_span"],
+            face_id=a["face_id"],
             rec=_face_records(a["plane"], tri, a["smooth_adj"]),
         )
         for arr in (*a.values(), tri, mesh.rec):
@@ -802,8 +825,10 @@ def _as_points(points: Any) -> np.ndarray:
     return p if p.flags.writeable else p.copy()
 
 
-def _mesh_arrays(vertices: np.ndarray, faces: np.ndarray, face_normals: np.ndarray) -> _Mesh:
-    """Adjacency and pseudo-normals of a triangle mesh."""
+def _mesh_arrays(
+    vertices: np.ndarray, faces: np.ndarray, face_normals: np.ndarray, face_id: np.ndarray
+) -> _Mesh:
+    """Adjacency and pseudo-normals of a triangle mesh whose face i is the CAD's face_id[i]."""
     v = np.ascontiguousarray(vertices, dtype=np.float64)
     f = np.ascontiguousarray(faces, dtype=np.int64)
     fn = np.ascontiguousarray(face_normals, dtype=np.float64)
@@ -876,10 +901,12 @@ def _mesh_arrays(vertices: np.ndarray, faces: np.ndarray, face_normals: np.ndarr
         bvh_hi=bvh[2],
         bvh_child=bvh[3],
         bvh_span=bvh[4],
+        face_id=np.ascontiguousarray(face_id, dtype=np.int64),
         rec=_face_records(plane, tri, smooth_adj),
     )
     for arr in (
         mesh.rec,
+        mesh.face_id,
         v,
         f,
         fn,
