@@ -15,8 +15,10 @@ line, embossing), in one run:
   there) the 84k-face counter model, and the load time of a saved tree.
 
 Times are medians over repeats after a warm-up. Ratios are peer time / grid
-time. Exit status 1 when an accuracy check fails (speed is printed, as it
-depends on the machine's load).
+time; the line starting ``RATIO`` gives the headline one (against cKDTree).
+Exit status 1 when, and only when, an accuracy check fails: speed and build
+times are printed beside their goals, never asserted, as they depend on the
+machine's load.
 
 Run: ``python -m bench.bench_grid`` (or ``make bench``).
 """
@@ -220,34 +222,46 @@ def main() -> int:
     if counter_load_s is not None:
         print(f"counter tree load (with hash check) {counter_load_s * 1e3:.0f} ms")
 
-    # ---- checks (Done-when figures)
+    # ---- the headline ratio, then the checks (Done-when figures)
     _, _, _, e_near, e_far, disp_far, _ = rows[0]
     kd_ratio = rows[1][1] / grid_near
     kd_best = rows[1][6] / grid_best
-    checks = [
-        ("near mean |error| <= 1 um", e_near.mean() <= 1e-3, True),
-        ("near p99 |error| <= 20 um", np.percentile(e_near, 99) <= 0.02, True),
+    print(
+        f"\nRATIO  GridTree.query is {kd_ratio:.1f}x faster than scipy cKDTree(workers=-1) "
+        f"on {N_NEAR // 1000}k queries within 3 mm (medians; {kd_best:.1f}x best repeats); "
+        f"goal >= 50x: {'met' if kd_ratio >= 50 else 'NOT met'} at load "
+        f"{os.getloadavg()[0]:.1f}"
+    )
+    # Accuracy decides the exit status; speed and build figures depend on
+    # the machine and its load, so they are reported beside their goals.
+    accuracy = [
+        ("near mean |error| <= 1 um", e_near.mean() <= 1e-3),
+        ("near p99 |error| <= 20 um", np.percentile(e_near, 99) <= 0.02),
         # A far point can have several equally close points (a tie): then the
         # distance, not the point, is what must agree.
         (
             "far closest point within 0.1 mm",
             bool(np.all((disp_far <= 0.1) | (e_far <= 1e-3))),
-            True,
         ),
-        (f"near speed >= 50x cKDTree, medians (got {kd_ratio:.1f}x)", kd_ratio >= 50, False),
-        (f"near speed >= 50x cKDTree, best runs (got {kd_best:.1f}x)", kd_best >= 50, False),
+    ]
+    goals = [
+        (f"near speed >= 50x cKDTree, medians (got {kd_ratio:.1f}x)", kd_ratio >= 50),
+        (f"near speed >= 50x cKDTree, best repeats (got {kd_best:.1f}x)", kd_best >= 50),
     ]
     if len(builds) > 1:
         cb = builds[1][2]
-        checks.append((f"counter build <= 10 s (got {cb:.1f} s)", cb <= 10, False))
+        goals.append((f"counter build <= 10 s (got {cb:.1f} s)", cb <= 10))
     if counter_load_s is not None:
         cl = counter_load_s
-        checks.append((f"counter load <= 0.2 s (got {cl:.3f} s)", cl <= 0.2, False))
-    print()
-    failed = False
-    for label, ok, is_accuracy in checks:
-        print(f"{'PASS' if ok else 'FAIL'}  {label}")
-        failed |= is_accuracy and not ok
+        goals.append((f"counter load <= 0.2 s (got {cl:.3f} s)", cl <= 0.2))
+    print("\naccuracy checks (exit status 1 if any fails):")
+    for label, ok in accuracy:
+        print(f"  {'PASS' if ok else 'FAIL'}  {label}")
+    print("speed and build goals (reported only, never the exit status):")
+    for label, ok in goals:
+        print(f"  {'met    ' if ok else 'NOT met'}  {label}")
+    failed = not all(ok for _, ok in accuracy)
+    print(f"\nexit status {1 if failed else 0}")
     return 1 if failed else 0
 
 
