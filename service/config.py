@@ -317,9 +317,31 @@ class RetentionSection(_Strict):
 
 
 class SimulatorSection(_Strict):
+    """The ingest's simulated rig: how parts arrive and which defects they carry.
+
+    The bounds keep a part inside the rig's measuring volume (800 x 500 mm at
+    the belt) and a dent within what the rig resolves and the surface holds.
+    """
+
     defect_rate: float = Field(
         default=0.1, ge=0, le=1, description="Fraction of parts given a defect."
     )
+    dent_depth_mm: float = Field(
+        default=1.5, gt=0, le=20, description="Depth of an injected dent, mm."
+    )
+    dent_radius_mm: float = Field(
+        default=15.0, ge=1, le=200, description="Radius of an injected dent, mm."
+    )
+    position_range_x_mm: float = Field(
+        default=60.0, ge=0, le=400, description="Half-range of the part's x on the belt, mm."
+    )
+    position_range_y_mm: float = Field(
+        default=30.0, ge=0, le=250, description="Half-range of the part's y on the belt, mm."
+    )
+    yaw_range_deg: float = Field(
+        default=5.0, ge=0, le=180, description="Half-range of the in-plane rotation, degrees."
+    )
+    flip: bool = Field(default=True, description="Half of the parts arrive turned by 180 deg.")
     seed: int = Field(default=0, ge=0)
 
 

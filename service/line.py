@@ -25,16 +25,15 @@ from typing import Any
 
 import zenoh
 
-from inspection.cad import CadModel, load_cad
-
 from . import bus
-from .config import LineConfig, PartSpec, load_part_spec
+from .config import LineConfig, load_part_spec
 from .ingest import Ingest, SimPart, SimulatedRig, SimulationSettings
 from .models import InspectionResult, software_version
-from .pipeline import Outcome, Pipeline, PreparedPart, Stages, default_stages, prepare_part
+from .parts import LoadedPart, PartRegistry, load_part_cad
+from .pipeline import Outcome, Pipeline, Stages, flash_stages
 from .protocol import FrameSet, Keys
 from .recorder import Recorder, Retention
-from .store import ResultStore
+from .store import DeviationArchive, ResultStore
 from .worker import ZenohWorker, result_from_json
 
 log = logging.getLogger(__name__)
@@ -43,29 +42,22 @@ log = logging.getLogger(__name__)
 # --------------------------------------------------------------------------- set-up
 
 
-def load_cad_for(spec: PartSpec, base_dir: Path) -> CadModel:
-    """The CAD model of a part spec: the generated panel or the mesh file."""
-    if spec.is_generated:
-        from inspection.panel import Hole, PanelSpec, sheet_metal_panel
-
-        kwargs: dict[str, Any] = {}
-        for k, v in spec.panel.items():
-            if k == "holes":
-                v = tuple(Hole(**h) if isinstance(h, dict) else Hole(*h) for h in v)
-            elif isinstance(v, list):
-                v = tuple(v)
-            kwargs[k] = v
-        return sheet_metal_panel(PanelSpec(**kwargs), name=spec.name)
-    return load_cad(spec.cad_path(base_dir), scale=spec.scale, name=spec.name)
+load_cad_for = load_part_cad
+"""The CAD model of a part spec: the generated panel or the mesh file."""
 
 
 @dataclass
 class Station:
-    """A station's measuring set-up: stages and prepared parts."""
+    """A station's measuring set-up: the stages and its loaded parts.
+
+    ``parts`` are the objects of ``registry`` (when there is one): the worker
+    measures with the very tree, alignment model and spec the REST API serves.
+    """
 
     cfg: LineConfig
     stages: Stages
-    parts: dict[str, PreparedPart]
+    parts: dict[str, LoadedPart]
+    registry: PartRegistry | None = None
     keys: Keys = field(init=False)
 
     def __post_init__(self) -> None:
@@ -73,23 +65,66 @@ class Station:
 
     @classmethod
     def load(
-        cls, cfg: LineConfig, stages: Stages | None = None, *, build_trees: bool = True
+        cls,
+        cfg: LineConfig,
+        stages: Stages | None = None,
+        *,
+        build_trees: bool = True,
+        warm_up: bool = True,
     ) -> Station:
-        """Read the station's part specs and prepare (build) every tree: ready afterwards.
+        """Load every part of the station (tree, alignment model, spec) and warm the kernels up.
 
-        ``build_trees=False`` loads the CAD only (enough for the ingest's simulator).
+        Returns only once the station can measure at full speed. ``build_trees=False``
+        loads the CAD only (enough for the ingest's simulator).
+
+        Raises
+        ------
+        service.parts.PartError
+            A part of the station could not be loaded.
         """
-        stages = stages or default_stages()
-        parts = {}
-        for path in cfg.part_spec_paths():
-            spec = load_part_spec(path)
-            cad = load_cad_for(spec, path.parent)
-            parts[spec.name] = (
-                prepare_part(spec, cad, stages)
-                if build_trees
-                else PreparedPart(spec, cad, None, "")
-            )
-        return cls(cfg, stages, parts)
+        stages = stages or stages_for(cfg)
+        if not build_trees:
+            parts = {}
+            for path in cfg.part_spec_paths():
+                spec = load_part_spec(path)
+                parts[spec.name] = LoadedPart(spec, load_part_cad(spec, path.parent), None, "")
+            station = cls(cfg, stages, parts)
+            if warm_up:
+                station.warm_up(measure=False)
+            return station
+        registry = PartRegistry.from_config(cfg)
+        try:
+            t0 = time.perf_counter()
+            registry.preload()
+            parts = registry.loaded(list(cfg.station.parts))
+            log.info("station %s: parts loaded in %.1f s", cfg.station.name,
+                     time.perf_counter() - t0)  # fmt: skip
+            station = cls(cfg, stages, parts, registry)
+            if warm_up:
+                station.warm_up()
+        except BaseException:
+            registry.close()
+            raise
+        return station
+
+    def warm_up(self, *, measure: bool = True) -> None:
+        """Render one FrameSet (and measure it): the simulator's and the reconstruction's
+        kernels compile here, not on the first part of the shift."""
+        t0 = time.perf_counter()
+        fs = self.simulated_rig().capture(0, time.time_ns())
+        t1 = time.perf_counter()
+        if not measure:
+            log.info("warm-up: rendered in %.1f s", t1 - t0)
+            return
+        r = self.pipeline().run(fs).result
+        log.info("warm-up: rendered in %.1f s, measured in %.1f s (%s; %s)", t1 - t0,
+                 time.perf_counter() - t1, r.status.value, r.timings_ms)  # fmt: skip
+        if r.status.value == "error":
+            log.warning("warm-up measurement gave an error: %s", r.reason)
+
+    def close(self) -> None:
+        if self.registry is not None:
+            self.registry.close()
 
     @property
     def name(self) -> str:
@@ -108,7 +143,15 @@ class Station:
             [SimPart.from_cad(n, p.cad, flat=p.spec.is_generated) for n, p in self.parts.items()],
             line=self.cfg.line.name,
             station=self.name,
-            settings=SimulationSettings(defect_rate=sim.defect_rate, seed=sim.seed),
+            settings=SimulationSettings(
+                defect_rate=sim.defect_rate,
+                dent_depth_mm=sim.dent_depth_mm,
+                dent_radius_mm=sim.dent_radius_mm,
+                position_range_mm=(sim.position_range_x_mm, sim.position_range_y_mm),
+                yaw_range_deg=sim.yaw_range_deg,
+                flip=sim.flip,
+                seed=sim.seed,
+            ),
         )
 
     def metadata(self) -> dict[str, dict[str, str]]:
@@ -126,13 +169,11 @@ class Station:
         }
 
     def rig_metadata(self) -> dict[str, str]:
-        """The stages, calibration id and the calibration itself (TOML for the flash rig)."""
+        """The stages, calibration id and the calibrated rig itself (TOML)."""
         meta = {"stages": self.stages.name, "calibration_id": self.stages.calibration_id}
         calibrated = getattr(self.stages.rig, "calibrated", None)
         if calibrated is not None and hasattr(calibrated, "to_toml"):
             meta["calibration_toml"] = calibrated.to_toml()
-        else:
-            meta["geometry"] = repr(self.stages.rig)
         return meta
 
     def recorder(self, data_dir: Path | None = None) -> Recorder:
@@ -149,13 +190,9 @@ class Station:
         )
 
 
-def stages_for(cfg: LineConfig, name: str = "depth") -> Stages:
-    """The measuring stages of the line: ``depth`` (default) or ``flash`` (the four-camera rig)."""
-    from .pipeline import make_stages
-
-    return make_stages(
-        name, trees_dir=cfg.storage.trees_path(), rig_calibration=cfg.rig_calibration_path()
-    )
+def stages_for(cfg: LineConfig) -> Stages:
+    """The line's measuring stages: the four-camera flash rig, calibrated as configured."""
+    return flash_stages(cfg.rig_calibration_path())
 
 
 def bus_settings(cfg: LineConfig, mode: str | None = None) -> bus.BusSettings:
@@ -166,6 +203,24 @@ def bus_settings(cfg: LineConfig, mode: str | None = None) -> bus.BusSettings:
         connect=tuple(z.connect),
         multicast_scouting=z.multicast_scouting,
     )
+
+
+def archive_sink(archive: DeviationArchive) -> Callable[[Outcome, FrameSet | None], None]:
+    """Keep the per-point deviations of every measured result (the colour map's data).
+
+    Goes before the store's sink: a client that sees the row finds the arrays.
+    """
+
+    def sink(outcome: Outcome, fs: FrameSet | None) -> None:
+        T, points, d = outcome.T_cad_rig, outcome.points_rig, outcome.distances
+        if T is None or points is None or d is None:
+            return
+        try:
+            archive.save(outcome.result.id, points @ T[:3, :3].T + T[:3, 3], d)
+        except OSError as exc:  # a full disk must not lose the result itself
+            log.error("deviations of %s not kept: %s", outcome.result.id, exc)
+
+    return sink
 
 
 def store_sink(store: ResultStore) -> Callable[[Outcome, FrameSet | None], None]:
@@ -237,14 +292,19 @@ class ApiServer:
 
 
 class Api:
-    """The REST API's app with the part registry it serves (closed together)."""
+    """The REST API's app with the part registry it serves.
 
-    def __init__(self, app: Any, registry: Any) -> None:
+    ``owns_registry``: the registry was made for the API alone and closes with
+    it; a station's registry closes with the station.
+    """
+
+    def __init__(self, app: Any, registry: Any, *, owns_registry: bool = True) -> None:
         self.app = app
         self.registry = registry
+        self.owns_registry = owns_registry
 
     def close(self) -> None:
-        if self.registry is not None:
+        if self.registry is not None and self.owns_registry:
             self.registry.close()
 
 
@@ -254,25 +314,32 @@ def make_app(
     store: ResultStore,
     hub: Any,
     checks: dict[str, Callable[[], bool]],
+    registry: PartRegistry | None = None,
 ) -> Api | None:
-    """The app of :func:`service.api.create_app` with its part registry (trees built in the
-    background; readiness waits for them), or None when the API is not installed."""
+    """The app of :func:`service.api.create_app`, or None when the API is not installed.
+
+    ``registry``: the station's (already loaded) part registry, shared with the
+    worker. Without one (the API as its own process) a registry is made and
+    its trees are built in the background; readiness waits for them.
+    """
     try:
         from .api import create_app
-        from .parts import PartRegistry
     except ImportError as exc:
         log.warning("REST API not available (%s); running without it", exc)
         return None
-    registry = PartRegistry.from_config(cfg)
+    own = registry is None
+    reg = PartRegistry.from_config(cfg) if registry is None else registry
     try:
-        registry.start()
-        app = create_app(cfg, store=store, parts=registry, bus=hub, checks=checks)
+        if own:
+            reg.start()
+        app = create_app(cfg, store=store, parts=reg, bus=hub, checks=checks)
     except Exception:
         # The line measures without the API; say so loudly rather than stop it.
         log.exception("the REST API could not be built; running without it")
-        registry.close()
+        if own:
+            reg.close()
         return None
-    return Api(app, registry)
+    return Api(app, reg, owns_registry=own)
 
 
 def make_hub() -> Any:
@@ -323,6 +390,7 @@ class LineHandles:
         self.store.close()
         if self.hub is not None and hasattr(self.hub, "close"):
             self.hub.close()
+        self.station.close()
         bus.close_all([self.session])
 
 
@@ -337,8 +405,12 @@ def start_line(
     """Start the whole line in this process; see :func:`run_line`."""
     log.info("line config %s: %s", cfg.hash()[:12], json.dumps(cfg.effective()))
     station = Station.load(cfg, stages)
-    session = bus.open_session(bus_settings(cfg, "peer"))
-    opened: list[Any] = [session]
+    try:
+        session = bus.open_session(bus_settings(cfg, "peer"))
+    except BaseException:
+        station.close()
+        raise
+    opened: list[Any] = [station, session]
     try:
         store = ResultStore(cfg.storage.database_path())
         opened.append(store)
@@ -346,7 +418,8 @@ def start_line(
         opened.append(recorder)
         counter = ResultCounter(parts_limit)
         hub = make_hub()
-        sinks = [store_sink(store), recorder.record, *extra_sinks]
+        archive = DeviationArchive(cfg.storage.deviations_path())
+        sinks = [archive_sink(archive), store_sink(store), recorder.record, *extra_sinks]
         if hub is not None:
             sinks.append(hub_sink(hub))
         sinks.append(counter)
@@ -364,7 +437,11 @@ def start_line(
         made = None
         if http:
             made = make_app(
-                cfg, store=store, hub=hub, checks={"zenoh": lambda: not session.is_closed()}
+                cfg,
+                store=store,
+                hub=hub,
+                checks={"zenoh": lambda: not session.is_closed()},
+                registry=station.registry,
             )
             if made is not None:
                 opened.append(made)
@@ -386,11 +463,11 @@ def run_line(
     stop: threading.Event,
     *,
     parts_limit: int | None = None,
-    rig: str = "depth",
     out: Callable[[str], None] = print,
 ) -> int:
     """Run the whole simulated line until ``stop`` is set or ``parts_limit`` results arrived."""
-    h = start_line(cfg, parts_limit=parts_limit, stages=stages_for(cfg, rig))
+    out(f"loading the parts of station {cfg.station.name} (first start: trees are built)...")
+    h = start_line(cfg, parts_limit=parts_limit)
     try:
         where = [f"zenoh: listening on {', '.join(cfg.zenoh.listen) or 'nothing'}"]
         if h.api is not None:
@@ -417,11 +494,9 @@ def run_router(
     return 0
 
 
-def run_ingest(
-    cfg: LineConfig, stop: threading.Event, *, count: int | None = None, rig: str = "depth"
-) -> int:
+def run_ingest(cfg: LineConfig, stop: threading.Event, *, count: int | None = None) -> int:
     """The ingest adapter alone, publishing to the bus until ``stop`` (or ``count`` triggers)."""
-    station = Station.load(cfg, stages_for(cfg, rig), build_trees=False)
+    station = Station.load(cfg, build_trees=False)
     with contextlib.closing(bus.open_session(bus_settings(cfg))) as session:
         publisher = bus.frame_publisher(session, station.keys.frames(station.name))
         ingest = Ingest(station.simulated_rig(), publisher.put, period_s=cfg.line.trigger_period_s)
@@ -433,10 +508,13 @@ def run_ingest(
     return 0
 
 
-def run_worker(cfg: LineConfig, stop: threading.Event, *, rig: str = "depth") -> int:
+def run_worker(cfg: LineConfig, stop: threading.Event) -> int:
     """A worker alone: measures, publishes, stores and records until ``stop``."""
-    station = Station.load(cfg, stages_for(cfg, rig))
-    with contextlib.closing(bus.open_session(bus_settings(cfg))) as session:
+    station = Station.load(cfg)
+    with (
+        contextlib.closing(station),
+        contextlib.closing(bus.open_session(bus_settings(cfg))) as session,
+    ):
         store = ResultStore(cfg.storage.database_path())
         recorder = station.recorder()
         worker = ZenohWorker(
@@ -445,7 +523,11 @@ def run_worker(cfg: LineConfig, stop: threading.Event, *, rig: str = "depth") ->
             station.name,
             station.pipeline(),
             queue_size=cfg.station.queue_size,
-            sinks=[store_sink(store), recorder.record],
+            sinks=[
+                archive_sink(DeviationArchive(cfg.storage.deviations_path())),
+                store_sink(store),
+                recorder.record,
+            ],
             missed_part=station.missed_part(),
         )
         try:

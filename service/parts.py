@@ -220,17 +220,32 @@ def load_part(
     return LoadedPart(spec=spec, cad=cad, tree=tree, tree_hash=tree.hash, alignment_model=model)
 
 
+_models: dict[str, Any] = {}
+_models_lock = threading.Lock()
+
+
 def _alignment_model(cad: CadModel) -> Any:
-    """The global alignment's per-part model (resting poses, templates); None if not installed."""
+    """The global alignment's per-part model (resting poses, templates); None if not installed.
+
+    Computed once per CAD geometry in a process (seconds of work): a part
+    deleted and created again, or a replay beside a worker, reuses it.
+    """
     try:
         from inspection.alignment import alignment_model
     except ModuleNotFoundError:
         log.warning("inspection.alignment is not installed: parts can be listed, not inspected")
         return None
-    t0 = time.perf_counter()
-    model = alignment_model(cad)
-    log.info("%s: %d resting poses in %.1f s", cad.name, len(model.poses), time.perf_counter() - t0)
-    return model
+    with _models_lock:
+        model = _models.get(cad.hash)
+        if model is not None:
+            return model
+        t0 = time.perf_counter()
+        model = alignment_model(cad)
+        log.info(
+            "%s: %d resting poses in %.1f s", cad.name, len(model.poses), time.perf_counter() - t0
+        )
+        _models[cad.hash] = model
+        return model
 
 
 # --------------------------------------------------------------------------- registry
@@ -427,8 +442,12 @@ class PartRegistry:
             return
         if self.alignment and loaded.alignment_model is not None:
             self._update_job(job_id, progress=0.98, message="warming up")
+            from inspection.grid import warmup
+
             from .inspect import warm_up
 
+            # Readiness means the first real part is not the one paying for compilation.
+            log.info("grid kernels ready in %.1f s", warmup())
             log.info("part %s: measured once in %.1f s (warm-up)", name, warm_up(loaded))
         with self._lock:
             entry.loaded = loaded
@@ -507,6 +526,15 @@ class PartRegistry:
                 faces=len(loaded.cad.faces) if loaded else None,
                 extents_mm=[float(x) for x in loaded.cad.extents] if loaded else None,
             )
+
+    def loaded(self, names: list[str]) -> dict[str, LoadedPart]:
+        """The loaded parts ``names`` (what a worker measures with: the same objects the API uses).
+
+        Raises
+        ------
+        UnknownPart, PartNotReady
+        """
+        return {n: self.get(n) for n in names}
 
     def ready(self) -> bool:
         """True when every configured part is loaded (uploads being built do not block the line)."""

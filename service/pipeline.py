@@ -2,9 +2,11 @@
 
 The worker and replay call the same :meth:`Pipeline.run`, which is what lets
 a replay reproduce a recorded result exactly. The stages are plain callables
-collected in :class:`Stages`, so the line can run with the four-camera flash
-rig (``inspection.reconstruct`` / ``align`` / ``deviations``) or with the
-simple depth rig of :mod:`service.depthrig`.
+collected in :class:`Stages`: :func:`flash_stages`, the four-camera flash rig
+(``inspection.simulate`` / ``reconstruct`` / ``align`` / ``deviations``). The
+parts are the :class:`~service.parts.LoadedPart` objects of the station's
+:class:`~service.parts.PartRegistry`: the worker and the REST API measure
+with the same tree, alignment model and spec.
 
 :meth:`Pipeline.run` never raises for a bad trigger: every failure becomes a
 result with status ``error`` and a reason.
@@ -22,10 +24,8 @@ from typing import Any
 import numpy as np
 import trimesh
 
-from inspection.cad import CadModel
 from inspection.errors import InspectionError
 
-from .config import PartSpec
 from .models import (
     FieldStats,
     InspectionResult,
@@ -37,6 +37,7 @@ from .models import (
     missed_serial,
     software_version,
 )
+from .parts import LoadedPart
 from .protocol import FrameSet
 
 log = logging.getLogger(__name__)
@@ -49,92 +50,42 @@ log = logging.getLogger(__name__)
 class Stages:
     """The computation behind the pipeline, as plain callables.
 
+    The line measures with :func:`flash_stages`; the callables are separate so
+    that a test can replace one (a crashing stage, an empty cloud) and see
+    what the worker makes of it.
+
     Attributes
     ----------
     name : str
-        ``depth`` or ``flash``; recorded with every run.
+        Recorded with every run (``flash``).
     rig : object
         What ``reconstruct`` and ``render`` measure with.
     calibration_id : str
         Identifies ``rig``.
     reconstruct : callable(rig, frames) -> cloud
-        ``cloud.points`` (N, 3) float64 rig frame mm, ``cloud.weights`` (N,),
-        ``cloud.report`` (dict or object).
-    build_tree : callable(cad, spec) -> (tree, tree_hash)
-    align : callable(tree, points_rig, spec) -> registration
+        ``cloud.points`` (N, 3) float64 rig frame mm.
+    align : callable(part, points_rig) -> registration
+        ``part`` is a :class:`~service.parts.LoadedPart`;
         ``registration.transform`` is T_cad_rig (4, 4); also ``rms_mm``,
-        ``inlier_fraction``, ``converged``, ``stop_reason``.
-    deviations : callable(tree, points_cad, spec) -> deviations
+        ``inlier_fraction``.
+    deviations : callable(part, points_cad) -> deviations
         ``distances`` (N,) signed mm, ``comparison`` list with ``name``,
         ``deviation_mm``, ``support``, ``verdict``.
     render : callable(rig, mesh, T_rig_part, seed) -> list of images
-        The simulator matching ``reconstruct`` (used by ingest).
+        The simulator matching ``reconstruct`` (used by the ingest).
     calibrations : callable() -> list of dict
         One per camera, for the recorder (``name``, ``width``, ``height``,
-        ``K``, ``D``, ``R``, ``P``, ``distortion_model``).
+        ``K``, ``D``, ``R``, ``P``).
     """
 
     name: str
     rig: Any
     calibration_id: str
     reconstruct: Callable[[Any, list[np.ndarray]], Any]
-    build_tree: Callable[[CadModel, PartSpec], tuple[Any, str]]
-    align: Callable[[Any, np.ndarray, PartSpec], Any]
-    deviations: Callable[[Any, np.ndarray, PartSpec], Any]
+    align: Callable[[LoadedPart, np.ndarray], Any]
+    deviations: Callable[[LoadedPart, np.ndarray], Any]
     render: Callable[[Any, trimesh.Trimesh, np.ndarray, int], list[np.ndarray]]
     calibrations: Callable[[], list[dict[str, Any]]] = list
-
-
-def depth_stages(rig: Any | None = None) -> Stages:
-    """The simple depth rig of :mod:`service.depthrig`."""
-    from . import depthrig
-
-    rig = rig or depthrig.DepthRig()
-
-    def build_tree(cad: CadModel, spec: PartSpec) -> tuple[Any, str]:
-        tree = depthrig.build_tree(cad)
-        return tree, tree.hash
-
-    def align(tree: Any, points: np.ndarray, spec: PartSpec) -> Any:
-        r = spec.registration
-        return depthrig.align(
-            tree,
-            points,
-            max_points=min(r.max_points, 20_000),
-            max_correspondence_mm=r.max_correspondence_mm,
-            max_iterations=r.max_iterations,
-        )
-
-    def deviations(tree: Any, points_cad: np.ndarray, spec: PartSpec) -> Any:
-        return depthrig.deviations(tree, points_cad, spec.points)
-
-    def render(rig_: Any, mesh: trimesh.Trimesh, T: np.ndarray, seed: int) -> list[np.ndarray]:
-        return depthrig.render(rig_, mesh, T)
-
-    def calibrations() -> list[dict[str, Any]]:
-        # The depth camera is orthographic: one pixel is pixel_mm on the
-        # conveyor. Foxglove has no orthographic model, so K carries the scale
-        # (px per mm) and the principal point; both images share it.
-        rows, cols = rig.shape
-        f = 1.0 / rig.pixel_mm
-        K = [f, 0.0, cols / 2, 0.0, f, rows / 2, 0.0, 0.0, 1.0]
-        P = [f, 0.0, cols / 2, 0.0, 0.0, f, rows / 2, 0.0, 0.0, 0.0, 1.0, 0.0]
-        return [
-            {"name": name, "width": cols, "height": rows, "K": K, "P": P, "D": [0.0] * 5}
-            for name in ("cam0", "cam1")
-        ]
-
-    return Stages(
-        name="depth",
-        calibrations=calibrations,
-        rig=rig,
-        calibration_id=rig.calibration_id,
-        reconstruct=depthrig.reconstruct,
-        build_tree=build_tree,
-        align=align,
-        deviations=deviations,
-        render=render,
-    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -147,16 +98,17 @@ class FlashRig:
     reconstructor: Any
 
 
-def flash_stages(trees_dir: str | Path, rig_calibration: str | Path | None = None) -> Stages:
-    """The real stages: ``inspection.simulate``, ``reconstruct``, ``alignment.align``,
-    ``deviations`` on the part's CAD tree (cached in ``trees_dir``).
+def flash_stages(rig_calibration: str | Path | None = None) -> Stages:
+    """The line's stages: ``inspection.simulate`` with ``Rig.nominal()`` renders,
+    ``inspection.reconstruct`` with the calibrated rig measures, ``inspection.align``
+    fits the cloud to the part's preloaded :class:`~inspection.grid.GridTree` and
+    ``inspection.deviations`` measures against it.
 
     Parameters
     ----------
-    trees_dir : path
-        Tree cache (the same one the API's part registry uses).
     rig_calibration : path, optional
-        Calibrated rig (TOML); absent or missing file: ``Rig.default()``.
+        Calibrated rig (TOML, written by ``inspection calibrate``); absent or
+        missing file: ``Rig.default()``.
     """
     from inspection.alignment import align as inspection_align
     from inspection.deviations import deviations as inspection_deviations
@@ -166,22 +118,15 @@ def flash_stages(trees_dir: str | Path, rig_calibration: str | Path | None = Non
     from inspection.simulate import simulate
 
     from . import inspect as measure
-    from .parts import LoadedPart, _alignment_model, build_or_load_tree
 
     path = Path(rig_calibration) if rig_calibration else None
     calibrated = Rig.load(path) if path is not None and path.is_file() else Rig.default()
     rig = FlashRig(Rig.nominal(), calibrated, Reconstructor.build(calibrated))
 
-    def build_tree(cad: CadModel, spec: PartSpec) -> tuple[Any, str]:
-        tree = build_or_load_tree(cad, spec, Path(trees_dir))
-        part = LoadedPart(spec, cad, tree, tree.hash, _alignment_model(cad))
-        measure.warm_up(part)  # compile the kernels now, not on the first part
-        return part, tree.hash
-
     def reconstruct(r: FlashRig, frames: list[np.ndarray]) -> Any:
         return inspection_reconstruct(r.calibrated, frames, reconstructor=r.reconstructor)
 
-    def align(part: Any, points: np.ndarray, spec: PartSpec) -> Any:
+    def align(part: LoadedPart, points: np.ndarray) -> Any:
         return inspection_align(
             part.tree,
             points,
@@ -190,8 +135,8 @@ def flash_stages(trees_dir: str | Path, rig_calibration: str | Path | None = Non
             **measure._registration_kwargs(part),
         )
 
-    def deviations(part: Any, points_cad: np.ndarray, spec: PartSpec) -> Any:
-        return inspection_deviations(part.tree, points_cad, measure.comparison_points(spec))
+    def deviations(part: LoadedPart, points_cad: np.ndarray) -> Any:
+        return inspection_deviations(part.tree, points_cad, measure.comparison_points(part.spec))
 
     def render(r: FlashRig, mesh: trimesh.Trimesh, T: np.ndarray, seed: int) -> list[np.ndarray]:
         return simulate(r.nominal, mesh, T, seed=seed)
@@ -218,61 +163,11 @@ def flash_stages(trees_dir: str | Path, rig_calibration: str | Path | None = Non
         rig=rig,
         calibration_id=calibrated.id,
         reconstruct=reconstruct,
-        build_tree=build_tree,
         align=align,
         deviations=deviations,
         render=render,
         calibrations=calibrations,
     )
-
-
-STAGES = ("depth", "flash")
-
-
-def make_stages(
-    name: str = "depth",
-    *,
-    trees_dir: str | Path = "trees",
-    rig_calibration: str | Path | None = None,
-) -> Stages:
-    """Stages by name: ``depth`` (the simple depth rig) or ``flash`` (the four-camera rig)."""
-    if name == "depth":
-        return depth_stages()
-    if name == "flash":
-        return flash_stages(trees_dir, rig_calibration)
-    raise ValueError(f"stages must be one of {STAGES}, got {name!r}")
-
-
-def default_stages() -> Stages:
-    """The depth rig: always available, deterministic, fast on two cores."""
-    return depth_stages()
-
-
-# --------------------------------------------------------------------------- parts
-
-
-@dataclass(frozen=True, eq=False)
-class PreparedPart:
-    """A part type ready to be measured: spec, CAD and its preloaded tree."""
-
-    spec: PartSpec
-    cad: CadModel
-    tree: Any
-    tree_hash: str
-
-    @property
-    def name(self) -> str:
-        return self.spec.name
-
-
-def prepare_part(spec: PartSpec, cad: CadModel, stages: Stages) -> PreparedPart:
-    """Build the part's tree with the stages' builder (done once, at start-up)."""
-    t0 = time.perf_counter()
-    tree, tree_hash = stages.build_tree(cad, spec)
-    log.info(
-        "part %s: tree %s built in %.2f s", spec.name, tree_hash[:12], time.perf_counter() - t0
-    )
-    return PreparedPart(spec, cad, tree, tree_hash)
 
 
 # --------------------------------------------------------------------------- results
@@ -305,13 +200,13 @@ class Pipeline:
     Parameters
     ----------
     stages : Stages
-    parts : mapping of part name to PreparedPart
+    parts : mapping of part name to LoadedPart
     line, station : str
         Only FrameSets of this line and station are accepted (None: any).
     """
 
     stages: Stages
-    parts: Mapping[str, PreparedPart]
+    parts: Mapping[str, LoadedPart]
     line: str | None = None
     station: str | None = None
     version: str = field(default_factory=software_version)
@@ -403,7 +298,7 @@ class Pipeline:
             points = points[keep]
 
         t = time.perf_counter()
-        reg = self.stages.align(part.tree, points, spec)
+        reg = self.stages.align(part, points)
         timings["align"] = (time.perf_counter() - t) * 1e3
         T = np.asarray(reg.transform, dtype=np.float64)
         rms = finite_or_none(reg.rms_mm)
@@ -438,7 +333,7 @@ class Pipeline:
 
         t = time.perf_counter()
         points_cad = points @ T[:3, :3].T + T[:3, 3]
-        dev = self.stages.deviations(part.tree, points_cad, spec)
+        dev = self.stages.deviations(part, points_cad)
         timings["deviations"] = (time.perf_counter() - t) * 1e3
         distances = np.asarray(dev.distances, dtype=np.float64)
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import logging
+import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterable, Sequence
@@ -27,7 +28,8 @@ import numpy as np
 
 from .config import PartSpec
 from .models import InspectionResult
-from .pipeline import Pipeline, PreparedPart, Stages, default_stages, make_stages, prepare_part
+from .parts import LoadedPart, load_part
+from .pipeline import Pipeline, Stages, flash_stages
 from .protocol import FrameSet, encode_frameset
 from .recorder import RecordedTrigger, read_recording
 
@@ -79,9 +81,10 @@ class ReplayReport:
 
 
 def parts_from_metadata(
-    metadata: dict[str, dict[str, str]], stages: Stages, parts_dir: Path
-) -> dict[str, PreparedPart]:
-    """Rebuild the recorded parts; the CAD must hash as recorded.
+    metadata: dict[str, dict[str, str]], stages: Stages, parts_dir: Path, trees_dir: Path
+) -> dict[str, LoadedPart]:
+    """Load the recorded parts (trees from the cache in ``trees_dir``, else built);
+    the CAD and the tree must hash as recorded.
 
     Raises
     ------
@@ -107,11 +110,40 @@ def parts_from_metadata(
             raise ReplayError(
                 f"part {name}: the CAD changed since the recording ({cad.hash[:12]} vs {want[:12]})"
             )
-        parts[name] = prepare_part(spec, cad, stages)
+        parts[name] = load_part(spec, parts_dir, trees_dir)
         want_tree = cad_meta.get(f"{name}.tree_hash")
         if want_tree and parts[name].tree_hash != want_tree:
             raise ReplayError(f"part {name}: the tree differs from the recorded one")
     return parts
+
+
+def recorded_stages(metadata: dict[str, dict[str, str]]) -> Stages:
+    """The flash stages with the calibrated rig the recording was measured with.
+
+    Raises
+    ------
+    ReplayError
+        The recording names other stages, or its calibration does not load.
+    """
+    rig = metadata.get("rig", {})
+    if rig.get("stages", "flash") != "flash":
+        raise ReplayError(f"recorded with the {rig['stages']!r} stages, which no longer exist")
+    toml = rig.get("calibration_toml")
+    if not toml:
+        return flash_stages(None)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "rig.toml"
+        path.write_text(toml)
+        try:
+            stages = flash_stages(path)
+        except Exception as exc:
+            raise ReplayError(f"the recorded rig calibration does not load: {exc}") from exc
+    want = rig.get("calibration_id")
+    if want and stages.calibration_id != want:
+        raise ReplayError(
+            f"the recorded calibration loads as {stages.calibration_id!r}, recorded {want!r}"
+        )
+    return stages
 
 
 def compare(
@@ -167,10 +199,8 @@ def replay(
     tol = tolerances or Tolerances()
     metadata, triggers = read_recording(paths)
     if stages is None:
-        # Measure with what the recording was measured with.
-        name = metadata.get("rig", {}).get("stages", "depth")
-        stages = make_stages(name, trees_dir=trees_dir) if name != "depth" else default_stages()
-    parts = parts_from_metadata(metadata, stages, Path(parts_dir))
+        stages = recorded_stages(metadata)
+    parts = parts_from_metadata(metadata, stages, Path(parts_dir), Path(trees_dir))
     pipeline = Pipeline(stages, parts)
     report = ReplayReport(triggers=len(triggers))
     for t in triggers:

@@ -57,9 +57,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     if cfg is None:
         return 2
     stop = _stop_on_signals()
-    return run_line(
-        cfg, stop, parts_limit=args.parts, rig=args.rig, out=lambda s: print(s, flush=True)
-    )
+    return run_line(cfg, stop, parts_limit=args.parts, out=lambda s: print(s, flush=True))
 
 
 def cmd_router(args: argparse.Namespace) -> int:
@@ -79,9 +77,9 @@ def cmd_piece(args: argparse.Namespace) -> int:
         return 2
     stop = _stop_on_signals()
     if args.command == "ingest":
-        return line.run_ingest(cfg, stop, count=args.count, rig=args.rig)
+        return line.run_ingest(cfg, stop, count=args.count)
     if args.command == "worker":
-        return line.run_worker(cfg, stop, rig=args.rig)
+        return line.run_worker(cfg, stop)
     return line.run_api(cfg, stop)
 
 
@@ -91,16 +89,6 @@ def _common(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--data-dir", help="where results, recordings and trees go (default from config)"
-    )
-
-
-def _rig(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
-        "--rig",
-        choices=("depth", "flash"),
-        default="depth",
-        help="depth: the simple depth camera (fast, the default); flash: the four-camera "
-        "flash rig with stereo reconstruction and CAD-tree alignment (heavier)",
     )
 
 
@@ -120,7 +108,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable)",
     )
     p.add_argument("--parts", type=int, metavar="N", help="stop cleanly after N results")
-    _rig(p)
     p.set_defaults(func=cmd_run)
 
     p = subparsers.add_parser("router", help="a zenoh router for the line's separate processes")
@@ -139,6 +126,4 @@ def register(subparsers: argparse._SubParsersAction) -> None:
             p.add_argument("--http-port", type=int, help="REST API port (default from config)")
         if name == "ingest":
             p.add_argument("--count", type=int, help="stop after this many triggers")
-        if name in ("ingest", "worker"):
-            _rig(p)
         p.set_defaults(func=cmd_piece)

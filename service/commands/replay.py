@@ -108,7 +108,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="wait up to S seconds for a frames subscriber before publishing",
     )
     p.add_argument("--parts-dir", default="configs/parts", help="where non-generated CAD files are")
-    p.add_argument("--trees-dir", default="runs/trees", help="tree cache (flash recordings)")
+    p.add_argument(
+        "--trees-dir", default="runs/trees", help="tree cache (the line's data dir + trees)"
+    )
     p.add_argument("--transform-tol", type=float, default=1e-9)
     p.add_argument("--deviation-tol", type=float, default=1e-6, help="mm")
     p.set_defaults(func=cmd_replay)

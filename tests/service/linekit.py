@@ -1,4 +1,4 @@
-"""Shared set-up for the line's tests: the demo part on the depth rig, ports, zenoh settings."""
+"""Shared set-up for the line's tests: the demo part on the flash rig, ports, zenoh settings."""
 
 from __future__ import annotations
 
@@ -6,14 +6,15 @@ import functools
 import socket
 from pathlib import Path
 
-from inspection.panel import sheet_metal_panel
 from service.bus import BusSettings
 from service.config import load_part_spec
 from service.ingest import SimPart, SimulatedRig, SimulationSettings
-from service.pipeline import Pipeline, PreparedPart, Stages, depth_stages, prepare_part
+from service.parts import LoadedPart, PartRegistry
+from service.pipeline import Pipeline, Stages, flash_stages
 
 ROOT = Path(__file__).resolve().parents[2]
 LINE, STATION, PART = "line1", "st1", "demo-panel"
+PARTS_DIR = ROOT / "configs" / "parts"
 
 
 def free_port() -> int:
@@ -35,20 +36,26 @@ def client(port: int) -> BusSettings:
 
 
 @functools.cache
-def demo() -> tuple[Stages, PreparedPart]:
-    """The depth rig and the demo panel with its tree (built once per test process)."""
-    stages = depth_stages()
-    spec = load_part_spec(ROOT / "configs" / "parts" / f"{PART}.toml")
-    return stages, prepare_part(spec, sheet_metal_panel(name=PART), stages)
+def demo(trees: Path) -> tuple[Stages, LoadedPart]:
+    """The flash rig (the line's stages) and the demo panel loaded by a part registry, as the
+    line loads it: tree from the cache in ``trees``, alignment model, warm-up.
+    Done once per test process."""
+    stages = flash_stages(ROOT / "configs" / "rig.toml")
+    registry = PartRegistry(trees, trees / "uploads")
+    try:
+        registry.add(load_part_spec(PARTS_DIR / f"{PART}.toml"), PARTS_DIR, configured=True)
+        registry.preload()
+        return stages, registry.get(PART)
+    finally:
+        registry.close()
 
 
-def pipeline() -> Pipeline:
-    stages, part = demo()
+def pipeline(trees: Path) -> Pipeline:
+    stages, part = demo(trees)
     return Pipeline(stages, {PART: part}, line=LINE, station=STATION)
 
 
-def rig(defect_rate: float = 0.3, seed: int = 1) -> SimulatedRig:
-    stages, part = demo()
+def rig(stages: Stages, part: LoadedPart, defect_rate: float = 0.3, seed: int = 1) -> SimulatedRig:
     return SimulatedRig(
         stages,
         [SimPart.from_cad(PART, part.cad)],

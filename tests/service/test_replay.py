@@ -1,11 +1,15 @@
-"""Replay: a recorded run re-measured gives the same results; differences fail the command."""
+"""Replay: a recorded run re-measured gives the same results; differences fail the command.
+
+One short run on the flash rig is recorded twice (as logged, and with one
+result tampered with); the tests read those two recordings.
+"""
 
 from __future__ import annotations
 
 import threading
 
 import pytest
-from linekit import LINE, PART, ROOT, STATION, demo, free_port, peer, pipeline, rig
+from linekit import LINE, PART, PARTS_DIR, ROOT, STATION, demo, free_port, peer, pipeline, rig
 
 from service import bus
 from service.cli import main as cli
@@ -18,70 +22,77 @@ from service.replay import ReplayError, replay
 from service.worker import Job, JobQueue, Worker
 
 
-def record_run(directory, *, n=5, tamper=None, gap=True):
-    """Record a short run through the worker: one seq skipped (a missed part)."""
+def shift(outcome):
+    """The result as another software would have logged it: deviations 1 um off."""
+    r = outcome.result
+    c = [p.model_copy(update={"deviation_mm": (p.deviation_mm or 0) + 1e-3}) for p in r.comparison]
+    return type(outcome)(
+        r.model_copy(update={"comparison": c}),
+        outcome.points_rig,
+        outcome.distances,
+        outcome.T_cad_rig,
+    )
+
+
+def record_run(directory, trees, *, n=3, gap=1):
+    """Record a short run through the worker on the flash rig; seq ``gap`` never arrives
+    (a missed part). Returns the files of the recording and of a copy whose measured
+    results are tampered with."""
     cfg = load_line_config(ROOT / "configs" / "line.toml")
-    stages, part = demo()
+    stages, part = demo(trees)
     station = Station(cfg, stages, {PART: part})
-    rec = Recorder(
-        directory, "run", metadata=station.metadata(), calibrations=stages.calibrations()
+    logged, tampered = (
+        Recorder(
+            directory / name, "run", metadata=station.metadata(), calibrations=stages.calibrations()
+        )  # fmt: skip
+        for name in ("logged", "tampered")
     )
 
     def sink(outcome, fs):
-        if tamper is not None and outcome.result.seq == 1:
-            outcome = tamper(outcome)
-        rec.record(outcome, fs)
+        logged.record(outcome, fs)
+        tampered.record(shift(outcome) if outcome.result.comparison else outcome, fs)
 
-    w = Worker(pipeline(), JobQueue(8), [sink], line=LINE, station=STATION, missed_part=PART)
-    r = rig(defect_rate=0.5, seed=11)
+    w = Worker(pipeline(trees), JobQueue(8), [sink], line=LINE, station=STATION, missed_part=PART)
+    r = rig(stages, part, defect_rate=0.5, seed=11)
     for seq in range(n):
-        if gap and seq == 2:
+        if seq == gap:
             continue
         w.handle(Job(encode_frameset(r.capture(seq, 1_800_000_000_000_000_000 + seq * 10**9)), 0))
-    rec.close()
-    return rec.files
+    logged.close()
+    tampered.close()
+    return logged.files, tampered.files
 
 
 @pytest.fixture(scope="module")
-def recording(tmp_path_factory):
-    return record_run(tmp_path_factory.mktemp("rec"))
+def recordings(tmp_path_factory, trees):
+    return record_run(tmp_path_factory.mktemp("rec"), trees)
 
 
-def test_replay_reproduces_every_result(recording):
-    report = replay(recording, parts_dir=ROOT / "configs" / "parts")
+@pytest.fixture(scope="module")
+def recording(recordings):
+    return recordings[0]
+
+
+def test_replay_reproduces_every_result(recording, trees):
+    report = replay(recording, parts_dir=PARTS_DIR, trees_dir=trees)
     assert report.ok, report.summary()
-    assert report.triggers == 5 and report.replayed == 4 and report.not_replayable == 1
-    assert report.same == 4
+    assert report.triggers == 3 and report.replayed == 2 and report.not_replayable == 1
+    assert report.same == 2
     assert report.max_transform_diff <= 1e-9 and report.max_deviation_diff_mm <= 1e-6
 
 
-def test_cli_compare_exit_codes(tmp_path, recording, capsys):
-    assert cli(["replay", str(recording[0]), "--compare"]) == 0
-
-    def shift(outcome):
-        r = outcome.result
-        c = [
-            p.model_copy(update={"deviation_mm": (p.deviation_mm or 0) + 1e-3})
-            for p in r.comparison
-        ]
-        return type(outcome)(
-            r.model_copy(update={"comparison": c}),
-            outcome.points_rig,
-            outcome.distances,
-            outcome.T_cad_rig,
-        )
-
-    tampered = record_run(tmp_path, n=3, tamper=shift, gap=False)
-    assert cli(["replay", str(tampered[0]), "--compare"]) == 1
+def test_cli_compare_fails_on_a_difference(tmp_path, recordings, trees, capsys):
+    where = ["--parts-dir", str(PARTS_DIR), "--trees-dir", str(trees)]
+    assert cli(["replay", str(recordings[1][0]), "--compare", *where]) == 1
     assert "DIFFERENT" in capsys.readouterr().out
     assert cli(["replay", str(tmp_path / "nope.mcap")]) == 2
 
 
-def test_replay_refuses_a_changed_cad(tmp_path):
-    files = record_run(tmp_path, n=1, gap=False)
+def test_replay_refuses_a_changed_cad(tmp_path, recording):
     from mcap.writer import Writer
 
     # Rewrite the metadata with another CAD hash.
+    files = recording
     meta, _ = read_recording(files)
     meta["cad"][f"{PART}.cad_hash"] = "0" * 64
     fake = tmp_path / "fake.mcap"
@@ -92,7 +103,7 @@ def test_replay_refuses_a_changed_cad(tmp_path):
             w.add_metadata(name, data)
         w.finish()
     with pytest.raises(ReplayError, match="CAD changed"):
-        replay([fake], parts_dir=ROOT / "configs" / "parts")
+        replay([fake], parts_dir=PARTS_DIR, trees_dir=tmp_path)
 
 
 def test_publish_replays_frames_onto_zenoh(recording):
@@ -103,7 +114,7 @@ def test_publish_replays_frames_onto_zenoh(recording):
 
     def on_frames(sample):
         got.append(decode_frameset(sample.payload.to_bytes()))
-        if len(got) == 4:
+        if len(got) == 2:
             done.set()
 
     with bus.open_session(peer(port)) as session:
