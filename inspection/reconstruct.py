@@ -54,7 +54,7 @@ import numpy.typing as npt
 
 from . import _stereo
 from .arrays import Points, Scalars
-from .errors import InvalidInput, ReconstructionError
+from .errors import InvalidInput
 from .rig import VOLUME_MM, Rig
 
 log = logging.getLogger(__name__)
@@ -969,7 +969,6 @@ __all__ = [
     "PairReport",
     "Prior",
     "ReconstructParams",
-    "ReconstructionError",
     "ReconstructionReport",
     "Reconstructor",
     "deviation_colours",
