@@ -887,14 +887,17 @@ def deviation_colours(values: npt.ArrayLike, limit_mm: float) -> npt.NDArray[np.
     return np.rint(rgb * 255).astype(np.uint8)
 
 
-def write_ply(
+def write_deviation_ply(
     path: str | os.PathLike[str],
     points: npt.ArrayLike | Cloud,
     deviations: npt.ArrayLike | None = None,
     *,
     limit_mm: float = 0.5,
 ) -> Path:
-    """Write a point cloud as binary PLY, coloured by deviation when given.
+    """Write a point cloud as binary PLY coloured by deviation, for people to look at.
+
+    (:func:`inspection.cloud_io.write_ply` writes plain points and scalars for
+    programs; this one adds the colours a viewer shows directly.)
 
     Any PLY viewer (MeshLab, CloudCompare, Open3D) shows it. Each vertex has
     x, y, z (float32, mm), red, green, blue (uint8), and, with deviations, a
@@ -973,5 +976,5 @@ __all__ = [
     "Reconstructor",
     "deviation_colours",
     "reconstruct",
-    "write_ply",
+    "write_deviation_ply",
 ]

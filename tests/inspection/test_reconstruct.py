@@ -18,7 +18,7 @@ from inspection.reconstruct import (
     ReconstructParams,
     deviation_colours,
     reconstruct,
-    write_ply,
+    write_deviation_ply,
 )
 from inspection.rig import Rig
 from inspection.simulate import simulate
@@ -297,11 +297,11 @@ def test_deviation_colours() -> None:
 
 def test_write_ply_round_trip(tmp_path, plate_cloud: Cloud) -> None:
     dev = plate_cloud.points[:, 2] - PLATE_TOP_MM
-    path = write_ply(tmp_path / "cloud.ply", plate_cloud, dev, limit_mm=0.2)
+    path = write_deviation_ply(tmp_path / "cloud.ply", plate_cloud, dev, limit_mm=0.2)
     mesh = trimesh.load(path, process=False)
     np.testing.assert_allclose(np.asarray(mesh.vertices), plate_cloud.points, atol=1e-3)
     with open(path, "rb") as fh:
         header = fh.read(400).split(b"end_header")[0].decode()
     assert f"element vertex {len(plate_cloud)}" in header and "property float deviation" in header
     with pytest.raises(InvalidInput):
-        write_ply(tmp_path / "bad.ply", plate_cloud.points, dev[:-1])
+        write_deviation_ply(tmp_path / "bad.ply", plate_cloud.points, dev[:-1])
