@@ -21,6 +21,18 @@ the faces of all the regions around it to start from; the walk then makes the
 answer exact wherever the surface is connected. Signs come from the
 angle-weighted pseudo-normal of the closest feature (face, edge or corner).
 
+Memory, not arithmetic, sets the speed of a batch (the cells and the face
+data are tens of MB, queries arrive in any order), so a batch is arranged
+for the caches: queries are visited block by block (a counting sort), faces
+are numbered in the same spatial order (``face_id`` maps them back to the
+CAD's numbering), everything a query reads of a face sits in one 192-byte
+record (plane, dual basis, corners, smooth neighbours), and each chunk of 64
+queries first gathers its cell codes and touches their records, so that the
+cache misses overlap, then computes. In a cell with a candidate list the
+candidates' planes bound their distances from below, so few need the full
+point-to-triangle test. Each query's answer depends on that query alone:
+results are the same for any order, chunking or number of threads.
+
 Points outside the band, outside the bounding box, or in cells whose corners
 lie outside the band take the exact slow path: a bounding volume hierarchy
 over the faces, searched depth first with the nearer box first and every box

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import zipfile
 
+import numba
 import numpy as np
 import pytest
 import trimesh
@@ -387,6 +388,42 @@ def test_inputs_not_mutated_and_order_irrelevant(sphere_tree):
     # Non-contiguous and float32 input give the same answer.
     c = sphere_tree.query(np.asfortranarray(q))
     np.testing.assert_array_equal(a.distances, c.distances)
+
+
+def test_same_answer_on_one_or_two_threads(panel_tree, small_panel):
+    q = offset_queries(small_panel, 3000, 0.0, 6.0, np.random.default_rng(12))
+    before = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        one = panel_tree.query(q)
+        numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
+        two = panel_tree.query(q)
+    finally:
+        numba.set_num_threads(before)
+    for field in ("points", "normals", "distances", "face"):
+        np.testing.assert_array_equal(getattr(one, field), getattr(two, field))
+
+
+def test_faces_stay_in_the_cad_order(panel_tree, small_panel, tmp_path):
+    # The tree numbers faces its own way inside; what it shows is the CAD's.
+    loaded = GridTree.load(panel_tree.save(tmp_path / "panel.npz"))
+    for tree in (panel_tree, loaded):
+        np.testing.assert_array_equal(tree.faces, small_panel.faces)
+        np.testing.assert_array_equal(tree.face_normals, small_panel.face_normals)
+    p, f = surface_samples(small_panel, 500, np.random.default_rng(13))
+    inside = p + 0.3 * small_panel.face_normals[f]
+    got = panel_tree.query(inside)
+    # Each returned point lies on the returned face of the CAD, and just off
+    # a face along its normal that face is nearly always the closest.
+    tri = small_panel.vertices[small_panel.faces]
+    for k in range(len(got.face)):
+        _, d = _brute(
+            got.points[k : k + 1],
+            tri[got.face[k : k + 1]],
+            small_panel.face_normals[got.face[k : k + 1]],
+        )
+        assert d[0] < 1e-9
+    assert (got.face == f).mean() > 0.9
 
 
 def test_info_reports_sizes(panel_tree, small_panel):
