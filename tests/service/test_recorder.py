@@ -1,15 +1,19 @@
-"""MCAP recording: Foxglove schemas read back, crash safety, rotation and retention."""
+"""MCAP recording: Foxglove schemas read back, crash safety, rotation and retention.
+
+The recorded triggers are real: frames of the flash rig measured by the line's stages.
+"""
 
 from __future__ import annotations
 
 import json
 import multiprocessing
 import os
+import pickle
 import sys
 
 import numpy as np
 import pytest
-from linekit import LINE, PART, STATION, pipeline, rig
+from linekit import LINE, PART, STATION, demo, pipeline, rig
 from mcap.exceptions import EndOfFile
 from mcap.reader import NonSeekingReader, make_reader
 from mcap_protobuf.decoder import DecoderFactory
@@ -18,12 +22,15 @@ from service.models import InspectionResult, Status
 from service.pipeline import Outcome, missed_result
 from service.recorder import Recorder, Retention, read_recording, recover
 
+N = 3
+
 
 @pytest.fixture(scope="module")
-def outcomes():
-    r, p = rig(defect_rate=0.5, seed=3), pipeline()
+def outcomes(trees):
+    stages, part = demo(trees)
+    r, p = rig(stages, part, defect_rate=0.5, seed=3), pipeline(trees)
     out = []
-    for seq in range(4):
+    for seq in range(N):
         fs = r.capture(seq, 1_800_000_000_000_000_000 + seq * 10**9)
         out.append((p.run(fs), fs))
     return out
@@ -68,7 +75,7 @@ def test_round_trip_with_foxglove_schemas(tmp_path, outcomes):
             topics=["/cam0/image", "/cloud", "/part/pose", "/cam0/calibration"]
         ):
             by_topic.setdefault(channel.topic, []).append((message, decoded))
-    assert len(by_topic["/cam0/image"]) == 4 and len(by_topic["/cam0/calibration"]) == 1
+    assert len(by_topic["/cam0/image"]) == N and len(by_topic["/cam0/calibration"]) == 1
     msg, img = by_topic["/cam0/image"][0]
     assert img.encoding == "mono8" and msg.log_time == outcomes[0][1].triggered_ns
     np.testing.assert_array_equal(
@@ -104,26 +111,26 @@ def test_png_images_are_lossless(tmp_path, outcomes):
         np.testing.assert_array_equal(a, b)
 
 
-def _record_and_die(directory: str, n: int) -> None:
+def _record_and_die(directory: str, triggers: str) -> None:
     sys.path.insert(0, os.path.dirname(__file__))
-    from linekit import pipeline as make_pipeline
-    from linekit import rig as make_rig
-
-    r, p = make_rig(seed=5), make_pipeline()
+    with open(triggers, "rb") as fh:
+        outcomes = pickle.load(fh)
     rec = Recorder(directory, "killed")
-    for seq in range(n):
-        fs = r.capture(seq, 1_800_000_000_000_000_000 + seq)
-        rec.record(p.run(fs), fs)
+    for o, fs in outcomes:
+        rec.record(o, fs)
     os.kill(os.getpid(), 9)  # no finish(), no close: like a power cut
 
 
-def test_killed_recorder_leaves_a_readable_file_and_recover_repairs_it(tmp_path):
+def test_killed_recorder_leaves_a_readable_file_and_recover_repairs_it(tmp_path, outcomes):
+    triggers = tmp_path / "triggers.pickle"
+    triggers.write_bytes(pickle.dumps(outcomes))
+    out = tmp_path / "mcap"
     ctx = multiprocessing.get_context("spawn")
-    proc = ctx.Process(target=_record_and_die, args=(str(tmp_path), 3))
+    proc = ctx.Process(target=_record_and_die, args=(str(out), str(triggers)))
     proc.start()
     proc.join(120)
     assert proc.exitcode == -9
-    (path,) = tmp_path.glob("*.mcap")
+    (path,) = out.glob("*.mcap")
     with path.open("rb") as fh:
         with pytest.raises(Exception):  # noqa: B017 - no summary in a killed file
             make_reader(fh).get_summary().statistics  # noqa: B018
@@ -133,9 +140,9 @@ def test_killed_recorder_leaves_a_readable_file_and_recover_repairs_it(tmp_path)
         with pytest.raises(EndOfFile):
             for _, c, m in NonSeekingReader(fh).iter_messages(log_time_order=False):
                 got += [m] if c.topic == "/result" else []
-    assert len(got) == 3
-    _, triggers = read_recording([path])
-    assert [t.result.seq for t in triggers] == [0, 1, 2] and all(t.frameset for t in triggers)
+    assert len(got) == N
+    _, recorded = read_recording([path])
+    assert [t.result.seq for t in recorded] == list(range(N)) and all(t.frameset for t in recorded)
     fixed = recover(path)
     with fixed.path.open("rb") as fh:
         summary = make_reader(fh).get_summary()
@@ -154,7 +161,7 @@ def test_rotation_by_size(tmp_path, outcomes):
 
 @pytest.mark.parametrize(
     "policy, kept",
-    [("all", [0, 1, 2, 3]), ("failures", "failed"), ("every_nth", "nth")],
+    [("all", "all"), ("failures", "failed"), ("every_nth", "nth")],
 )
 def test_retention_policy_decides_whose_frames_are_kept(tmp_path, outcomes, policy, kept):
     rec = Recorder(tmp_path, policy, retention=Retention(record=policy, every_nth=2))
@@ -164,22 +171,28 @@ def test_retention_policy_decides_whose_frames_are_kept(tmp_path, outcomes, poli
     rec.close()
     failed = [o.result.status is not Status.passed for o, _ in outcomes]
     expect = {
-        "all": [True] * 4,
+        "all": [True] * N,
         "failures": failed,
         "every_nth": [f or i % 2 == 0 for i, f in enumerate(failed)],
     }[policy]
     assert flags == expect
     _, triggers = read_recording(rec.files)
-    assert len(triggers) == 5  # results are always recorded
+    assert len(triggers) == N + 1  # results are always recorded
 
 
 def test_size_budget_deletes_oldest_files(tmp_path, outcomes):
+    # A budget just above what the last two triggers take (one file each).
+    free = Recorder(tmp_path / "free", "budget", rotate_bytes=1)
+    for o, fs in outcomes:
+        free.record(o, fs)
+    free.close()
+    budget = sum(p.stat().st_size for p in free.files[-3:]) + 1000
     rec = Recorder(
-        tmp_path, "budget", rotate_bytes=1, retention=Retention(max_total_bytes=3 * 1024 * 1024)
+        tmp_path / "kept", "budget", rotate_bytes=1, retention=Retention(max_total_bytes=budget)
     )
     for o, fs in outcomes:
         rec.record(o, fs)
     rec.close()
-    left = sorted(tmp_path.glob("*.mcap"))
-    assert sum(p.stat().st_size for p in left) <= 3 * 1024 * 1024
+    left = sorted((tmp_path / "kept").glob("*.mcap"))
+    assert sum(p.stat().st_size for p in left) <= budget
     assert left and left[-1] == rec.files[-1] and rec.files[0] not in left
