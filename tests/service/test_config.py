@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import tomllib
 from pathlib import Path
 
 import pytest
@@ -56,6 +57,11 @@ def test_defaults_equal_an_empty_file(tmp_path):
         ("[zenoh]\nlisten = ['localhost']\n", "zenoh.listen"),
         ("[retention]\nrecord = 'some'\n", "retention.record"),
         ("[simulator]\ndefect_rate = 1.5\n", "simulator.defect_rate"),
+        ("[simulator]\ndent_depth_mm = 0\n", "simulator.dent_depth_mm"),
+        ("[simulator]\ndent_radius_mm = 500\n", "simulator.dent_radius_mm"),
+        ("[simulator]\nyaw_range_deg = 270\n", "simulator.yaw_range_deg"),
+        ("[simulator]\nposition_range_x_mm = -1\n", "simulator.position_range_x_mm"),
+        ("[station]\nrig = 'depth'\n", "station.rig"),
         ("[bogus]\n", "bogus"),
         ("[storage]\nmcap_rotate_mb = nan\n", "storage.mcap_rotate_mb"),
     ],
@@ -156,3 +162,21 @@ def test_duplicate_point_names(tmp_path):
     text = PART + PART[PART.index("[[points]]") :]
     with pytest.raises(ConfigError, match="used twice"):
         load_part_spec(write(tmp_path, "bracket.toml", text))
+
+
+def test_the_line_file_sets_every_simulator_key_and_the_ingest_uses_them():
+    from service.line import Station
+
+    path = Path(__file__).resolve().parents[2] / "configs" / "line.toml"
+    cfg = load_line_config(path)
+    written = tomllib.loads(path.read_text())["simulator"]
+    assert set(written) == set(type(cfg.simulator).model_fields)
+    settings = Station.load(cfg, build_trees=False, warm_up=False).simulated_rig().settings
+    sim = cfg.simulator
+    assert (settings.dent_depth_mm, settings.dent_radius_mm, settings.yaw_range_deg) == (
+        sim.dent_depth_mm, sim.dent_radius_mm, sim.yaw_range_deg,
+    )  # fmt: skip
+    assert settings.position_range_mm == (sim.position_range_x_mm, sim.position_range_y_mm)
+    assert (settings.flip, settings.seed, settings.defect_rate) == (
+        sim.flip, sim.seed, sim.defect_rate,
+    )  # fmt: skip
