@@ -1,10 +1,16 @@
-"""The running line: trigger-to-result latency on zenoh, and the highest sustained rate.
+"""The running line: stage times, trigger-to-result latency on zenoh, the highest sustained rate.
 
-Runs ``inspection run`` (the whole simulated line: ingest, worker, API, store,
-recorder in one process) as a subprocess and listens to its results as a
-zenoh client, the way any subscriber would. Latency is the result's arrival
-time minus its ``triggered_ns`` (both from this host's clock).
+Runs ``inspection run`` (the whole simulated line on the flash rig: ingest,
+worker, API, store, recorder in one process) as a subprocess and listens to
+its results as a zenoh client, the way any subscriber would. Latency is the
+result's arrival time minus its ``triggered_ns`` (both from this host's
+clock): it includes rendering the frames (the simulated exposure), sending
+them, reconstruction, alignment and deviations.
 
+0. Stage times: ``simulate`` timed in this process before the line starts
+   (the same call the ingest makes); ``reconstruct``, ``align`` and
+   ``deviations`` from the ``timings_ms`` of the results at 0.5 Hz, i.e.
+   inside the running line, medians and p90.
 1. At 0.5 Hz for ``BENCH_LINE_DURATION_S`` seconds (default 300; 40 with
    ``BENCH_SMOKE=1``): p50 and p99 latency; the goal is p50 <= 1 s and
    p99 <= 2 s on this 2-core machine.
@@ -50,6 +56,7 @@ class Window:
     period_s: float
     latencies_s: list[float] = field(default_factory=list)
     statuses: list[str] = field(default_factory=list)
+    stages_ms: dict[str, list[float]] = field(default_factory=dict)
     started: float = 0.0
 
     @property
@@ -131,6 +138,8 @@ def run_line(period_s: float, duration_s: float, warmup: int = 2) -> Window:
                     win.statuses.append(r.status.value)
                     if r.status.value != "missed":
                         win.latencies_s.append((now - r.triggered_ns) / 1e9)
+                    for k, v in r.timings_ms.items():
+                        win.stages_ms.setdefault(k, []).append(v)
 
             settings = bus.BusSettings(mode="client", connect=(f"tcp/127.0.0.1:{port}",))
             with bus.open_session(settings) as session:
@@ -151,6 +160,31 @@ def run_line(period_s: float, duration_s: float, warmup: int = 2) -> Window:
     return win
 
 
+def simulate_ms(n: int = 5) -> list[float]:
+    """Time the ingest's rendering of ``n`` parts (the line's config, this process)."""
+    from service.config import load_line_config
+    from service.line import Station
+
+    cfg = load_line_config(ROOT / "configs" / "line.toml")
+    rig = Station.load(cfg, build_trees=False, warm_up=False).simulated_rig()
+    rig.capture(0, 0)  # compile
+    out = []
+    for seq in range(1, n + 1):
+        t0 = time.perf_counter()
+        rig.capture(seq, 0)
+        out.append((time.perf_counter() - t0) * 1e3)
+    return out
+
+
+def _stage_line(name: str, values: list[float]) -> str:
+    if not values:
+        return f"  {name:>12}      -"
+    a = np.asarray(values)
+    return (
+        f"  {name:>12} {np.median(a):8.0f} {np.percentile(a, 90):8.0f} {a.max():8.0f}  n={len(a)}"
+    )
+
+
 def main() -> int:
     smoke = os.environ.get("BENCH_SMOKE") == "1"
     duration = float(os.environ.get("BENCH_LINE_DURATION_S", "40" if smoke else "300"))
@@ -159,9 +193,16 @@ def main() -> int:
         float(r)
         for r in os.environ.get("BENCH_LINE_RATES_HZ", "1,2" if smoke else "1,1.5,2,3,4").split(",")
     ]
+    load = os.getloadavg()
+    print(f"load average before: {load[0]:.1f} {load[1]:.1f} {load[2]:.1f}", flush=True)
+    sim = simulate_ms()
     print(f"line latency at 0.5 Hz over {duration:.0f} s (trigger -> result on zenoh)", flush=True)
     base = run_line(2.0, duration)
     p50, p99 = base.pct(50), base.pct(99)
+    print(f"  stage times, ms: {'p50':>8} {'p90':>8} {'max':>8}", flush=True)
+    print(_stage_line("simulate", sim) + "  (alone, before the line)", flush=True)
+    for name in ("reconstruct", "align", "deviations", "total"):
+        print(_stage_line(name, base.stages_ms.get(name, [])), flush=True)
     print(
         f"  n={len(base.latencies_s)} missed={base.missed} p50={p50:.3f} s p99={p99:.3f} s "
         f"max={max(base.latencies_s, default=float('nan')):.3f} s   (goal p50 <= 1 s, p99 <= 2 s)",
