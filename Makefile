@@ -40,7 +40,7 @@ run: $(VENV)/.installed-dev
 		--zenoh-listen $(ZENOH_LISTEN) --data-dir $(DATA_DIR)
 
 bench: $(VENV)/.installed-bench
-	$(BIN)/python -m bench
+	$(BIN)/python -m bench $(BENCH)
 
 lint: $(VENV)/.installed-dev
 	$(BIN)/ruff check inspection service tests bench
