@@ -133,8 +133,8 @@ class ReconstructParams:
     ring_pairs: bool = False
     free_space_mm: float = 2.0
     max_shift_px: float = 1.5
-    min_score: float = 0.85
-    consistency_mm: float = 1.0
+    min_score: float = 0.9
+    consistency_mm: float = 0.6
     dark_dn: float = 25.0
     saturated_fraction: float = 0.25
     min_contrast_dn: float = 2.0
