@@ -27,9 +27,8 @@ from numba import njit, prange
 
 REGION_INTERIOR = 0
 CELL_UNKNOWN = -1
-# Query status codes.
-STATUS_DONE = 0
-STATUS_SLOW = 1
+# ``out_face`` of a query the fast path leaves to the slow one.
+FACE_SLOW = -1
 
 _MAX_WALK = 32
 # A single-face cell code carries this bit when the foot point of every point
@@ -38,7 +37,7 @@ _MAX_WALK = 32
 INTERIOR_FLAG = 1 << 30
 FACE_MASK = INTERIOR_FLAG - 1
 _MAX_PLANE_STEPS = 6
-# Queries per chunk of the two-pass fast path: the chunk's cells and face
+# Queries per chunk of the fast path's passes: the chunk's cells and face
 # records stay in the first-level caches between the passes.
 QUERY_CHUNK = 64
 
@@ -320,7 +319,6 @@ def query_grid(
     out_nrm,
     out_dist,
     out_face,
-    status,
     sink,
 ):
     """Fast path: cell lookup, exact distance to the cell's face(s), local walk.
@@ -331,7 +329,7 @@ def query_grid(
     answer costs a dozen multiply-adds. Otherwise, and for cells with a
     candidate list, the exact point-to-triangle test and the walk decide.
     Points whose cell is unknown or outside the grid get
-    ``status = STATUS_SLOW`` and untouched outputs.
+    ``out_face = FACE_SLOW`` and their other outputs untouched.
     """
     n = points.shape[0]
     nby, nbz = dims[1], dims[2]
@@ -344,10 +342,11 @@ def query_grid(
     for c in prange(sink.shape[0]):
         j0 = c * QUERY_CHUNK
         j1 = min(n, j0 + QUERY_CHUNK)
-        # Pass 1: the cell codes of a chunk, and a first touch of the face
-        # record or candidate list each names. These loads do not depend on
-        # one another, so the memory system serves many at once; pass 2 then
-        # finds them in cache instead of waiting for each in turn.
+        # Pass 1 reads the chunk's cell codes, pass 2 touches the face
+        # records they name (every candidate's in a mixed cell). The loads of
+        # a pass do not depend on one another, so the memory system serves
+        # many at once; pass 3 then finds them in cache instead of waiting
+        # for each in turn.
         codes = np.empty(QUERY_CHUNK, dtype=np.int32)
         acc = 0.0
         for j in range(j0, j1):
@@ -364,11 +363,16 @@ def query_grid(
                     local = ((((ix & mask) << shift) + (iy & mask)) << shift) + (iz & mask)
                     code = cells[(np.int64(b) << (3 * shift)) + local]
             codes[j - j0] = code
+        for j in range(j1 - j0):
+            code = codes[j]
             if code >= 0:
                 f = int(code & FACE_MASK)
                 acc += rec[f, 3] + rec[f, 11]
             elif code != CELL_UNKNOWN:
-                acc += mixed_faces[mixed_ptr[-code - 2]]
+                m = -code - 2
+                for k in range(mixed_ptr[m], mixed_ptr[m + 1]):
+                    g = int(mixed_faces[k])
+                    acc += rec[g, 3] + rec[g, 11]
         # Kept so that the compiler cannot drop the touches.
         sink[c] = acc
         for j in range(j0, j1):
@@ -390,7 +394,6 @@ def query_grid(
                 out_nrm,
                 out_dist,
                 out_face,
-                status,
             )
 
 
@@ -413,14 +416,12 @@ def _query_one(
     out_nrm,
     out_dist,
     out_face,
-    status,
 ):
     """Row i of the fast path, given the code of its cell (see :func:`query_grid`)."""
     px, py, pz = points[i, 0], points[i, 1], points[i, 2]
     if code == CELL_UNKNOWN:
-        status[i] = STATUS_SLOW
+        out_face[i] = FACE_SLOW
         return
-    status[i] = STATUS_DONE
     if code >= 0:
         f = int(code & FACE_MASK)
         if code & INTERIOR_FLAG:

@@ -456,7 +456,6 @@ class GridTree:
         out_nrm = np.empty((n, 3))
         out_dist = np.empty(n)
         out_face = np.empty(n, dtype=np.int64)
-        status = np.empty(n, dtype=np.uint8)
         if n:
             order = K.block_order(
                 p,
@@ -490,10 +489,9 @@ class GridTree:
                 out_nrm,
                 out_dist,
                 out_face,
-                status,
                 np.empty((n + K.QUERY_CHUNK - 1) // K.QUERY_CHUNK),
             )
-            slow = np.flatnonzero(status != K.STATUS_DONE)
+            slow = np.flatnonzero(out_face == K.FACE_SLOW)
             if len(slow):
                 self._query_slow(p, slow, out_pts, out_nrm, out_dist, out_face)
         return Closest(points=out_pts, normals=out_nrm, distances=out_dist, face=out_face)
