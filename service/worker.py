@@ -320,6 +320,11 @@ class Worker:
         self.stats.by_status[r.status.value] = self.stats.by_status.get(r.status.value, 0) + 1
         if r.status is Status.missed:
             self.stats.missed += 1
+            # Said out loud: a line that cannot keep up with its trigger must show it.
+            log.warning(
+                "missed %s seq %d (%d missed of %d): %s",
+                r.serial, r.seq, self.stats.missed, self.stats.processed, r.reason,
+            )  # fmt: skip
         elif r.status is Status.error:
             self.stats.errors += 1
         for sink in self.sinks:
