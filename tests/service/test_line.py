@@ -26,7 +26,7 @@ HERE = Path(__file__).parent
 ENV = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
 
 
-def line_file(tmp_path: Path, trees: Path, period_s: float = 2.0) -> Path:
+def line_file(tmp_path: Path, trees: Path, period_s: float = 2.0, queue_size: int = 4) -> Path:
     """A copy of the default line with the repo's parts and the session's tree cache."""
     text = (ROOT / "configs" / "line.toml").read_text()
     text = text.replace('parts_dir = "parts"', f'parts_dir = "{ROOT / "configs" / "parts"}"')
@@ -34,6 +34,7 @@ def line_file(tmp_path: Path, trees: Path, period_s: float = 2.0) -> Path:
                         f'rig_calibration = "{ROOT / "configs" / "rig.toml"}"')  # fmt: skip
     text = text.replace('trees_dir = "trees"', f'trees_dir = "{trees}"')
     text = text.replace("trigger_period_s = 2.0", f"trigger_period_s = {period_s}")
+    text = text.replace("queue_size = 4 ", f"queue_size = {queue_size} ")
     path = tmp_path / "line.toml"
     path.write_text(text)
     return path
@@ -76,7 +77,10 @@ def test_cli_run_serves_zenoh_rest_and_mcap(tmp_path, trees):
     """
     port, http_port = free_port(), free_port()
     data = tmp_path / "data"
-    run = cli("run", "--config", str(line_file(tmp_path, trees)), "--data-dir", str(data),
+    # A short queue: SIGINT lets the worker finish what it accepted, and no more
+    # than one part waits (the flash rig takes seconds per part on this machine).
+    config = line_file(tmp_path, trees, period_s=3.0, queue_size=1)
+    run = cli("run", "--config", str(config), "--data-dir", str(data),
               "--http-port", str(http_port), "--zenoh-listen", f"tcp/127.0.0.1:{port}")  # fmt: skip
     try:
         for text in run.stdout:
