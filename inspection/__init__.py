@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from .alignment import Alignment, align
 from .cad import CadModel, CadReport, load_cad
-from .calibration import calibrate
+from .calibration import Calibration, calibrate
 from .deviations import ComparisonPoint, Deviations, deviations
 from .errors import (
     CadLoadError,
@@ -24,10 +24,10 @@ from .errors import (
 )
 from .grid import Closest, GridTree, warmup
 from .panel import PanelSpec, sheet_metal_panel
-from .reconstruct import Cloud, reconstruct
+from .reconstruct import Cloud, Prior, Reconstructor, ReconstructParams, reconstruct
 from .registration import Registration, StopReason, register
-from .rig import Camera, Rig
-from .simulate import simulate
+from .rig import Camera, Conveyor, Projector, Rig
+from .simulate import RenderOptions, Simulator, simulate, simulate_board
 
 __all__ = [
     "Alignment",
@@ -35,19 +35,27 @@ __all__ = [
     "CadModel",
     "CadReport",
     "CalibrationError",
+    "Calibration",
     "Camera",
     "Closest",
     "Cloud",
     "ComparisonPoint",
+    "Conveyor",
     "Deviations",
     "GridTree",
     "InspectionError",
     "InsufficientOverlap",
     "InvalidInput",
     "PanelSpec",
+    "Prior",
+    "Projector",
+    "ReconstructParams",
     "ReconstructionError",
+    "Reconstructor",
     "Registration",
+    "RenderOptions",
     "Rig",
+    "Simulator",
     "StopReason",
     "TreeMismatch",
     "align",
@@ -58,5 +66,6 @@ __all__ = [
     "register",
     "sheet_metal_panel",
     "simulate",
+    "simulate_board",
     "warmup",
 ]
