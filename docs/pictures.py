@@ -1,0 +1,59 @@
+"""Regenerate the README's pictures: ``.venv/bin/python docs/pictures.py``.
+
+The rig layout and one trigger's frames come from :mod:`inspection.pictures`;
+the deviation map is one simulated part with a 1 mm dent, measured the way the
+line measures it (simulate with the nominal rig, reconstruct with the
+calibrated one, align, deviations) and drawn the way the API draws it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+import inspection
+from inspection.pictures import write_rig_pictures
+from service.api.colormap import render_top_view
+
+OUT = Path(__file__).parent / "images"
+
+
+def deviation_map(path: Path) -> None:
+    cad = inspection.sheet_metal_panel(inspection.PanelSpec().scaled(400.0, 260.0), name="panel")
+    mesh = cad.to_trimesh()
+    # A 1 mm dent, 15 mm in radius, pressed into the top near one corner.
+    centre = np.array([110.0, -60.0])
+    v = mesh.vertices.copy()
+    r = np.hypot(v[:, 0] - centre[0], v[:, 1] - centre[1])
+    inside = (r < 15.0) & (mesh.vertex_normals[:, 2] > 0.5)
+    v[inside, 2] -= 1.0 * (1 - (r[inside] / 15.0) ** 2) ** 2
+    dented = trimesh.Trimesh(v, mesh.faces, process=False)
+
+    a = np.deg2rad(20.0)
+    T_rig_part = np.eye(4)
+    T_rig_part[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
+    T_rig_part[:3, 3] = (40.0, -20.0, 0.0)
+    frames = inspection.simulate(inspection.Rig.nominal(), dented, T_rig_part, seed=1)
+    cloud = inspection.reconstruct(inspection.Rig.default(), frames)
+    tree = inspection.GridTree.build(cad)
+    fit = inspection.align(tree, cloud.points, cad=cad)
+    points_cad = cloud.points @ fit.transform[:3, :3].T + fit.transform[:3, 3]
+    dev = inspection.deviations(tree, points_cad, [])
+    png = render_top_view(
+        points_cad, dev.distances, limit_mm=0.5, size_px=560, title="deviation from CAD, mm"
+    )
+    path.write_bytes(png)
+
+
+def main() -> None:
+    OUT.mkdir(exist_ok=True)
+    for p in write_rig_pictures(OUT):
+        print(p)
+    deviation_map(OUT / "deviation_map.png")
+    print(OUT / "deviation_map.png")
+
+
+if __name__ == "__main__":
+    main()
