@@ -43,7 +43,7 @@ bench: $(VENV)/.installed-bench
 	$(BIN)/python -m bench $(BENCH)
 
 lint: $(VENV)/.installed-dev
-	$(BIN)/ruff check inspection service tests bench
+	$(BIN)/ruff check inspection service tests bench docs
 	$(BIN)/mypy inspection service
 
 clean:
