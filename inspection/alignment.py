@@ -434,7 +434,7 @@ def align(
     trunc = 0.03 * model.size_mm
     angles = np.arange(n_angles) * (2.0 * np.pi / n_angles)
 
-    hyps: list[tuple[float, int, float, np.ndarray]] = []
+    hyps: list[tuple[bool, float, int, float, np.ndarray]] = []
     for k, pose in enumerate(model.poses):
         tpl = pose.template - pose.centroid
         scores = np.empty(n_angles)
@@ -442,20 +442,32 @@ def align(
             y = tpl @ _rot_z(theta).T + c_data
             d, _ = data_tree.query(y, distance_upper_bound=trunc)
             scores[a] = float(np.mean(np.minimum(d, trunc) ** 2))
+        # Hypotheses at neighbouring angles refine into the same pose: the
+        # local minima of the score over the angle come first, so that the
+        # refinement budget goes to distinct poses.
+        local_min = (scores <= np.roll(scores, 1)) & (scores <= np.roll(scores, -1))
         for a in range(n_angles):
             # T_data_cad = Trans(c_data) Rz(theta) Trans(-centroid) T_rest_cad.
             T_dc = np.eye(4)
             T_dc[:3, :3] = _rot_z(angles[a])
             T_dc[:3, 3] = c_data - _rot_z(angles[a]) @ pose.centroid
             T_dc = T_dc @ pose.transform
-            hyps.append((float(scores[a]), k, float(np.degrees(angles[a])), np.linalg.inv(T_dc)))
-    hyps.sort(key=lambda h: (h[0], h[1], h[2]))
+            hyps.append(
+                (
+                    not local_min[a],
+                    float(scores[a]),
+                    k,
+                    float(np.degrees(angles[a])),
+                    np.linalg.inv(T_dc),
+                )
+            )
+    hyps.sort(key=lambda h: (h[0], h[1], h[2], h[3]))
 
     # Coarse refinement of the best hypotheses against the sampled surface.
     refined: list[Candidate] = []
     residuals: list[np.ndarray] = []
     tried = 0
-    for score, k, ang, T in hyps:
+    for _, score, k, ang, T in hyps:
         if tried >= 3 * n_refine or len(refined) >= n_refine:
             break
         tried += 1
