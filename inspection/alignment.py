@@ -361,7 +361,7 @@ def align(
     loss: str = "tukey",
     weights: Scalars | None = None,
     n_angles: int = 36,
-    n_refine: int = 6,
+    n_refine: int = 4,
     sample_points: int = 1500,
     refine_points: int = 500,
     ambiguity_ratio: float = 1.25,
