@@ -436,12 +436,16 @@ def align(
 
     hyps: list[tuple[bool, float, int, float, np.ndarray]] = []
     for k, pose in enumerate(model.poses):
-        tpl = pose.template - pose.centroid
-        scores = np.empty(n_angles)
-        for a, theta in enumerate(angles):
-            y = tpl @ _rot_z(theta).T + c_data
-            d, _ = data_tree.query(y, distance_upper_bound=trunc)
-            scores[a] = float(np.mean(np.minimum(d, trunc) ** 2))
+        centroid = pose.centroid
+        tpl = pose.template - centroid
+        # Every angle in one query: (n_angles, M, 3) rotated templates.
+        c, s_ = np.cos(angles)[:, None], np.sin(angles)[:, None]
+        y = np.empty((n_angles, len(tpl), 3))
+        y[:, :, 0] = c * tpl[:, 0] - s_ * tpl[:, 1] + c_data[0]
+        y[:, :, 1] = s_ * tpl[:, 0] + c * tpl[:, 1] + c_data[1]
+        y[:, :, 2] = tpl[:, 2] + c_data[2]
+        d, _ = data_tree.query(y.reshape(-1, 3), distance_upper_bound=trunc)
+        scores = np.mean(np.minimum(d, trunc).reshape(n_angles, -1) ** 2, axis=1)
         # Hypotheses at neighbouring angles refine into the same pose: the
         # local minima of the score over the angle come first, so that the
         # refinement budget goes to distinct poses.
@@ -450,7 +454,7 @@ def align(
             # T_data_cad = Trans(c_data) Rz(theta) Trans(-centroid) T_rest_cad.
             T_dc = np.eye(4)
             T_dc[:3, :3] = _rot_z(angles[a])
-            T_dc[:3, 3] = c_data - _rot_z(angles[a]) @ pose.centroid
+            T_dc[:3, 3] = c_data - _rot_z(angles[a]) @ centroid
             T_dc = T_dc @ pose.transform
             hyps.append(
                 (
