@@ -364,6 +364,7 @@ def align(
     n_refine: int = 4,
     sample_points: int = 1500,
     refine_points: int = 500,
+    score_points: int = 300,
     ambiguity_ratio: float = 1.25,
     finalist_ratio: float = 2.0,
     n_finalists: int = 3,
@@ -395,6 +396,9 @@ def align(
         Size of the cloud's subsample used to score hypotheses.
     refine_points : int
         Size of the (smaller) subsample used to refine them.
+    score_points : int
+        Points of each resting pose's template placed per hypothesis to
+        score it (a prefix of the template).
     ambiguity_ratio : float
         A distinct finalist whose score is within this factor of the best
         makes the result ambiguous.
@@ -418,8 +422,11 @@ def align(
         No hypothesis brings enough points near the CAD.
     """
     P = validate_points(points, min_points=30)
-    if n_angles < 1 or n_refine < 1 or sample_points < 30 or refine_points < 30:
-        raise InvalidInput("n_angles and n_refine must be >= 1, sample_points, refine_points >= 30")
+    if n_angles < 1 or n_refine < 1 or min(sample_points, refine_points, score_points) < 30:
+        raise InvalidInput(
+            "n_angles and n_refine must be >= 1, sample_points, refine_points and "
+            "score_points >= 30"
+        )
     if not np.isfinite(ambiguity_ratio) or ambiguity_ratio < 1.0:
         raise InvalidInput(f"ambiguity_ratio must be >= 1, got {ambiguity_ratio!r}")
     if model is None:
@@ -437,7 +444,9 @@ def align(
     hyps: list[tuple[bool, float, int, float, np.ndarray]] = []
     for k, pose in enumerate(model.poses):
         centroid = pose.centroid
-        tpl = pose.template - centroid
+        # The template's points are independent samples: a prefix scores as
+        # well as the whole, for less.
+        tpl = pose.template[:score_points] - centroid
         # Every angle in one query: (n_angles, M, 3) rotated templates.
         c, s_ = np.cos(angles)[:, None], np.sin(angles)[:, None]
         y = np.empty((n_angles, len(tpl), 3))
