@@ -302,3 +302,26 @@ def test_ingest_spends_seq_numbers_of_triggers_it_could_not_fire(quick_part):
     seqs = [decode_frameset(b).seq for b in sent]
     assert seqs[0] == 0 and seqs[1] >= 3 and seqs == sorted(seqs)
     assert ing.seq == seqs[-1] + 1
+
+
+def test_worker_and_api_measure_with_the_same_loaded_part(tmp_path, trees):
+    """One tree per part: the station's pipeline holds the registry's own objects."""
+    from linekit import ROOT
+
+    from service.config import load_line_config
+    from service.line import Station
+
+    demo(trees)  # the tree is in the session's cache
+    cfg = load_line_config(
+        ROOT / "configs" / "line.toml",
+        overrides={("storage", "data_dir"): str(tmp_path), ("storage", "trees_dir"): str(trees)},
+    )
+    station = Station.load(cfg, warm_up=False)
+    try:
+        assert station.registry is not None and station.registry.ready()
+        part = station.registry.get(PART)
+        assert station.parts[PART] is part
+        assert station.pipeline().parts[PART].tree is part.tree
+        assert part.alignment_model is not None
+    finally:
+        station.close()
