@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any
@@ -225,6 +226,8 @@ def inspect_cloud(
     *,
     frame: CloudFrame | str = CloudFrame.rig,
     timings_ms: dict[str, float] | None = None,
+    fit: Callable[[LoadedPart, np.ndarray], Any] | None = None,
+    measure: Callable[[LoadedPart, np.ndarray], Any] | None = None,
 ) -> Inspection:
     """Align a cloud to ``part`` and measure it.
 
@@ -237,6 +240,10 @@ def inspect_cloud(
     frame : {"rig", "cad"}
     timings_ms : dict, optional
         Timings of earlier stages (e.g. ``reconstruct``) to carry into the result.
+    fit, measure : callable(part, points) -> registration / deviations, optional
+        Replace the global alignment (``frame="rig"``) and the deviation
+        measurement; the line's pipeline passes its stages here, so the REST
+        API and the line turn a cloud into a result by the same steps.
 
     Returns
     -------
@@ -288,7 +295,9 @@ def inspect_cloud(
     fit_points = subsample(cloud, spec.registration.max_points)
     reg: Any
     try:
-        if frame == CloudFrame.rig:
+        if frame == CloudFrame.rig and fit is not None:
+            reg = fit(part, fit_points)
+        elif frame == CloudFrame.rig:
             reg = align(
                 part.tree, fit_points, model=part.alignment_model, cad=part.cad,
                 **_registration_kwargs(part),
@@ -300,7 +309,9 @@ def inspect_cloud(
         return error(f"alignment failed: {exc}")
     timings["align"] = (time.perf_counter() - t0) * 1e3
     T = np.asarray(reg.transform, dtype=np.float64)
-    fit: dict[str, Any] = dict(
+    if not np.isfinite(T).all():
+        return error("registration gave a non-finite transform")
+    fitted: dict[str, Any] = dict(
         transform=T.tolist(),
         rms_mm=finite_or_none(reg.rms_mm),
         inlier_fraction=finite_or_none(reg.inlier_fraction),
@@ -309,27 +320,30 @@ def inspect_cloud(
     if getattr(reg, "ambiguous", False):
         note = "pose ambiguous: another pose fits almost as well (a symmetric-looking part)"
         if spec.registration.ambiguous_is_error:
-            return error(note, **fit)
+            return error(note, **fitted)
     if not reg.inlier_fraction >= spec.registration.min_inlier_fraction:
         return error(
             f"fit kept {reg.inlier_fraction:.0%} of the points, "
             f"below the {spec.registration.min_inlier_fraction:.0%} required",
-            **fit,
+            **fitted,
         )
     if not reg.rms_mm <= spec.registration.max_rms_mm:
         return error(
             f"fit residual {reg.rms_mm:.3f} mm above the {spec.registration.max_rms_mm} mm allowed",
-            **fit,
+            **fitted,
         )
 
     # 2. Deviations of every point and at the comparison points, in the CAD frame.
     t0 = time.perf_counter()
     points_cad = _apply(T, cloud)
     try:
-        devs = deviations(part.tree, points_cad, comparison_points(spec))
+        if measure is not None:
+            devs = measure(part, points_cad)
+        else:
+            devs = deviations(part.tree, points_cad, comparison_points(spec))
     except InspectionError as exc:
         timings["deviations"] = (time.perf_counter() - t0) * 1e3
-        return error(f"deviations failed: {exc}", **fit)
+        return error(f"deviations failed: {exc}", **fitted)
     distances = np.asarray(devs.distances, dtype=np.float64)
     inliers = np.abs(distances) <= spec.registration.max_correspondence_mm
     comparison = _point_results(part, devs)
@@ -347,7 +361,7 @@ def inspect_cloud(
         comparison=comparison,
         field=_field_stats(distances, inliers),
         timings_ms=timings,
-        **fit,
+        **fitted,
     )
     kept = np.where(inliers, distances, np.nan)
     return Inspection(result=result, points_cad=points_cad, distances=kept)

@@ -26,13 +26,10 @@ import trimesh
 
 from inspection.errors import InspectionError
 
+from .inspect import CloudFrame, Trigger, inspect_cloud
 from .models import (
-    FieldStats,
     InspectionResult,
-    PointResult,
     Status,
-    Verdict,
-    finite_or_none,
     make_result_id,
     missed_serial,
     software_version,
@@ -276,8 +273,6 @@ class Pipeline:
                 timings,
                 t0,
             )
-        spec = part.spec
-
         t = time.perf_counter()
         cloud = self.stages.reconstruct(self.stages.rig, fs.images)
         timings["reconstruct"] = (time.perf_counter() - t) * 1e3
@@ -292,110 +287,28 @@ class Pipeline:
             points = points[finite]
         if len(points) == 0:
             return self._error(base, "empty cloud: no surface seen in the frames", timings, t0)
-        if len(points) > spec.registration.max_points:
-            # A fixed stride, not a random draw: replay must see the same points.
-            keep = np.linspace(0, len(points) - 1, spec.registration.max_points).astype(np.int64)
-            points = points[keep]
-
-        t = time.perf_counter()
-        reg = self.stages.align(part, points)
-        timings["align"] = (time.perf_counter() - t) * 1e3
-        T = np.asarray(reg.transform, dtype=np.float64)
-        rms = finite_or_none(reg.rms_mm)
-        inliers = finite_or_none(reg.inlier_fraction)
-        fit = dict(
-            transform=T.tolist(),
-            rms_mm=rms,
-            inlier_fraction=None if inliers is None else min(max(inliers, 0.0), 1.0),
+        # From here on the REST API's steps: align, deviations, verdict.
+        trigger = Trigger(
+            id=base["id"],
+            line=fs.line,
+            station=fs.station,
+            serial=fs.serial,
+            seq=fs.seq,
+            triggered_ns=fs.triggered_ns,
+            calibration_id=base["calibration_id"],
         )
-        reasons = []
-        if not np.isfinite(T).all():
-            return self._error(base, "registration gave a non-finite transform", timings, t0)
-        if rms is None or rms > spec.registration.max_rms_mm:
-            reasons.append(f"fit rms {rms} mm above {spec.registration.max_rms_mm} mm")
-        if inliers is None or inliers < spec.registration.min_inlier_fraction:
-            reasons.append(
-                f"inlier fraction {inliers} below {spec.registration.min_inlier_fraction}"
-            )
-        if reasons:
-            timings["total"] = (time.perf_counter() - t0) * 1e3
-            return Outcome(
-                InspectionResult(
-                    status=Status.error,
-                    reason="registration failed: " + "; ".join(reasons),
-                    timings_ms=timings,
-                    **fit,
-                    **base,
-                ),
-                points_rig=points,
-                T_cad_rig=T,
-            )
-
-        t = time.perf_counter()
-        points_cad = points @ T[:3, :3].T + T[:3, 3]
-        dev = self.stages.deviations(part, points_cad)
-        timings["deviations"] = (time.perf_counter() - t) * 1e3
-        distances = np.asarray(dev.distances, dtype=np.float64)
-
-        limits = {p.name: (p.lower_mm, p.upper_mm) for p in spec.points}
-        comparison = [
-            PointResult(
-                name=c.name,
-                deviation_mm=finite_or_none(c.deviation_mm),
-                lower_mm=limits[c.name][0],
-                upper_mm=limits[c.name][1],
-                support=int(c.support),
-                verdict=Verdict(str(getattr(c.verdict, "value", c.verdict))),
-            )
-            for c in dev.comparison
-        ]
-        verdicts = {c.verdict for c in comparison}
-        status = (
-            Status.fail
-            if Verdict.fail in verdicts
-            else Status.not_measurable
-            if Verdict.not_measurable in verdicts
-            else Status.passed
-        )
-        reason = None
-        if status is Status.not_measurable:
-            names = [c.name for c in comparison if c.verdict is Verdict.not_measurable]
-            reason = "not enough support at " + ", ".join(names)
-        elif status is Status.fail:
-            reason = "out of tolerance at " + ", ".join(
-                c.name for c in comparison if c.verdict is Verdict.fail
-            )
-        timings["total"] = (time.perf_counter() - t0) * 1e3
-        result = InspectionResult(
-            status=status,
-            reason=reason,
-            comparison=comparison,
-            field=field_stats(distances, spec.registration.max_correspondence_mm),
+        measured = inspect_cloud(
+            part,
+            points,
+            trigger,
+            frame=CloudFrame.rig,
             timings_ms=timings,
-            **fit,
-            **base,
+            fit=self.stages.align,
+            measure=self.stages.deviations,
         )
-        return Outcome(result, points_rig=points, distances=distances, T_cad_rig=T)
-
-
-def field_stats(distances: np.ndarray, gate_mm: float) -> FieldStats:
-    """Summary of signed deviations; points beyond ``gate_mm`` are outliers, left out."""
-    d = distances[np.isfinite(distances)]
-    inl = d[np.abs(d) <= gate_mm]
-    if not len(inl):
-        return FieldStats(points=len(distances), inliers=0)
-    p05, p95 = np.percentile(inl, [5, 95])
-    return FieldStats(
-        points=len(distances),
-        inliers=len(inl),
-        mean_mm=float(inl.mean()),
-        std_mm=float(inl.std()),
-        rms_mm=float(np.sqrt(np.mean(inl**2))),
-        min_mm=float(inl.min()),
-        max_mm=float(inl.max()),
-        p05_mm=float(p05),
-        p95_mm=float(p95),
-    )
+        result = measured.result
+        T = None if result.transform is None else np.asarray(result.transform, dtype=np.float64)
+        return Outcome(result, points_rig=points, distances=measured.distances, T_cad_rig=T)
 
 
 def missed_result(
