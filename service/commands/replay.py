@@ -76,6 +76,9 @@ def _publish(args: argparse.Namespace, files: list[Any]) -> int:
         if args.wait_subscriber and not bus.wait_for_subscribers(pub, args.wait_subscriber):
             print("no subscriber appeared; publishing anyway", file=sys.stderr)
         n = publish(files, pub.put, speed=args.speed, stop=stop)
+        # A put returns once the frames are queued, not delivered, and closing
+        # the session drops what is still queued: give the transport time to drain.
+        stop.wait(args.linger)
         pub.undeclare()
     finally:
         session.close()
@@ -100,6 +103,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--zenoh-connect", action="append", metavar="ENDPOINT")
     p.add_argument("--zenoh-listen", action="append", metavar="ENDPOINT")
     p.add_argument("--prefix", default="insp/v1", help="key prefix to publish under")
+    p.add_argument(
+        "--linger",
+        type=float,
+        default=2.0,
+        metavar="S",
+        help="keep the session open S seconds after the last frame set so it is delivered "
+        "(default 2)",
+    )
     p.add_argument(
         "--wait-subscriber",
         type=float,
