@@ -324,19 +324,10 @@ def missed_result(
     unknown_part: str = "unknown",
 ) -> InspectionResult:
     """The result of a trigger that was never inspected (dropped, or a gap in ``seq``)."""
-    return InspectionResult(
-        id=make_result_id(line, station, seq, triggered_ns),
-        line=line,
-        station=station,
-        part=part or unknown_part,
-        serial=serial or missed_serial(seq),
-        seq=seq,
-        triggered_ns=triggered_ns,
-        status=Status.missed,
-        reason=reason,
-        calibration_id=calibration_id,
-        software_version=software_version(),
-    )
+    return _unmeasured(
+        Status.missed, line, station, seq, triggered_ns, reason, part or unknown_part, serial,
+        calibration_id,
+    )  # fmt: skip
 
 
 def error_result(
@@ -351,16 +342,34 @@ def error_result(
     calibration_id: str | None = None,
 ) -> InspectionResult:
     """The result of a FrameSet that could not even be decoded."""
+    return _unmeasured(
+        Status.error, line, station, seq, triggered_ns, reason[:2000], part or "unknown", serial,
+        calibration_id,
+    )  # fmt: skip
+
+
+def _unmeasured(
+    status: Status,
+    line: str,
+    station: str,
+    seq: int,
+    triggered_ns: int,
+    reason: str,
+    part: str,
+    serial: str | None,
+    calibration_id: str | None,
+) -> InspectionResult:
+    """A result with no measurement: its identity, status and reason only."""
     return InspectionResult(
         id=make_result_id(line, station, seq, triggered_ns),
         line=line,
         station=station,
-        part=part or "unknown",
+        part=part,
         serial=serial or missed_serial(seq),
         seq=seq,
         triggered_ns=triggered_ns,
-        status=Status.error,
-        reason=reason[:2000],
+        status=status,
+        reason=reason,
         calibration_id=calibration_id,
         software_version=software_version(),
     )
