@@ -14,22 +14,27 @@ import numpy as np
 import trimesh
 
 import inspection
+from inspection.panel import panel_height
 from inspection.pictures import write_rig_pictures
 from service.api.colormap import render_top_view
+from service.ingest import dent
+from service.protocol import Defect
 
 OUT = Path(__file__).parent / "images"
 
 
 def deviation_map(path: Path) -> None:
-    cad = inspection.sheet_metal_panel(inspection.PanelSpec().scaled(400.0, 260.0), name="panel")
+    spec = inspection.PanelSpec().scaled(400.0, 260.0)
+    cad = inspection.sheet_metal_panel(spec, name="panel")
     mesh = cad.to_trimesh()
-    # A 1 mm dent, 15 mm in radius, pressed into the top near one corner.
-    centre = np.array([110.0, -60.0])
-    v = mesh.vertices.copy()
-    r = np.hypot(v[:, 0] - centre[0], v[:, 1] - centre[1])
-    inside = (r < 15.0) & (mesh.vertex_normals[:, 2] > 0.5)
-    v[inside, 2] -= 1.0 * (1 - (r[inside] / 15.0) ** 2) ** 2
-    dented = trimesh.Trimesh(v, mesh.faces, process=False)
+    # A 1 mm dent, 15 mm in radius, pressed into the top near one corner, as the
+    # line's simulator presses its defects.
+    x, y = 110.0, -60.0
+    z = float(panel_height(spec, np.array([x]), np.array([y]))[0])
+    defect = Defect(center_mm=(x, y, z), normal=(0.0, 0.0, 1.0), depth_mm=1.0, radius_mm=15.0)
+    dented = trimesh.Trimesh(
+        dent(mesh.vertices, mesh.vertex_normals, defect), mesh.faces, process=False
+    )
 
     a = np.deg2rad(20.0)
     T_rig_part = np.eye(4)
