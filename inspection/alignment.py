@@ -7,11 +7,15 @@ anywhere in the measurement volume. The search runs in three stages:
 1. *Hypotheses.* For every stable resting pose of the CAD (from the convex
    hull: trimesh's ``compute_stable_poses``), the side that faces the sensor
    is sampled once (an :class:`AlignmentModel`, built explicitly and reused
-   for every part). Each pose is tried at ``n_angles`` rotations about the
+   for every part). Each pose is tried at a few rotations about the
    vertical, with the centroid of its visible side put on the centroid of
-   the measured cloud; each hypothesis is scored by the truncated nearest-
-   neighbour distance of its template to a subsample of the cloud (a
-   kd-tree on the cloud, so scoring never touches the CAD).
+   the measured cloud: the two that lay the major axis of the template's
+   footprint on the cloud's when both footprints are elongated, else
+   ``n_angles`` evenly spread. Each hypothesis is scored by truncated
+   nearest-neighbour distances both ways, template to a subsample of the
+   cloud and that subsample to the template (kd-trees, so scoring never
+   touches the CAD); refinement stops once two distinct hypotheses are
+   refined and the rest score clearly worse.
 2. *Coarse refinement.* The best few distinct hypotheses are refined by
    :func:`inspection.registration.register` on a subsample of the cloud
    against a dense sampling of the CAD surface (point-to-plane against the
@@ -66,11 +70,19 @@ class RestingPose:
         Share of random drops that end in this pose (quasi-static estimate).
     template : (M, 3) float64, mm, resting frame
         Points sampled from the faces that face up in this pose.
+    axis_rad : float
+        Direction of the major principal axis of the template's footprint
+        (its x, y coordinates) in the resting frame, radians in [0, pi).
+    elongation : float
+        Minor over major principal variance of that footprint, in [0, 1]:
+        near 1 for a round or square footprint, whose axis means nothing.
     """
 
     transform: Transform
     probability: float
     template: Points
+    axis_rad: float = 0.0
+    elongation: float = 1.0
 
     @property
     def centroid(self) -> np.ndarray:
@@ -335,12 +347,21 @@ def alignment_model(
             log.debug("stable pose %d shows no face to the sensor; skipped", k)
             continue
         tpl, _ = sample_facing(v, f, n, T, template_points, seed=seed + k, min_cos=min_cos)
-        poses.append(RestingPose(T, float(p), tpl))
+        axis, elongation = _footprint(tpl[:, :2])
+        poses.append(RestingPose(T, float(p), tpl, axis, elongation))
     if not poses:
         raise InvalidInput("the part has no stable pose in which any face is seen from above")
     surface = SampledSurface.build(v, f, n, n=surface_points, seed=seed)
     size = float(np.linalg.norm(v.max(axis=0) - v.min(axis=0)))
     return AlignmentModel(tuple(poses), surface, size)
+
+
+def _footprint(xy: np.ndarray) -> tuple[float, float]:
+    """Major principal axis (radians in [0, pi)) and minor / major variance of 2-D points."""
+    d = xy - xy.mean(axis=0)
+    w, v = np.linalg.eigh(d.T @ d / max(len(d), 1))  # ascending eigenvalues
+    axis = float(np.arctan2(v[1, 1], v[0, 1])) % np.pi
+    return axis, float(w[0] / w[1]) if w[1] > 0.0 else 1.0
 
 
 def _rot_z(theta: float) -> np.ndarray:
@@ -365,9 +386,11 @@ def align(
     weights: Scalars | None = None,
     n_angles: int = 36,
     n_refine: int = 4,
-    sample_points: int = 1500,
+    sample_points: int = 4000,
     refine_points: int = 500,
     score_points: int = 300,
+    footprint_ratio: float = 0.7,
+    clear_ratio: float = 2.0,
     ambiguity_ratio: float = 1.25,
     finalist_ratio: float = 2.0,
     n_finalists: int = 3,
@@ -392,7 +415,8 @@ def align(
     weights : (N,) float64, optional
         Per-point input weights for the final registration.
     n_angles : int
-        Rotations about the vertical tried per resting pose.
+        Rotations about the vertical tried per resting pose whose footprint
+        (or the cloud's) has no clear major axis.
     n_refine : int
         Distinct hypotheses refined on the subsample.
     sample_points : int
@@ -402,6 +426,14 @@ def align(
     score_points : int
         Points of each resting pose's template placed per hypothesis to
         score it (a prefix of the template).
+    footprint_ratio : float
+        A footprint (x, y of the template or of the cloud) whose minor over
+        major principal variance is at most this has a clear major axis;
+        when both have one, a resting pose is tried at the two rotations
+        that lay the axes on each other instead of ``n_angles``.
+    clear_ratio : float
+        Once two distinct hypotheses are refined, hypotheses whose score is
+        more than this factor above the best one's are not refined.
     ambiguity_ratio : float
         A distinct finalist whose score is within this factor of the best
         makes the result ambiguous.
@@ -432,6 +464,10 @@ def align(
         )
     if not np.isfinite(ambiguity_ratio) or ambiguity_ratio < 1.0:
         raise InvalidInput(f"ambiguity_ratio must be >= 1, got {ambiguity_ratio!r}")
+    if not 0.0 <= footprint_ratio <= 1.0:
+        raise InvalidInput(f"footprint_ratio must be in [0, 1], got {footprint_ratio!r}")
+    if not np.isfinite(clear_ratio) or clear_ratio < 1.0:
+        raise InvalidInput(f"clear_ratio must be >= 1, got {clear_ratio!r}")
     if model is None:
         model = alignment_model(cad if cad is not None else tree, seed=seed)
     rng = np.random.default_rng(seed)
@@ -442,27 +478,52 @@ def align(
     # Hypothesis scores saturate at a few per cent of the part size, so that a
     # hypothesis is judged by how much of its template lands on the cloud.
     trunc = 0.03 * model.size_mm
-    angles = np.arange(n_angles) * (2.0 * np.pi / n_angles)
+    scan = np.arange(n_angles) * (2.0 * np.pi / n_angles)
+    axis_data, elongation_data = _footprint(sub[:, :2])
+    back = sub[:score_points] - c_data
 
     hyps: list[tuple[bool, float, int, float, np.ndarray]] = []
     for k, pose in enumerate(model.poses):
         centroid = pose.centroid
+        if max(pose.elongation, elongation_data) <= footprint_ratio:
+            # Both footprints have a clear major axis: the rotation about the
+            # vertical lays the template's axis on the cloud's, pointing one
+            # way or the other (two hypotheses instead of a scan).
+            a0 = (axis_data - pose.axis_rad) % (2.0 * np.pi)
+            angles = np.array([a0, (a0 + np.pi) % (2.0 * np.pi)])
+        else:
+            angles = scan
         # The template's points are independent samples: a prefix scores as
         # well as the whole, for less.
         tpl = pose.template[:score_points] - centroid
-        # Every angle in one query: (n_angles, M, 3) rotated templates.
+        # Every angle in one query: (n, M, 3) rotated templates.
         c, s_ = np.cos(angles)[:, None], np.sin(angles)[:, None]
-        y = np.empty((n_angles, len(tpl), 3))
+        y = np.empty((len(angles), len(tpl), 3))
         y[:, :, 0] = c * tpl[:, 0] - s_ * tpl[:, 1] + c_data[0]
         y[:, :, 1] = s_ * tpl[:, 0] + c * tpl[:, 1] + c_data[1]
         y[:, :, 2] = tpl[:, 2] + c_data[2]
         d, _ = data_tree.query(y.reshape(-1, 3), distance_upper_bound=trunc)
-        scores = np.mean(np.minimum(d, trunc).reshape(n_angles, -1) ** 2, axis=1)
-        # Hypotheses at neighbouring angles refine into the same pose: the
-        # local minima of the score over the angle come first, so that the
-        # refinement budget goes to distinct poses.
-        local_min = (scores <= np.roll(scores, 1)) & (scores <= np.roll(scores, -1))
-        for a in range(n_angles):
+        scores = np.mean(np.minimum(d, trunc).reshape(len(angles), -1) ** 2, axis=1)
+        # And the other way round: the cloud turned into the resting frame,
+        # against the whole template, so that a pose whose visible side covers
+        # only part of the cloud (a panel on its edge) does not score well.
+        b = back
+        yb = np.empty((len(angles), len(b), 3))
+        yb[:, :, 0] = c * b[:, 0] + s_ * b[:, 1]
+        yb[:, :, 1] = -s_ * b[:, 0] + c * b[:, 1]
+        yb[:, :, 2] = b[:, 2]
+        d, _ = cKDTree(pose.template - centroid).query(
+            yb.reshape(-1, 3), distance_upper_bound=trunc
+        )
+        scores += np.mean(np.minimum(d, trunc).reshape(len(angles), -1) ** 2, axis=1)
+        # Hypotheses at neighbouring angles of a scan refine into the same
+        # pose: the local minima of the score over the angle come first, so
+        # that the refinement budget goes to distinct poses.
+        if angles is scan:
+            local_min = (scores <= np.roll(scores, 1)) & (scores <= np.roll(scores, -1))
+        else:
+            local_min = np.ones(len(angles), dtype=bool)
+        for a in range(len(angles)):
             # T_data_cad = Trans(c_data) Rz(theta) Trans(-centroid) T_rest_cad.
             T_dc = np.eye(4)
             T_dc[:3, :3] = _rot_z(angles[a])
@@ -478,6 +539,8 @@ def align(
                 )
             )
     hyps.sort(key=lambda h: (h[0], h[1], h[2], h[3]))
+    best_hyp = hyps[0][1]
+    log.debug("hypotheses: %s", [(h[2], round(h[3]), round(h[1], 2)) for h in hyps[:8]])
 
     # Coarse refinement of the best hypotheses against the sampled surface.
     refined: list[Candidate] = []
@@ -485,6 +548,10 @@ def align(
     tried = 0
     for _, score, k, ang, T in hyps:
         if tried >= 3 * n_refine or len(refined) >= n_refine:
+            break
+        if len(refined) >= 2 and score > clear_ratio * max(best_hyp, 1e-12 * trunc * trunc):
+            # The rest place clearly less of their template on the cloud than
+            # the best: two refined rivals are enough to judge ambiguity.
             break
         tried += 1
         try:
