@@ -29,7 +29,9 @@ anywhere in the measurement volume. The search runs in three stages:
 from __future__ import annotations
 
 import logging
+import os
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -43,6 +45,7 @@ from .registration import ClosestPointQuery, Registration, register, validate_po
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "MODEL_FORMAT_VERSION",
     "Alignment",
     "AlignmentModel",
     "Candidate",
@@ -52,6 +55,10 @@ __all__ = [
     "alignment_model",
     "sample_facing",
 ]
+
+MODEL_FORMAT_VERSION = 1
+"""Version of the :meth:`AlignmentModel.save` file and of what :func:`alignment_model`
+computes by default: raise it when either changes, so that saved models are rebuilt."""
 
 # Faces whose normal makes less than this cosine with "up" are not seen by
 # the sensor above (grazing faces give no usable points).
@@ -179,6 +186,84 @@ class AlignmentModel:
     poses: tuple[RestingPose, ...]
     surface: SampledSurface
     size_mm: float
+
+    def save(self, path: str | Path, *, key: str = "") -> None:
+        """Write the model to an ``.npz`` file (atomically: a temporary file renamed).
+
+        Parameters
+        ----------
+        path : path
+        key : str
+            Stored with the model and checked by :meth:`load` (e.g. the CAD's hash).
+        """
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + f".{os.getpid()}.tmp")
+        with open(tmp, "wb") as fh:
+            np.savez(
+                fh,
+                format_version=np.int64(MODEL_FORMAT_VERSION),
+                key=np.str_(key),
+                transforms=np.stack([p.transform for p in self.poses]),
+                probabilities=np.array([p.probability for p in self.poses]),
+                templates=np.stack([p.template for p in self.poses]),
+                axes=np.array([p.axis_rad for p in self.poses]),
+                elongations=np.array([p.elongation for p in self.poses]),
+                samples=self.surface.samples,
+                normals=self.surface.normals,
+                face=self.surface.face,
+                spacing_mm=np.float64(self.surface.spacing_mm),
+                size_mm=np.float64(self.size_mm),
+            )
+        os.replace(tmp, path)
+
+    @classmethod
+    def load(cls, path: str | Path, *, key: str | None = None) -> AlignmentModel:
+        """Read a model written by :meth:`save`.
+
+        Parameters
+        ----------
+        path : path
+        key : str, optional
+            When given, the stored key must be this.
+
+        Raises
+        ------
+        InvalidInput
+            Unreadable file, another format version, another key.
+        """
+        try:
+            with np.load(Path(path), allow_pickle=False) as z:
+                version = int(z["format_version"])
+                if version != MODEL_FORMAT_VERSION:
+                    raise InvalidInput(
+                        f"{path}: alignment model format {version}, expected {MODEL_FORMAT_VERSION}"
+                    )
+                if key is not None and str(z["key"]) != key:
+                    raise InvalidInput(f"{path}: alignment model of {str(z['key'])!r}, not {key!r}")
+                arrays = {name: np.array(z[name]) for name in z.files}
+        except (OSError, KeyError, ValueError) as exc:
+            raise InvalidInput(f"{path}: not a readable alignment model: {exc}") from exc
+        poses = tuple(
+            RestingPose(T, float(p), tpl, float(a), float(e))
+            for T, p, tpl, a, e in zip(
+                arrays["transforms"],
+                arrays["probabilities"],
+                arrays["templates"],
+                arrays["axes"],
+                arrays["elongations"],
+                strict=True,
+            )
+        )
+        samples = np.ascontiguousarray(arrays["samples"], dtype=np.float64)
+        surface = SampledSurface(
+            samples,
+            np.ascontiguousarray(arrays["normals"], dtype=np.float64),
+            np.asarray(arrays["face"], dtype=np.int64),
+            float(arrays["spacing_mm"]),
+            cKDTree(samples),
+        )
+        return cls(poses, surface, float(arrays["size_mm"]))
 
 
 @dataclass(frozen=True)

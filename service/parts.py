@@ -215,7 +215,7 @@ def load_part(
     cad = load_part_cad(spec, base_dir)
     tree = build_or_load_tree(cad, spec, trees_dir, report)
     report(0.95, "computing resting poses")
-    model = _alignment_model(cad) if alignment else None
+    model = _alignment_model(cad, trees_dir) if alignment else None
     report(1.0, "ready")
     return LoadedPart(spec=spec, cad=cad, tree=tree, tree_hash=tree.hash, alignment_model=model)
 
@@ -224,26 +224,55 @@ _models: dict[str, Any] = {}
 _models_lock = threading.Lock()
 
 
-def _alignment_model(cad: CadModel) -> Any:
-    """The global alignment's per-part model (resting poses, templates); None if not installed.
+def alignment_model_path(trees_dir: Path, cad: CadModel) -> Path | None:
+    """Where the alignment model of ``cad`` is cached, beside its trees (None if not installed).
 
-    Computed once per CAD geometry in a process (seconds of work): a part
-    deleted and created again, or a replay beside a worker, reuses it.
+    The name holds the CAD hash and the model's format version.
     """
     try:
-        from inspection.alignment import alignment_model
+        from inspection.alignment import MODEL_FORMAT_VERSION
+    except ImportError:
+        return None
+    return trees_dir / f"{cad.hash[:24]}-align-v{int(MODEL_FORMAT_VERSION)}.npz"
+
+
+def _alignment_model(cad: CadModel, trees_dir: Path | None = None) -> Any:
+    """The global alignment's per-part model (resting poses, templates); None if not installed.
+
+    Computed once per CAD geometry (seconds of work) and cached on disk beside
+    the trees (``trees_dir``), so a worker, a replay or the API started later
+    reads it instead; in a process, a part deleted and created again reuses it.
+    """
+    try:
+        from inspection.alignment import AlignmentModel, alignment_model
     except ModuleNotFoundError:
         log.warning("inspection.alignment is not installed: parts can be listed, not inspected")
         return None
+    from inspection.errors import InvalidInput
+
     with _models_lock:
         model = _models.get(cad.hash)
         if model is not None:
             return model
-        t0 = time.perf_counter()
-        model = alignment_model(cad)
-        log.info(
-            "%s: %d resting poses in %.1f s", cad.name, len(model.poses), time.perf_counter() - t0
-        )
+        path = alignment_model_path(trees_dir, cad) if trees_dir is not None else None
+        if path is not None and path.is_file():
+            try:
+                model = AlignmentModel.load(path, key=cad.hash)
+                log.info("%s: %d resting poses loaded from %s", cad.name, len(model.poses), path)
+            except InvalidInput as exc:
+                log.warning("%s: cached alignment model unusable (%s); recomputing", cad.name, exc)
+        if model is None:
+            t0 = time.perf_counter()
+            model = alignment_model(cad)
+            log.info(
+                "%s: %d resting poses in %.1f s",
+                cad.name, len(model.poses), time.perf_counter() - t0,
+            )  # fmt: skip
+            if path is not None:
+                try:
+                    model.save(path, key=cad.hash)
+                except OSError as exc:  # a read-only cache still lets the part load
+                    log.warning("%s: alignment model not cached: %s", cad.name, exc)
         _models[cad.hash] = model
         return model
 

@@ -8,7 +8,13 @@ import pytest
 import trimesh
 from _fitcases import measure, pose_errors
 
-from inspection.alignment import Alignment, align, alignment_model, sample_facing
+from inspection.alignment import (
+    Alignment,
+    AlignmentModel,
+    align,
+    alignment_model,
+    sample_facing,
+)
 from inspection.cad import CadModel
 from inspection.errors import InvalidInput
 from inspection.grid import GridTree
@@ -126,3 +132,19 @@ def test_bad_input_raises(panel):
         align(panel[1], data, model=panel[2], ambiguity_ratio=0.5)
     with pytest.raises(InvalidInput):
         alignment_model(object())
+
+
+def test_a_saved_model_aligns_bit_for_bit_like_the_computed_one(panel, tmp_path):
+    cad, tree, model = panel
+    path = tmp_path / "model.npz"
+    model.save(path, key=cad.hash)
+    loaded = AlignmentModel.load(path, key=cad.hash)
+    data, _ = trial(panel, 3, n=20_000)
+    a = align(tree, data, model=model)
+    b = align(tree, data, model=loaded)
+    assert a.transform.tobytes() == b.transform.tobytes()
+    with pytest.raises(InvalidInput, match="alignment model of"):
+        AlignmentModel.load(path, key="another CAD")
+    path.write_bytes(b"garbage")
+    with pytest.raises(InvalidInput):
+        AlignmentModel.load(path)

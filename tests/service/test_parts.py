@@ -127,3 +127,33 @@ def test_uploads_survive_a_restart_and_bad_ones_leave_nothing(tmp_path):
         assert reg.states() == {"up": "ready"}
         reg.delete("up")
         assert reg.names() == [] and not (uploads / "up").exists()
+
+
+def test_the_alignment_model_is_cached_beside_the_trees(tmp_path, monkeypatch):
+    """Computed once, written beside the trees; a later process (an empty
+    in-process cache) reads it back unchanged; a corrupt file is recomputed."""
+    from inspection.alignment import AlignmentModel
+    from service import parts
+    from service.parts import alignment_model_path, load_part
+
+    monkeypatch.setattr(parts, "_models", {})
+    trees = tmp_path / "trees"
+    s = spec(spacing_mm=2.0)
+    first = load_part(s, tmp_path, trees)
+    path = alignment_model_path(trees, first.cad)
+    assert path is not None and path.is_file()
+    monkeypatch.setattr(parts, "_models", {})
+    mtime = path.stat().st_mtime_ns
+    again = load_part(s, tmp_path, trees).alignment_model
+    assert path.stat().st_mtime_ns == mtime  # read, not recomputed
+    assert len(again.poses) == len(first.alignment_model.poses)
+    for a, b in zip(again.poses, first.alignment_model.poses, strict=True):
+        assert a.transform.tobytes() == b.transform.tobytes()
+        assert a.template.tobytes() == b.template.tobytes()
+        assert (a.axis_rad, a.elongation) == (b.axis_rad, b.elongation)
+    assert again.surface.samples.tobytes() == first.alignment_model.surface.samples.tobytes()
+    assert isinstance(AlignmentModel.load(path, key=first.cad.hash), AlignmentModel)
+    monkeypatch.setattr(parts, "_models", {})
+    path.write_bytes(b"not a model")
+    assert len(load_part(s, tmp_path, trees).alignment_model.poses) == len(again.poses)
+    assert path.stat().st_size > 1000
