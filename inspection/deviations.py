@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial import cKDTree
+from numba import njit
 
 from .arrays import Points, Scalars
 from .errors import InvalidInput
@@ -38,6 +38,7 @@ __all__ = [
     "deviations",
     "load_comparison_points",
     "robust_location",
+    "warmup",
 ]
 
 KINDS = ("surface", "hole", "trim_edge")
@@ -315,6 +316,48 @@ class Deviations:
         return self.summary
 
 
+@njit(cache=True, nogil=True)
+def _gather_balls(
+    points: np.ndarray, centres: np.ndarray, radii: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """Indices of the points within each ball, in point order, as CSR (start, index).
+
+    One pass over the points counts, a second fills: cheaper than building a
+    kd-tree over the whole cloud for a handful of small balls.
+    """
+    n, k = points.shape[0], centres.shape[0]
+    r2 = radii * radii
+    counts = np.zeros(k + 1, dtype=np.int64)
+    for i in range(n):
+        for j in range(k):
+            dx = points[i, 0] - centres[j, 0]
+            if dx * dx > r2[j]:
+                continue
+            dy = points[i, 1] - centres[j, 1]
+            dz = points[i, 2] - centres[j, 2]
+            if dx * dx + dy * dy + dz * dz <= r2[j]:
+                counts[j + 1] += 1
+    start = np.cumsum(counts)
+    fill = start[:-1].copy()
+    index = np.empty(start[-1], dtype=np.int64)
+    for i in range(n):
+        for j in range(k):
+            dx = points[i, 0] - centres[j, 0]
+            if dx * dx > r2[j]:
+                continue
+            dy = points[i, 1] - centres[j, 1]
+            dz = points[i, 2] - centres[j, 2]
+            if dx * dx + dy * dy + dz * dz <= r2[j]:
+                index[fill[j]] = i
+                fill[j] += 1
+    return start, index
+
+
+def warmup() -> None:
+    """Compile (or load from numba's cache) the support search, off the first part."""
+    _gather_balls(np.zeros((2, 3)), np.zeros((1, 3)), np.ones(1))
+
+
 def robust_location(
     x: Scalars, *, c: float = _TUKEY_C, iterations: int = 50
 ) -> tuple[float, float]:
@@ -393,9 +436,15 @@ def deviations(
     d = np.asarray(cl.distances, dtype=np.float64)
     normals = np.asarray(cl.normals, dtype=np.float64)
     results = []
-    kd = cKDTree(P) if cps else None
+    measured = [cp for cp in cps if cp.kind in MEASURED_KINDS]
+    if measured:
+        start, index = _gather_balls(
+            P,
+            np.array([cp.position for cp in measured], dtype=np.float64).reshape(-1, 3),
+            np.array([cp.radius_mm for cp in measured], dtype=np.float64),
+        )
+        support_of = {cp.name: index[start[j] : start[j + 1]] for j, cp in enumerate(measured)}
     for cp in cps:
-        assert kd is not None
         need = cp.min_support if cp.min_support is not None else min_support
         if cp.kind not in MEASURED_KINDS:
             log.warning("comparison point %s: kind %r is not measured yet", cp.name, cp.kind)
@@ -405,7 +454,7 @@ def deviations(
                 )
             )
             continue
-        idx = np.asarray(kd.query_ball_point(np.asarray(cp.position), cp.radius_mm), dtype=np.int64)
+        idx = support_of[cp.name]
         n_cp = np.asarray(cp.normal)
         cos = normals[idx] @ n_cp if len(idx) else np.empty(0)
         keep = np.abs(cos) >= _MIN_NORMAL_COS
@@ -448,5 +497,8 @@ def deviations(
         verdict = Verdict.PASS
     log.debug("deviations: %d points, %d comparison points, verdict %s", len(P), len(cps), verdict)
     return Deviations(
-        distances=d, comparison=tuple(results), summary=FieldSummary.of(d), verdict=verdict
+        distances=d,
+        comparison=tuple(results),
+        summary=FieldSummary.of(d),
+        verdict=verdict,
     )

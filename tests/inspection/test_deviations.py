@@ -235,3 +235,19 @@ def test_bad_points_raise(panel):
     p = ComparisonPoint("p", (0, 0, 0), (0, 0, 1), -1, 1, 5)
     with pytest.raises(InvalidInput):
         deviations(panel[1], np.zeros((10, 3)), [p, p])
+
+
+def test_support_is_every_point_within_the_radius(panel):
+    """The pooled points are exactly those a kd-tree finds in each ball (scipy as oracle)."""
+    from scipy.spatial import cKDTree
+
+    cad, tree = panel
+    cps = comparison_points(cad, radius_mm=7.0)
+    pts, _ = measure(cad, np.eye(4), 30_000, noise_mm=0.02, seed=5)
+    devs = deviations(tree, pts, cps)
+    kd = cKDTree(pts)
+    normals = tree.query(pts).normals
+    for cp, res in zip(cps, devs.comparison, strict=True):
+        idx = np.asarray(kd.query_ball_point(cp.position, cp.radius_mm), dtype=np.int64)
+        facing = np.abs(normals[idx] @ np.asarray(cp.normal)) >= 0.5
+        assert res.support == int(facing.sum()) > 20
