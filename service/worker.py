@@ -365,6 +365,8 @@ class ZenohWorker:
 
     The liveliness token is declared only once the worker can measure (its
     parts are prepared before this object is built), so a token means ready.
+
+    ``sinks`` run before the result is published, ``after_publish`` after it.
     """
 
     def __init__(
@@ -376,6 +378,7 @@ class ZenohWorker:
         *,
         queue_size: int,
         sinks: Iterable[ResultSink] = (),
+        after_publish: Iterable[ResultSink] = (),
         missed_part: str = "unknown",
         heartbeat_s: float = 1.0,
     ) -> None:
@@ -385,9 +388,10 @@ class ZenohWorker:
         self.worker = Worker(
             pipeline,
             self.source,
-            # Store and record first: whoever sees the result on zenoh can
-            # then fetch it over REST or find it in the recording.
-            [*sinks, zenoh_result_sink(session, keys)],
+            # Store first: whoever sees the result on zenoh can then fetch it
+            # over REST. Sinks nobody waits for (the recording) come after the
+            # publication, so they do not add to the trigger-to-result latency.
+            [*sinks, zenoh_result_sink(session, keys), *after_publish],
             line=keys.line,
             station=station,
             missed_part=missed_part,

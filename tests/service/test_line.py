@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import sqlite3
 import subprocess
@@ -215,3 +216,28 @@ def test_line_as_separate_processes(tmp_path, trees):
     db = sqlite3.connect(tmp_path / "data" / "results.sqlite")
     assert db.execute("SELECT count(*) FROM results").fetchone()[0] == 3
     db.close()
+
+
+def test_cli_run_stops_by_itself_after_n_parts(tmp_path, trees):
+    """``inspection run --parts N``: the line stops on its own after N results, exit
+    code 0, with every result it counted stored and recorded."""
+    port, http_port = free_port(), free_port()
+    data = tmp_path / "data"
+    config = line_file(tmp_path, trees, period_s=1.0, queue_size=1)
+    run = cli("run", "--config", str(config), "--data-dir", str(data), "--parts", "2",
+              "--http-port", str(http_port), "--zenoh-listen", f"tcp/127.0.0.1:{port}")  # fmt: skip
+    try:
+        out, err = run.communicate(timeout=300)
+    finally:
+        if run.poll() is None:
+            run.kill()
+    assert run.returncode == 0, err[-3000:]
+    counted = re.search(r"stopped after (\d+) results", out)
+    assert counted is not None, out
+    n = int(counted.group(1))
+    assert n >= 2
+    db = sqlite3.connect(data / "results.sqlite")
+    rows = {r[0] for r in db.execute("SELECT id FROM results").fetchall()}
+    db.close()
+    _, recorded = read_recording(sorted((data / "mcap").glob("*.mcap")))
+    assert len(rows) == n and {t.result.id for t in recorded} == rows
