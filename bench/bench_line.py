@@ -10,7 +10,10 @@ them, reconstruction, alignment and deviations.
 0. Stage times: ``simulate`` timed in this process before the line starts
    (the same call the ingest makes); ``reconstruct``, ``align`` and
    ``deviations`` from the ``timings_ms`` of the results at 0.5 Hz, i.e.
-   inside the running line, medians and p90.
+   inside the running line, medians and p90. Beside them the CPU time of
+   each stage (this process's, all threads), measured here one part at a
+   time before the line starts: wall times on a shared machine wander with
+   the load, CPU times much less.
 1. At 0.5 Hz for ``BENCH_LINE_DURATION_S`` seconds (default 300; 40 with
    ``BENCH_SMOKE=1``): p50 and p99 latency; the goal is p50 <= 1 s and
    p99 <= 2 s on this 2-core machine.
@@ -21,8 +24,12 @@ them, reconstruction, alignment and deviations.
 Results count from the moment the line reports ready on ``/v1/health`` (its
 trees loaded), after a warm-up of two results.
 
+Every run shares one tree cache, so only the first builds the demo part's
+tree and alignment model.
+
 Environment: BENCH_SMOKE, BENCH_LINE_DURATION_S, BENCH_LINE_RATES_HZ
-(comma-separated), BENCH_LINE_WINDOW_S.
+(comma-separated), BENCH_LINE_WINDOW_S, BENCH_LINE_CPU_PARTS (parts measured
+for the CPU times; 0 skips them).
 """
 
 from __future__ import annotations
@@ -92,7 +99,20 @@ def _wait_ready(url: str, timeout_s: float) -> None:
     print(f"  (the line was not ready after {timeout_s:.0f} s; measuring anyway)", flush=True)
 
 
-def run_line(period_s: float, duration_s: float, warmup: int = 2) -> Window:
+def line_config(tmp: Path, trees: Path) -> Path:
+    """A copy of configs/line.toml whose installation paths are absolute and whose
+    tree cache is ``trees`` (shared by every run of the bench)."""
+    conf = ROOT / "configs"
+    text = (conf / "line.toml").read_text()
+    text = text.replace('parts_dir = "parts"', f'parts_dir = "{conf / "parts"}"')
+    text = text.replace('rig_calibration = "rig.toml"', f'rig_calibration = "{conf / "rig.toml"}"')
+    text = text.replace('trees_dir = "trees"', f'trees_dir = "{trees}"')
+    path = tmp / "line.toml"
+    path.write_text(text)
+    return path
+
+
+def run_line(period_s: float, duration_s: float, config: Path, warmup: int = 2) -> Window:
     """Run the line at ``period_s`` and collect ``duration_s`` seconds of results."""
     from service import bus
     from service.protocol import Keys
@@ -104,7 +124,7 @@ def run_line(period_s: float, duration_s: float, warmup: int = 2) -> Window:
         env = {**os.environ, "INSPECTION_TRIGGER_PERIOD_S": str(period_s), "PYTHONUNBUFFERED": "1"}
         cmd = [
             sys.executable, "-m", "service.cli", "run",
-            "--config", str(ROOT / "configs" / "line.toml"),
+            "--config", str(config),
             "--data-dir", tmp, "--http-port", "0",
             "--zenoh-listen", f"tcp/127.0.0.1:{port}",
         ]  # fmt: skip
@@ -176,6 +196,42 @@ def simulate_ms(n: int = 5) -> list[float]:
     return out
 
 
+def stage_cpu_ms(config: Path, data_dir: Path, n: int) -> dict[str, list[float]]:
+    """CPU time (ms, this process) of reconstruct, align and deviations on ``n`` parts.
+
+    The line's own pieces, one part at a time: the station as the worker loads
+    it (warmed up), the ingest's simulated rig, and the pipeline's stages
+    called the way :func:`service.inspect.inspect_cloud` calls them.
+    """
+    from service import inspect as measure
+    from service.config import load_line_config
+    from service.line import Station
+
+    cfg = load_line_config(config, overrides={("storage", "data_dir"): str(data_dir)})
+    station = Station.load(cfg)
+    out: dict[str, list[float]] = {"reconstruct": [], "align": [], "deviations": []}
+    try:
+        rig, stages = station.simulated_rig(), station.stages
+        for seq in range(n):
+            fs = rig.capture(seq, 0)
+            part = station.parts[fs.part]
+            t = time.process_time()
+            points = np.asarray(stages.reconstruct(stages.rig, fs.images).points)
+            out["reconstruct"].append((time.process_time() - t) * 1e3)
+            points = points[np.isfinite(points).all(axis=1)]
+            fit = measure.subsample(points, part.spec.registration.max_points)
+            t = time.process_time()
+            T = np.asarray(stages.align(part, fit).transform)
+            out["align"].append((time.process_time() - t) * 1e3)
+            cad_points = points @ T[:3, :3].T + T[:3, 3]
+            t = time.process_time()
+            stages.deviations(part, cad_points)
+            out["deviations"].append((time.process_time() - t) * 1e3)
+    finally:
+        station.close()
+    return out
+
+
 def _stage_line(name: str, values: list[float]) -> str:
     if not values:
         return f"  {name:>12}      -"
@@ -193,16 +249,36 @@ def main() -> int:
         float(r)
         for r in os.environ.get("BENCH_LINE_RATES_HZ", "1,2" if smoke else "1,1.5,2,3,4").split(",")
     ]
+    cpu_parts = int(os.environ.get("BENCH_LINE_CPU_PARTS", "5"))
     load = os.getloadavg()
     print(f"load average before: {load[0]:.1f} {load[1]:.1f} {load[2]:.1f}", flush=True)
-    sim = simulate_ms()
+    with tempfile.TemporaryDirectory() as shared:
+        trees = Path(shared) / "trees"
+        config = line_config(Path(shared), trees)
+        sim = simulate_ms()
+        cpu = stage_cpu_ms(config, Path(shared) / "cpu", cpu_parts) if cpu_parts > 0 else {}
+        return _measure(config, duration, window, rates, sim, cpu)
+
+
+def _measure(
+    config: Path,
+    duration: float,
+    window: float,
+    rates: list[float],
+    sim: list[float],
+    cpu: dict[str, list[float]],
+) -> int:
     print(f"line latency at 0.5 Hz over {duration:.0f} s (trigger -> result on zenoh)", flush=True)
-    base = run_line(2.0, duration)
+    base = run_line(2.0, duration, config)
     p50, p99 = base.pct(50), base.pct(99)
     print(f"  stage times, ms: {'p50':>8} {'p90':>8} {'max':>8}", flush=True)
     print(_stage_line("simulate", sim) + "  (alone, before the line)", flush=True)
     for name in ("reconstruct", "align", "deviations", "total"):
         print(_stage_line(name, base.stages_ms.get(name, [])), flush=True)
+    if cpu:
+        print(f"  stage CPU, ms:   {'p50':>8} {'p90':>8} {'max':>8}   (alone, before the line)")
+        for name, values in cpu.items():
+            print(_stage_line(name, values), flush=True)
     print(
         f"  n={len(base.latencies_s)} missed={base.missed} p50={p50:.3f} s p99={p99:.3f} s "
         f"max={max(base.latencies_s, default=float('nan')):.3f} s   (goal p50 <= 1 s, p99 <= 2 s)",
@@ -217,7 +293,7 @@ def main() -> int:
         rates = []  # faster than a rate it cannot keep: nothing to learn
         print("  (0.5 Hz is not sustained: higher rates are not tried)", flush=True)
     for hz in rates:
-        w = run_line(1.0 / hz, window)
+        w = run_line(1.0 / hz, window, config)
         ok = w.sustained()
         print(
             f"  {hz:8.2f} {len(w.statuses):4d} {w.missed:6d} {w.pct(50):7.3f} {w.pct(99):7.3f}  "
