@@ -187,6 +187,10 @@ _GNC_FACTOR = 4.0
 # ... once a step lowers the cost by less than this fraction, or moves the
 # points by less than this fraction of the scale.
 _GNC_GAIN = 1e-3
+# With a view direction: faces turned further than this (cosine) from it
+# cannot be seen; a residual this large puts a point on the loss's plateau.
+_BACK_FACE_COS = -0.5
+_FAR_MM = 1e30
 _GNC_STEP = 1e-3
 # Steps moving the points by less than this (RMS, mm) are evaluated against
 # each point's last closest face rather than with a fresh query.
@@ -833,6 +837,7 @@ def register(
     subset_growth: int = 8,
     graduated: bool = True,
     uncertainty_mm: float | None = 2.5e-3,
+    view_direction: Vectors | None = None,
 ) -> Registration:
     """Fit measured points to the CAD with robust point-to-surface ICP.
 
@@ -894,6 +899,13 @@ def register(
         fit continues on every point. A part seen from one side whose
         in-plane position rests on a few edges needs them all; a well
         constrained one does not. None: never.
+    view_direction : (3,) float64, optional
+        Direction from the part towards the sensor, data frame (e.g. +z of a
+        rig looking down). When given, a point whose closest CAD face is
+        turned away from it by more than 120 degrees counts as an outlier: a
+        sensor cannot see such a face, and a plate tilted through its own
+        thickness would otherwise fit half its points to its bottom. Needs
+        ``loss`` tukey or welsch (a loss with a plateau for such points).
     graduated : bool
         Start with a wide robust scale and narrow it as the pose settles
         (graduated non-convexity), so that points misfit by the start offset,
@@ -952,6 +964,16 @@ def register(
         if not (v_in > 0).any():
             raise InvalidInput("all weights are zero")
     loss_id, c = LOSSES[loss]
+    view = None
+    if view_direction is not None:
+        view = np.asarray(view_direction, dtype=np.float64)
+        if view.shape != (3,) or not np.isfinite(view).all() or not np.linalg.norm(view) > 0:
+            raise InvalidInput(f"view_direction must be a finite non-zero 3-vector, got {view!r}")
+        if loss not in ("tukey", "welsch"):
+            raise InvalidInput(
+                "view_direction needs a loss with a plateau (tukey or welsch), got " + repr(loss)
+            )
+        view = view / np.linalg.norm(view)
 
     # A seeded permutation: every subset is a prefix of the next one.
     cap = n_all if max_subset is None else min(n_all, int(max_subset))
@@ -988,6 +1010,20 @@ def register(
             r_, U_ = _distance_residuals(X_, Q_, N_, d_)
             return X_, U_, r_, d_, N_, f_
         return X_, N_, _residuals(X_, Q_, N_), d_, N_, f_
+
+    def seen(r_: np.ndarray, Fn_: np.ndarray, T_: Transform) -> np.ndarray:
+        """The residuals for the cost: a point whose closest face is turned
+        away from the sensor (more than 120 degrees from ``view_direction``)
+        cannot have been measured on it; it counts as an outlier (the loss's
+        plateau, no pull) rather than pulling the part onto a back face."""
+        if view is None:
+            return r_
+        back = Fn_ @ (T_[:3, :3] @ view) < _BACK_FACE_COS
+        if not back.any():
+            return r_
+        out = r_.copy()
+        out[back] = _FAR_MM
+        return out
 
     # Small steps are evaluated against each point's last closest face
     # instead of a fresh query (see the module notes): possible when the tree
@@ -1065,7 +1101,7 @@ def register(
         sigma = min(sigma, max(mad, gnc))
         center, L = _weighted_centroid(X, v)
         L = max(L, 1.0)
-        e0, H, g = _cost_normal_equations(X, Nrm, r, v, sigma, loss_id, c, center, L)
+        e0, H, g = _cost_normal_equations(X, Nrm, seen(r, Fn, T), v, sigma, loss_id, c, center, L)
         H_pose_current = True
         # Marquardt's scaling plus a small isotropic term so that directions
         # the data do not constrain (diag(H) ~ 0) get no step at all.
@@ -1108,7 +1144,7 @@ def register(
                 break
             T1 = _compose(T, omega, t, center)
             X1, N1, r1, F1 = trial(T1, float(np.sqrt(delta @ delta)))
-            e1 = _cost(r1, v, sigma, loss_id, c)
+            e1 = _cost(seen(r1, F1[0], T1), v, sigma, loss_id, c)
             if e1 < e0:
                 # Gain ratio rho = actual / predicted (Madsen et al. eq. 3.14):
                 # a good model lets the region grow, a poor one shrinks it.
@@ -1140,7 +1176,7 @@ def register(
                         s_ = scale * f
                         Ts = _compose(T0, s_ * omega, s_ * t, center)
                         Xs, Ns, rs, Fs = trial(Ts, s_ * dn)
-                        es = _cost(rs, v, sigma, loss_id, c)
+                        es = _cost(seen(rs, Fs[0], Ts), v, sigma, loss_id, c)
                         if not es < e1:
                             if scale == 1.0 and f != 2.0:
                                 continue  # the extrapolation overshot: try doublings
@@ -1228,7 +1264,7 @@ def register(
         # The last normal matrix was built at another pose or on fewer points.
         center, L = _weighted_centroid(X, v)
         L = max(L, 1.0)
-        _, H, _ = _cost_normal_equations(X, Nrm, r, v, sigma, loss_id, c, center, L)
+        _, H, _ = _cost_normal_equations(X, Nrm, seen(r, Fn, T), v, sigma, loss_id, c, center, L)
     eig, vec = np.linalg.eigh(H)
     eig = np.maximum(eig, 0.0)
     degenerate = vec[:, eig < _DEGENERATE_REL_EIG * max(float(eig[-1]), 1e-300)].T.copy()

@@ -59,14 +59,87 @@ def test_recovers_panel_pose_from_10deg_20mm(panel, seed):
     assert not reg.degenerate
 
 
-def test_recovers_shared_mesh_pose_from_10deg_20mm(shared):
-    cad, tree = shared("busted.STL", 30.0)
-    data, _, T_true = scenario(cad, seed=3)
-    reg = register(tree, data)
+# The shared meshes as stored, seen from above (+z), scaled to ~300 mm.
+SHARED_SCALE = {
+    "busted.STL": 30.0,
+    "featuretype.STL": 60.0,
+    "fandisk.obj": 180.0,
+    "counter.unitsmm.STL": 1.0,
+    "plate_holes.STL": 1.0,
+    "1002_tray_bottom.STL": 1.0,
+}
+_NOISE_LIMIT = (
+    "seen from above, one horizontal direction rests on a few edges: with 0.02 mm "
+    "noise the fit on all 50k points is uncertain by ~3.5 um RMS (the observability "
+    "bound), so 5 um is missed on some clouds (see the noise-limit test)"
+)
+_THROUGH_SLAB = (
+    "a thin part tilted through its own thickness: the points below it fit its bottom "
+    "face, a local minimum 3.5-4 deg and ~8 mm off; view_direction (the sensor's side) "
+    "escapes it"
+)
+SHARED_CASES = [
+    pytest.param("busted.STL", 3, None),
+    pytest.param("busted.STL", 4, None),
+    pytest.param(
+        "featuretype.STL", 3, None, marks=pytest.mark.xfail(reason="11.2 um: " + _NOISE_LIMIT)
+    ),
+    pytest.param("featuretype.STL", 4, None),
+    pytest.param("fandisk.obj", 3, None),
+    pytest.param(
+        "fandisk.obj", 4, None, marks=pytest.mark.xfail(reason="5.06 um: " + _NOISE_LIMIT)
+    ),
+    pytest.param(
+        "counter.unitsmm.STL", 3, None, marks=pytest.mark.xfail(reason="3.9 deg: " + _THROUGH_SLAB)
+    ),
+    pytest.param("counter.unitsmm.STL", 3, "up"),
+    pytest.param("counter.unitsmm.STL", 4, None),
+    pytest.param(
+        "counter.unitsmm.STL",
+        4,
+        "up",
+        marks=pytest.mark.xfail(
+            reason="7.9 deg in the plane: with back faces ruled out, every step of the "
+            "wide-scale stage is rejected (a point that crosses to a back face costs the "
+            "loss's plateau), so the in-plane rotation is never corrected"
+        ),
+    ),
+    pytest.param(
+        "plate_holes.STL", 3, None, marks=pytest.mark.xfail(reason="3.6 deg: " + _THROUGH_SLAB)
+    ),
+    pytest.param("plate_holes.STL", 3, "up"),
+    pytest.param("plate_holes.STL", 4, None),
+    pytest.param(
+        "1002_tray_bottom.STL",
+        3,
+        None,
+        marks=pytest.mark.xfail(
+            reason="3.3 deg, 10.8 mm: the sheet, as stored, stands on its edge; a "
+            "local minimum from this start, not analysed further"
+        ),
+    ),
+    pytest.param(
+        "1002_tray_bottom.STL",
+        3,
+        "up",
+        marks=pytest.mark.xfail(reason="3.0 deg, 9.7 mm: as without view_direction"),
+    ),
+    pytest.param("1002_tray_bottom.STL", 4, None),
+]
+
+
+@pytest.mark.parametrize(("name", "seed", "view"), SHARED_CASES)
+def test_shared_meshes_from_10deg_20mm(shared, name, seed, view):
+    """Fine registration on the shared meshes: 50k points of the side facing
+    the sensor, 0.02 mm noise, 10 deg and 20 mm off: 0.005 deg and 5 um."""
+    cad, tree = shared(name, SHARED_SCALE[name])
+    data, _, T_true = scenario(cad, seed=seed)
+    kwargs = {} if view is None else {"view_direction": (0.0, 0.0, 1.0)}
+    reg = register(tree, data, **kwargs)
     rot, disp = pose_errors(reg.transform, T_true, data)
     assert reg.converged
-    assert rot <= 0.005
-    assert disp <= 0.005
+    assert rot <= 0.005, (rot, disp)
+    assert disp <= 0.005, (rot, disp)
 
 
 @pytest.mark.parametrize(("name", "scale"), [("featuretype.STL", 60.0), ("fandisk.obj", 180.0)])
@@ -255,6 +328,10 @@ def test_bad_points_raise(panel, points, message):
         {"weights": np.zeros(3000)},
         {"max_iterations": 0},
         {"residual": "point"},
+        {"subset_growth": 1},
+        {"uncertainty_mm": -1.0},
+        {"view_direction": (0.0, 0.0, 0.0)},
+        {"view_direction": (0.0, 0.0, 1.0), "loss": "l2"},
     ],
 )
 def test_bad_parameters_raise(panel, kwargs):
@@ -280,3 +357,21 @@ def test_result_is_a_frozen_registration(panel):
         reg.rms_mm = 0.0  # type: ignore[misc]
     assert reg.weights.shape == (3000,) and reg.residuals.shape == (3000,)
     assert np.allclose(reg.transform[3], [0, 0, 0, 1])
+
+
+def test_per_point_figures_describe_every_point_at_the_final_pose(panel):
+    """The fit runs on a subset; weights, residuals, RMS and inlier fraction
+    (computed on first access) cover every input point at the final pose."""
+    cad, tree = panel
+    data, normals, _ = scenario(cad, n=30_000, deg=2.0, mm=3.0, seed=17)
+    data, moved = add_blobs(data, normals, fraction=0.1, seed=17)
+    reg = register(tree, data)
+    assert reg.subset_sizes.max() < len(data)
+    d = tree.query(apply(reg.transform, data)).distances
+    assert np.allclose(reg.residuals, d, atol=1e-9)
+    inl = np.abs(d) <= 3.0 * reg.scale_mm
+    assert reg.inlier_fraction == pytest.approx(inl.mean())
+    assert reg.rms_mm == pytest.approx(np.sqrt(np.mean(d[inl] ** 2)))
+    assert np.median(reg.weights[moved]) == 0.0 and np.median(reg.weights[~moved]) > 0.8
+    assert reg.weights is reg.weights  # computed once
+    assert not reg.weights.flags.writeable
