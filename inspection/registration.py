@@ -88,6 +88,8 @@ from __future__ import annotations
 
 import enum
 import logging
+import threading
+import weakref
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
@@ -426,15 +428,15 @@ def _distance_residuals(
 def _face_residuals(
     X: np.ndarray,
     face: np.ndarray,
-    vertices: np.ndarray,
-    faces: np.ndarray,
+    tri: np.ndarray,
     N: np.ndarray,
     sign: np.ndarray,
     distance: bool,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Residuals and their gradients against one given face per point.
 
-    The distance of ``x_i`` to the triangle ``face[i]`` (its closest point on
+    The distance of ``x_i`` to the triangle ``face[i]``, corners
+    ``tri[face[i]]`` (F, 9) float64 (its closest point on
     the triangle, edges and corners included; Ericson, "Real-Time Collision
     Detection", 2005, 5.1.5), signed with ``sign[i]``; with ``distance``
     False the distance to the face's plane. The distance to one face is at
@@ -450,9 +452,9 @@ def _face_residuals(
     recheck = np.zeros(n, dtype=np.bool_)
     for i in range(n):
         f = face[i]
-        a0 = vertices[faces[f, 0], 0]
-        a1 = vertices[faces[f, 0], 1]
-        a2 = vertices[faces[f, 0], 2]
+        a0 = tri[f, 0]
+        a1 = tri[f, 1]
+        a2 = tri[f, 2]
         nx, ny, nz = N[i, 0], N[i, 1], N[i, 2]
         px, py, pz = X[i, 0], X[i, 1], X[i, 2]
         if not distance:
@@ -462,12 +464,12 @@ def _face_residuals(
             U[i, 2] = nz
             recheck[i] = (r[i] >= 0.0) != (sign[i] >= 0.0)
             continue
-        b0 = vertices[faces[f, 1], 0]
-        b1 = vertices[faces[f, 1], 1]
-        b2 = vertices[faces[f, 1], 2]
-        c0 = vertices[faces[f, 2], 0]
-        c1 = vertices[faces[f, 2], 1]
-        c2 = vertices[faces[f, 2], 2]
+        b0 = tri[f, 3]
+        b1 = tri[f, 4]
+        b2 = tri[f, 5]
+        c0 = tri[f, 6]
+        c1 = tri[f, 7]
+        c2 = tri[f, 8]
         ab0, ab1, ab2 = b0 - a0, b1 - a1, b2 - a2
         ac0, ac1, ac2 = c0 - a0, c1 - a1, c2 - a2
         ap0, ap1, ap2 = px - a0, py - a1, pz - a2
@@ -550,6 +552,122 @@ def _partial_shuffle(n: int, k: int, seed: np.uint64) -> np.ndarray:
         z = z ^ (z >> np.uint64(31))
         j = i + np.int64(z % np.uint64(n - i))
         out[i], out[j] = out[j], out[i]
+    return out
+
+
+@numba.njit(cache=True)
+def _cholesky_solve(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, bool]:
+    """Solve ``A x = b`` for a small symmetric positive definite ``A``
+    (Cholesky, fixed order); ``ok`` False when ``A`` is not positive definite."""
+    n = A.shape[0]
+    Lc = np.zeros((n, n))
+    for j in range(n):
+        s = A[j, j]
+        for k in range(j):
+            s -= Lc[j, k] * Lc[j, k]
+        if not s > 0.0:
+            return np.zeros(n), False
+        d = np.sqrt(s)
+        Lc[j, j] = d
+        for i in range(j + 1, n):
+            s = A[i, j]
+            for k in range(j):
+                s -= Lc[i, k] * Lc[j, k]
+            Lc[i, j] = s / d
+    y = np.empty(n)
+    for i in range(n):
+        s = b[i]
+        for k in range(i):
+            s -= Lc[i, k] * y[k]
+        y[i] = s / Lc[i, i]
+    x = np.empty(n)
+    for i in range(n - 1, -1, -1):
+        s = y[i]
+        for k in range(i + 1, n):
+            s -= Lc[k, i] * x[k]
+        x[i] = s / Lc[i, i]
+    return x, True
+
+
+@numba.njit(cache=True)
+def _lm_step(H: np.ndarray, g: np.ndarray, lam: float) -> tuple[np.ndarray, float, bool]:
+    """The damped step ``(H + lam D) delta = -g`` and its predicted reduction
+    ``-(g . delta + delta . H delta / 2)``. ``D`` is Marquardt's scaling
+    ``diag(H)`` plus a small isotropic term, so that directions the data do
+    not constrain (``diag(H) ~ 0``) get no step at all."""
+    n = H.shape[0]
+    tr = 0.0
+    for i in range(n):
+        tr += H[i, i]
+    eps = 1e-9 * max(tr, 1e-300)
+    A = H.copy()
+    for i in range(n):
+        A[i, i] += lam * (H[i, i] + eps)
+    delta, ok = _cholesky_solve(A, -g)
+    if not ok:
+        return delta, 0.0, False
+    pred = 0.0
+    for i in range(n):
+        hd = 0.0
+        for k in range(n):
+            hd += H[i, k] * delta[k]
+        pred -= g[i] * delta[i] + 0.5 * delta[i] * hd
+    return delta, pred, True
+
+
+@numba.njit(cache=True)
+def _trace_inverse(H: np.ndarray) -> float:
+    """``trace(H^-1)`` of a symmetric positive definite ``H``; 0 when it is not."""
+    n = H.shape[0]
+    tr = 0.0
+    for j in range(n):
+        e = np.zeros(n)
+        e[j] = 1.0
+        x, ok = _cholesky_solve(H, e)
+        if not ok:
+            return 0.0
+        tr += x[j]
+    return tr
+
+
+@numba.njit(cache=True)
+def _compose(T: np.ndarray, omega: np.ndarray, t: np.ndarray, center: np.ndarray) -> np.ndarray:
+    """``x' = R(omega) (x - center) + center + t`` applied after ``T``, with
+    ``R(omega)`` the rotation of the rotation vector ``omega`` (Rodrigues)."""
+    theta = np.sqrt(omega[0] * omega[0] + omega[1] * omega[1] + omega[2] * omega[2])
+    R = np.eye(3)
+    if theta < 1e-12:
+        # First order: exact to ~theta^2 / 2, below 1e-24.
+        R[0, 1] = -omega[2]
+        R[0, 2] = omega[1]
+        R[1, 0] = omega[2]
+        R[1, 2] = -omega[0]
+        R[2, 0] = -omega[1]
+        R[2, 1] = omega[0]
+    else:
+        kx, ky, kz = omega[0] / theta, omega[1] / theta, omega[2] / theta
+        s = np.sin(theta)
+        c1 = 1.0 - np.cos(theta)
+        R[0, 0] = 1.0 - c1 * (ky * ky + kz * kz)
+        R[1, 1] = 1.0 - c1 * (kx * kx + kz * kz)
+        R[2, 2] = 1.0 - c1 * (kx * kx + ky * ky)
+        R[0, 1] = c1 * kx * ky - s * kz
+        R[1, 0] = c1 * kx * ky + s * kz
+        R[0, 2] = c1 * kx * kz + s * ky
+        R[2, 0] = c1 * kx * kz - s * ky
+        R[1, 2] = c1 * ky * kz - s * kx
+        R[2, 1] = c1 * ky * kz + s * kx
+    out = np.eye(4)
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = R[i, 0] * T[0, j] + R[i, 1] * T[1, j] + R[i, 2] * T[2, j]
+        out[i, 3] = (
+            R[i, 0] * (T[0, 3] - center[0])
+            + R[i, 1] * (T[1, 3] - center[1])
+            + R[i, 2] * (T[2, 3] - center[2])
+            + center[i]
+            + t[i]
+        )
     return out
 
 
@@ -751,40 +869,45 @@ def _query(tree: ClosestPointQuery, X: Points) -> tuple[np.ndarray, np.ndarray, 
     return Q, N, d, f
 
 
-def _tree_geometry(tree: object) -> tuple[np.ndarray, np.ndarray] | None:
-    """The tree's triangles (vertices (V, 3) float64, faces (F, 3) int64, in the
-    numbering of its answers' ``face``), or None when it does not expose them."""
+# Triangle corners per tree, (F, 9) float64: one gather per face instead of
+# four per point and trial. Keyed by id, checked by a weak reference.
+_TRIANGLES: dict[int, tuple[weakref.ref, np.ndarray]] = {}
+_TRIANGLES_LOCK = threading.Lock()
+
+
+def _tree_geometry(tree: object) -> tuple[np.ndarray] | None:
+    """The tree's triangles as (F, 9) float64 corners (a, b, c), in the
+    numbering of its answers' ``face``, or None when it does not expose them
+    (``vertices`` and ``faces``)."""
+    key = id(tree)
+    with _TRIANGLES_LOCK:
+        hit = _TRIANGLES.get(key)
+    if hit is not None and hit[0]() is tree:
+        return (hit[1],)
     vertices = getattr(tree, "vertices", None)
     faces = getattr(tree, "faces", None)
     if vertices is None or faces is None:
         return None
-    vertices = np.ascontiguousarray(vertices, dtype=np.float64)
-    faces = np.ascontiguousarray(faces, dtype=np.int64)
+    vertices = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
     if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
         return None
-    return vertices, faces
+    tri = np.ascontiguousarray(vertices[faces].reshape(-1, 9))
+    try:
+        ref = weakref.ref(tree)
+    except TypeError:
+        return (tri,)
+    with _TRIANGLES_LOCK:
+        for k in [k for k, (r, _) in _TRIANGLES.items() if r() is None]:
+            del _TRIANGLES[k]
+        _TRIANGLES[key] = (ref, tri)
+    return (tri,)
 
 
-def _skew(w: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-
-
-def _rodrigues(omega: np.ndarray) -> np.ndarray:
-    """Rotation matrix of the rotation vector ``omega`` (rad)."""
-    theta = float(np.sqrt(omega @ omega))
-    if theta < 1e-12:
-        return np.eye(3) + _skew(omega)
-    K = _skew(omega / theta)
-    return np.eye(3) + np.sin(theta) * K + (1.0 - np.cos(theta)) * (K @ K)
-
-
-def _compose(T: Transform, omega: np.ndarray, t: np.ndarray, center: np.ndarray) -> Transform:
-    """``x' = R(omega) (x - center) + center + t`` applied after ``T``."""
-    R = _rodrigues(omega)
-    out = np.eye(4)
-    out[:3, :3] = R @ T[:3, :3]
-    out[:3, 3] = R @ (T[:3, 3] - center) + center + t
-    # Keep the rotation orthonormal to the last bit over many compositions.
+def _orthonormalised(T: Transform) -> Transform:
+    """``T`` with its rotation made orthonormal to the last bit (a few dozen
+    compositions leave it off by ~1e-15)."""
+    out = T.copy()
     U, _, Vt = np.linalg.svd(out[:3, :3])
     out[:3, :3] = U @ Vt
     return out
@@ -793,11 +916,21 @@ def _compose(T: Transform, omega: np.ndarray, t: np.ndarray, center: np.ndarray)
 def _robust_scale(r: np.ndarray, v: np.ndarray, floor: float, sample: int = _SCALE_SAMPLE) -> float:
     # The points are in random order: a prefix is a random sample, and a few
     # thousand residuals give the median to ~2 %.
-    k = min(len(r), sample)
-    a = np.abs(r[:k][v[:k] > 0.0])
-    if len(a) == 0:
-        return floor
-    return max(_MAD_TO_SIGMA * float(np.median(a)), floor)
+    return max(_MAD_TO_SIGMA * _median_abs(r, v, min(len(r), sample)), floor)
+
+
+@numba.njit(cache=True)
+def _median_abs(r: np.ndarray, v: np.ndarray, k: int) -> float:
+    """Median of ``|r[i]|`` over the first ``k`` points with ``v[i] > 0`` (0 if none)."""
+    a = np.empty(k)
+    n = 0
+    for i in range(k):
+        if v[i] > 0.0:
+            a[n] = abs(r[i])
+            n += 1
+    if n == 0:
+        return 0.0
+    return np.median(a[:n])
 
 
 def _uncertainty(H: np.ndarray, sigma: float, v: np.ndarray) -> float:
@@ -805,10 +938,7 @@ def _uncertainty(H: np.ndarray, sigma: float, v: np.ndarray) -> float:
     to the points with input weights ``v``, from the normal matrix ``H``
     (normalised by the weight sum): ``sigma sqrt(trace(H^-1) / sum v)``."""
     vs = float(v.sum())
-    try:
-        tr = float(np.trace(np.linalg.inv(H)))
-    except np.linalg.LinAlgError:
-        return 0.0
+    tr = _trace_inverse(H)
     if not np.isfinite(tr) or tr <= 0.0 or vs <= 0.0:
         return 0.0
     return sigma * float(np.sqrt(tr / vs))
@@ -1080,6 +1210,7 @@ def register(
     sigma = np.inf
     lam = 1e-4
     mad = -1.0  # robust scale of the current residuals; < 0 when stale
+    debug = log.isEnabledFor(logging.DEBUG)
     prev_delta = np.zeros(6)
     extended = 0
     history: list[tuple[float, float]] = []
@@ -1103,9 +1234,6 @@ def register(
         L = max(L, 1.0)
         e0, H, g = _cost_normal_equations(X, Nrm, seen(r, Fn, T), v, sigma, loss_id, c, center, L)
         H_pose_current = True
-        # Marquardt's scaling plus a small isotropic term so that directions
-        # the data do not constrain (diag(H) ~ 0) get no step at all.
-        D = np.diag(np.diag(H) + 1e-9 * max(np.trace(H), 1e-300))
         # On a smaller subset, or at a scale still graduating, the pose need
         # only settle to what that stage resolves.
         if gnc > 0.0:
@@ -1124,15 +1252,13 @@ def register(
         delta = np.zeros(6)
         e1 = e0
         for _trial in range(max_rejections + 1):
-            try:
-                delta = np.linalg.solve(H + lam * D, -g)
-            except np.linalg.LinAlgError:
+            # Predicted reduction of the quadratic IRLS model (a lower bound of
+            # the true reduction where the linearisation holds).
+            delta, pred, ok = _lm_step(H, g, lam)
+            if not ok:
                 lam *= 4.0
                 rejected += 1
                 continue
-            # Predicted reduction of the quadratic IRLS model (a lower bound of
-            # the true reduction where the linearisation holds).
-            pred = -(g @ delta + 0.5 * delta @ H @ delta)
             omega, t = delta[:3] / L, delta[3:]
             if gnc > 0.0:
                 # Graduating: the RMS displacement of the points by the step.
@@ -1196,11 +1322,12 @@ def register(
             e1 = e0
         history.append((e0, e1))
         sizes.append(m)
-        log.debug(
-            "iteration %d: m %d sigma %.4g gnc %.4g cost %.6g -> %.6g lambda %.2g accepted %s "
-            "step %.3g",
-            *(iterations, m, sigma, gnc, e0, e1, lam, step_ok, float(np.linalg.norm(delta))),
-        )
+        if debug:
+            log.debug(
+                "iteration %d: m %d sigma %.4g gnc %.4g cost %.6g -> %.6g lambda %.2g "
+                "accepted %s step %.3g",
+                *(iterations, m, sigma, gnc, e0, e1, lam, step_ok, float(np.linalg.norm(delta))),
+            )
         # A short step says the pose has settled only if it was not damped.
         settled = tiny or (step_ok and small and lam <= 1e-3) or not step_ok
         if gnc > 0.0 and step_ok and e0 - e1 < _GNC_GAIN * e0:
@@ -1269,6 +1396,7 @@ def register(
     eig = np.maximum(eig, 0.0)
     degenerate = vec[:, eig < _DEGENERATE_REL_EIG * max(float(eig[-1]), 1e-300)].T.copy()
 
+    T = _orthonormalised(T)
     T_final = T
 
     def evaluate_rest(lo: int, hi: int) -> tuple[np.ndarray, np.ndarray]:
