@@ -18,6 +18,14 @@ The algorithm, per stereo pair of :attr:`Rig.stereo_pairs` (cam0-cam1, cam2-cam3
    correlate (score below ``min_score``), move too far, or do not converge
    are dropped. Every ``stride``-th column is refined (windows overlap, so
    neighbouring columns add little information but cost as much).
+   **Warped windows**: a square window assumes one disparity across it, which
+   bends (edge radii, character lines) and walls seen at grazing angles break:
+   there the fit came out up to ~0.5 mm off, with a sign that depends on the
+   side of the part, and those are the points that fix a flat part in its
+   plane (the pose's translation was 0.3-0.8 mm off from them alone). Where
+   the refined disparity field bends or slopes, the window is fitted again
+   warped by that field (smoothed), solving for its centre only, with samples
+   off the field (across a depth edge) left out; two such passes.
 5. **Triangulation** in the rectified frame (``Z = f B / d``), back to the rig frame.
 
 Then the two pairs are **fused**: each point is looked up in the other pair's
@@ -42,8 +50,10 @@ from __future__ import annotations
 import logging
 import math
 import os
+import threading
 import time
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -104,10 +114,30 @@ class ReconstructParams:
         facing +-x that the stereo pairs see at grazing angles; doubles the time.
     stride : int
         Refine every ``stride``-th column of the rectified left image (1: every pixel).
+    warp_passes : int
+        Passes of warped refinement after the square-window one (0: none):
+        windows whose disparity field bends or slopes are fitted again with
+        the window warped by the field of the previous pass (see
+        :func:`_refine_warped`).
+    warp_curvature_px : float
+        A window is refitted when the mean of the field over it is off its
+        centre's value by more than this (px): a bend inside the window.
+    warp_slope : float
+        ... or when the field's slope along the baseline exceeds this (px/px):
+        a surface seen foreshortened differently by the two cameras.
+    warp_iterations : int
+        Gauss-Newton iterations per warped pass.
+    warp_smooth : int
+        Box (odd, px) over which the field is smoothed before it warps the windows.
+    threads : int
+        Stereo pairs matched at once (one thread each).
     max_shift_px : float
         Largest accepted change of a disparity during refinement.
     min_score : float
         Smallest accepted normalised cross-correlation of a refined match.
+    score_full : float
+        Match score at and above which a point gets full weight (the weight
+        ramps up from ``min_score``).
     consistency_mm : float
         Depth tolerance of the cross-pair check.
     dark_dn : float
@@ -130,6 +160,14 @@ class ReconstructParams:
     stride: int = 2
     converged_px: float = 0.05
     symmetric: bool = False
+    warp_passes: int = 2
+    threads: int = 2
+    score_full: float = 0.95
+    warp_curvature_px: float = 0.02
+    warp_slope: float = 0.1
+    warp_iterations: int = 2
+    warp_smooth: int = 5
+    warp_window: int = 9
     ring_pairs: bool = False
     free_space_mm: float = 2.0
     max_shift_px: float = 1.5
@@ -140,7 +178,7 @@ class ReconstructParams:
     min_contrast_dn: float = 2.0
 
     def __post_init__(self) -> None:
-        for name in ("coarse_block", "norm_window", "window"):
+        for name in ("coarse_block", "norm_window", "window", "warp_window"):
             v = getattr(self, name)
             if not (isinstance(v, int) and v >= 3 and v % 2 == 1):
                 raise InvalidInput(f"ReconstructParams.{name} must be an odd int >= 3, got {v!r}")
@@ -148,6 +186,15 @@ class ReconstructParams:
             raise InvalidInput("ReconstructParams.stride must be an int in [1, 8]")
         if not (isinstance(self.iterations, int) and 1 <= self.iterations <= 50):
             raise InvalidInput("ReconstructParams.iterations must be an int in [1, 50]")
+        for name, top in (("warp_passes", 5), ("warp_iterations", 50), ("threads", 8)):
+            v = getattr(self, name)
+            low = 0 if name == "warp_passes" else 1
+            if not (isinstance(v, int) and low <= v <= top):
+                raise InvalidInput(f"ReconstructParams.{name} must be an int in [{low}, {top}]")
+        if not (
+            isinstance(self.warp_smooth, int) and self.warp_smooth >= 1 and self.warp_smooth % 2
+        ):
+            raise InvalidInput("ReconstructParams.warp_smooth must be an odd int >= 1")
         if not (0.0 <= self.z_min_mm < self.z_max_mm and math.isfinite(self.z_max_mm)):
             raise InvalidInput("ReconstructParams needs 0 <= z_min_mm < z_max_mm (finite)")
         for name in (
@@ -158,10 +205,14 @@ class ReconstructParams:
             "min_contrast_dn",
             "converged_px",
             "free_space_mm",
+            "warp_curvature_px",
+            "warp_slope",
         ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise InvalidInput(f"ReconstructParams.{name} must be finite and >= 0")
+        if not (self.min_score < self.score_full <= 1.0):
+            raise InvalidInput("ReconstructParams needs min_score < score_full <= 1")
         if not (-1.0 <= self.min_score < 1.0 and 0.0 < self.saturated_fraction <= 1.0):
             raise InvalidInput(
                 "ReconstructParams needs -1 <= min_score < 1 and 0 < saturated_fraction <= 1"
@@ -479,6 +530,19 @@ def _frame_flags(img: npt.NDArray[np.uint8], p: ReconstructParams) -> tuple[set[
     return flags, usable
 
 
+_EXECUTORS: dict[int, ThreadPoolExecutor] = {}
+_EXECUTOR_LOCK = threading.Lock()
+
+
+def _executor(threads: int) -> ThreadPoolExecutor:
+    """A process-wide pool for the stereo pairs (threads are started once)."""
+    with _EXECUTOR_LOCK:
+        pool = _EXECUTORS.get(threads)
+        if pool is None:
+            pool = _EXECUTORS[threads] = ThreadPoolExecutor(threads, "reconstruct-pair")
+        return pool
+
+
 @dataclass
 class _PairResult:
     report: PairReport
@@ -509,34 +573,39 @@ def _run(rec: Reconstructor, frames: Any, prior: Prior | None) -> Cloud:
     hi = rec.volume_hi.copy()
     hi[2] = max(z_hi, p.z_min_mm + 1.0)
 
-    results: list[_PairResult] = []
-    for k, pair in enumerate(rec.pairs):
+    def one_pair(k: int) -> _PairResult:
+        pair = rec.pairs[k]
         t1 = time.perf_counter()
         if not (usable[pair.left] and usable[pair.right]):
             bad = [rig.cameras[i].name for i in (pair.left, pair.right) if not usable[i]]
-            results.append(
-                _PairResult(
-                    PairReport(pair.name, skipped=f"unusable frame(s): {', '.join(bad)}"),
-                    np.zeros((0, 3)),
-                    np.zeros(0, np.float32),
-                )
+            return _PairResult(
+                PairReport(pair.name, skipped=f"unusable frame(s): {', '.join(bad)}"),
+                np.zeros((0, 3)),
+                np.zeros(0, np.float32),
             )
-            all_flags.add(FLAG_PAIR_SKIPPED)
-            continue
-        results.append(
-            _match_pair(
-                pair,
-                rec.foreground_disparity[k],
-                imgs[pair.left],
-                imgs[pair.right],
-                lo,
-                hi,
-                p,
-                timings,
-                k,
-            )
+        out = _match_pair(
+            pair,
+            rec.foreground_disparity[k],
+            imgs[pair.left],
+            imgs[pair.right],
+            lo,
+            hi,
+            p,
+            timings,
+            k,
         )
         timings[f"pair{pair.name}"] = (time.perf_counter() - t1) * 1e3
+        return out
+
+    # The pairs are independent and their heavy steps (OpenCV, the numba
+    # kernels) release the GIL: one thread per pair, each kernel on one thread,
+    # uses two cores without nesting numba's parallel layer.
+    if p.threads > 1 and len(rec.pairs) > 1:
+        results = list(_executor(p.threads).map(one_pair, range(len(rec.pairs))))
+    else:
+        results = [one_pair(k) for k in range(len(rec.pairs))]
+    if any(r.report.skipped for r in results):
+        all_flags.add(FLAG_PAIR_SKIPPED)
 
     t2 = time.perf_counter()
     points, weights, which, reports = _fuse(rec, results, p)
@@ -670,6 +739,10 @@ def _match_pair(
             score,
             step,
         )
+        if p.warp_passes:
+            d_ref, score, step = _refine_warped(
+                left_n, right_n, wl, wr, px, py, d_init + shift, d_ref, score, step, p
+            )
         d_ref -= shift
         x_left = (px + x0).astype(np.float64)
         rows = py + y0
@@ -685,14 +758,15 @@ def _match_pair(
     xg = x_left[good]
     yg = rows[good].astype(np.float64)
     d = d_ref[good].astype(np.float64)
+    xi = np.clip(np.rint(xg).astype(np.int64), 0, w_img - 1)
+    yi = rows[good]
     pts = pair.triangulate(xg, yg, d)
     inside = np.all((pts >= lo) & (pts <= hi), axis=1) & (pts[:, 2] >= p.z_min_mm)
     pts = pts[inside]
     score = score[good][inside]
     # The disparity map of the left view, for the other pair's consistency check.
     full = np.full(fg.shape, np.nan, np.float32)
-    xi = np.clip(np.rint(xg[inside]).astype(np.int64), 0, w_img - 1)
-    full[rows[good][inside], xi] = d[inside]
+    full[yi[inside], xi[inside]] = d[inside]
     _fill_gaps(full, p.stride)
     timings[f"triangulate{k}"] = (time.perf_counter() - t) * 1e3
     rep = PairReport(
@@ -713,6 +787,92 @@ def _rectify(
         img.astype(np.float32), maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT
     )
     return np.asarray(out, dtype=np.float32)
+
+
+def _refine_warped(
+    left_n: npt.NDArray[np.float32],
+    right_n: npt.NDArray[np.float32],
+    wl: npt.NDArray[np.float32],
+    wr: npt.NDArray[np.float32],
+    px: npt.NDArray[np.intp],
+    py: npt.NDArray[np.intp],
+    d_init: npt.NDArray[np.float32],
+    d_ref: npt.NDArray[np.float32],
+    score: npt.NDArray[np.float32],
+    step: npt.NDArray[np.float32],
+    p: ReconstructParams,
+) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+    """Refine again, with windows warped by the disparity field found so far.
+
+    A square window assumes one disparity across it. Where the surface bends
+    (the panel's edge radii, character lines, the walls of the flange seen at
+    grazing angles) that is far from true, and the fit comes out up to half a
+    millimetre off, with a sign that depends on the side of the part: those
+    are the very points that fix a flat part in its plane. The refined
+    disparities (smoothed over ``warp_smooth`` pixels) give the shape of the
+    surface; the warped fit (:func:`_stereo.refine_warped`) then only solves
+    for each window's centre. Only windows whose field is far from constant
+    are refitted (mean over the window off its centre by more than
+    ``warp_curvature_px``, a slope above ``warp_slope``, or a window reaching
+    a hole in the field); elsewhere the square window is already right.
+    Each pass starts from the previous one's field.
+
+    Inputs are the crops and pixel lists of :func:`_match_pair` (disparities
+    in crop coordinates); returns new ``d_ref``, ``score``, ``step``.
+    """
+    n_win = p.window * p.window
+    kw = (p.window, p.window)
+    ks = (p.warp_smooth, p.warp_smooth)
+    for _ in range(p.warp_passes):
+        ok = (
+            np.isfinite(d_ref) & (score >= p.min_score) & (np.abs(d_ref - d_init) <= p.max_shift_px)
+        )
+        field_ = np.full(left_n.shape, np.nan, np.float32)
+        field_[py[ok], px[ok]] = d_ref[ok]
+        _fill_gaps(field_, p.stride)
+        known = np.isfinite(field_)
+        mask = known.astype(np.float32)
+        v = np.where(known, field_, 0.0).astype(np.float32)
+        num = cv2.boxFilter(v, cv2.CV_32F, ks, normalize=False, borderType=cv2.BORDER_CONSTANT)
+        den = cv2.boxFilter(mask, cv2.CV_32F, ks, normalize=False, borderType=cv2.BORDER_CONSTANT)
+        smooth = np.where(known, num / np.maximum(den, 1.0), 0.0).astype(np.float32)
+        num_w = cv2.boxFilter(
+            smooth, cv2.CV_32F, kw, normalize=False, borderType=cv2.BORDER_CONSTANT
+        )
+        den_w = cv2.boxFilter(mask, cv2.CV_32F, kw, normalize=False, borderType=cv2.BORDER_CONSTANT)
+        cnt = den_w[py, px]
+        off = np.abs(num_w[py, px] / np.maximum(cnt, 1.0) - smooth[py, px])
+        slope = (
+            np.abs(
+                smooth[py, np.minimum(px + 1, smooth.shape[1] - 1)]
+                - smooth[py, np.maximum(px - 1, 0)]
+            )
+            * 0.5
+        )
+        sel = ok & ((off > p.warp_curvature_px) | (slope > p.warp_slope) | (cnt < n_win - 0.5))
+        idx = np.nonzero(sel)[0]
+        d2 = np.empty(len(idx), np.float32)
+        s2 = np.empty(len(idx), np.float32)
+        st2 = np.empty(len(idx), np.float32)
+        _stereo.refine_warped(
+            left_n,
+            right_n,
+            wl,
+            wr,
+            smooth,
+            mask,
+            px[idx].astype(np.int64),
+            py[idx].astype(np.int64),
+            d_ref[idx].astype(np.float32),
+            p.warp_window // 2,
+            p.warp_iterations,
+            d2,
+            s2,
+            st2,
+        )
+        d_ref, score, step = d_ref.copy(), score.copy(), step.copy()
+        d_ref[idx], score[idx], step[idx] = d2, s2, st2
+    return d_ref, score, step
 
 
 def _fill_gaps(disparity: npt.NDArray[np.float32], stride: int) -> None:
@@ -763,7 +923,7 @@ def _fuse(
             reports.append(res.report)
             continue
         quality = np.clip(
-            (res.score.astype(np.float64) - p.min_score) / (0.95 - p.min_score), 0.0, 1.0
+            (res.score.astype(np.float64) - p.min_score) / (p.score_full - p.min_score), 0.0, 1.0
         )
         factor = np.full(len(res.points), 0.6)
         drop = np.zeros(len(res.points), bool)

@@ -116,6 +116,26 @@ def test_deterministic(reconstructor: Reconstructor, plate_frames, plate_cloud: 
     np.testing.assert_array_equal(again.weights, plate_cloud.weights)
 
 
+def test_one_thread_gives_the_same_cloud(
+    reconstructor: Reconstructor, plate_frames, plate_cloud: Cloud
+) -> None:
+    one = Reconstructor.build(reconstructor.rig, ReconstructParams(threads=1))(plate_frames)
+    np.testing.assert_array_equal(one.points, plate_cloud.points)
+    np.testing.assert_array_equal(one.weights, plate_cloud.weights)
+
+
+def test_warped_windows_keep_the_plane(
+    reconstructor: Reconstructor, plate_frames, plate_cloud: Cloud
+) -> None:
+    square = Reconstructor.build(reconstructor.rig, ReconstructParams(warp_passes=0))(plate_frames)
+    for cloud in (square, plate_cloud):
+        top = cloud.points[np.abs(cloud.points[:, 2] - PLATE_TOP_MM) < 1.0]
+        assert abs(np.median(top[:, 2]) - PLATE_TOP_MM) < 0.03
+    # Warping only refits windows whose field bends or slopes: the plate's
+    # outline, not its flat top; the count hardly changes.
+    assert abs(len(plate_cloud) - len(square)) < 0.02 * len(square)
+
+
 def test_frames_not_mutated(reconstructor: Reconstructor, plate_frames) -> None:
     copies = [f.copy() for f in plate_frames]
     reconstructor(plate_frames)
@@ -276,6 +296,16 @@ def test_bad_params() -> None:
         ReconstructParams(z_min_mm=10.0, z_max_mm=5.0)
     with pytest.raises(InvalidInput):
         ReconstructParams(stride=0)
+    for bad in (
+        {"warp_passes": -1},
+        {"warp_iterations": 0},
+        {"warp_smooth": 4},
+        {"threads": 0},
+        {"warp_slope": float("nan")},
+        {"score_full": 0.5},
+    ):
+        with pytest.raises(InvalidInput):
+            ReconstructParams(**bad)
 
 
 def test_other_image_size() -> None:
