@@ -1036,6 +1036,8 @@ def register(
         sensor cannot see such a face, and a plate tilted through its own
         thickness would otherwise fit half its points to its bottom. Needs
         ``loss`` tukey or welsch (a loss with a plateau for such points).
+        Should no step lower the cost under that rule (points crossing onto
+        back faces jump to the plateau), the fit goes on without it.
     graduated : bool
         Start with a wide robust scale and narrow it as the pose settles
         (graduated non-convexity), so that points misfit by the start offset,
@@ -1146,7 +1148,7 @@ def register(
         away from the sensor (more than 120 degrees from ``view_direction``)
         cannot have been measured on it; it counts as an outlier (the loss's
         plateau, no pull) rather than pulling the part onto a back face."""
-        if view is None:
+        if view is None or not view_active:
             return r_
         back = Fn_ @ (T_[:3, :3] @ view) < _BACK_FACE_COS
         if not back.any():
@@ -1211,6 +1213,7 @@ def register(
     lam = 1e-4
     mad = -1.0  # robust scale of the current residuals; < 0 when stale
     debug = log.isEnabledFor(logging.DEBUG)
+    view_active = view is not None
     prev_delta = np.zeros(6)
     extended = 0
     history: list[tuple[float, float]] = []
@@ -1336,6 +1339,15 @@ def register(
             # scale, a cost that no longer falls does.
             settled = True
         if not settled:
+            continue
+        if view_active and not step_ok and not tiny:
+            # No step lowers the cost with back faces ruled out: points that
+            # would cross onto one jump to the loss's plateau, which can
+            # block every step (a part far off in its plane). Go on without
+            # the rule; it only ever lowers the cost (a plateau is the most a
+            # point can cost), so the cost still never rises.
+            view_active = False
+            lam = 1e-4
             continue
         if gnc > 0.0:
             # Settled at this scale: narrow it.
