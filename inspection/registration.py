@@ -1411,8 +1411,17 @@ def register(
     T = _orthonormalised(T)
     T_final = T
 
+    # The points the fit did not use are queried later, when a per-point
+    # figure is first asked for: keep a copy, the caller may reuse its array.
+    P_rest = np.ascontiguousarray(P_in[perm[m:]]) if m < n_all else P[:0]
+
     def evaluate_rest(lo: int, hi: int) -> tuple[np.ndarray, np.ndarray]:
-        _, _, r_, d_, _, _ = evaluate(T_final, lo, hi)
+        X_ = _transform(T_final[:3, :3].copy(), T_final[:3, 3].copy(), P_rest[lo - m : hi - m])
+        Q_, N_, d_, _ = _query(tree, X_)
+        if residual == "distance":
+            r_, _ = _distance_residuals(X_, Q_, N_, d_)
+        else:
+            r_ = _residuals(X_, Q_, N_)
         return r_, d_
 
     converged = stop is StopReason.CONVERGED

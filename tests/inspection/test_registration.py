@@ -366,3 +366,8 @@ def test_per_point_figures_describe_every_point_at_the_final_pose(panel):
     assert np.median(reg.weights[moved]) == 0.0 and np.median(reg.weights[~moved]) > 0.8
     assert reg.weights is reg.weights  # computed once
     assert not reg.weights.flags.writeable
+    # Computed later, but from the points as they were passed in.
+    buffer = data.copy()
+    late = register(tree, buffer)
+    buffer[:] = 0.0
+    assert np.array_equal(late.residuals, reg.residuals)
