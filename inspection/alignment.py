@@ -449,6 +449,12 @@ def _footprint(xy: np.ndarray) -> tuple[float, float]:
     return axis, float(w[0] / w[1]) if w[1] > 0.0 else 1.0
 
 
+def _mid_extent(x: np.ndarray) -> np.ndarray:
+    """Middle of the 1st-99th percentile range of ``x`` along its first axis."""
+    lo, hi = np.percentile(x, [1.0, 99.0], axis=0)
+    return 0.5 * (lo + hi)
+
+
 def _rot_z(theta: float) -> np.ndarray:
     c, s = np.cos(theta), np.sin(theta)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
@@ -565,11 +571,18 @@ def align(
     trunc = 0.03 * model.size_mm
     scan = np.arange(n_angles) * (2.0 * np.pi / n_angles)
     axis_data, elongation_data = _footprint(sub[:, :2])
-    back = sub[:score_points] - c_data
+    # The cloud's principal directions in the plane (rows): a hypothesis puts
+    # the middle of the template's extent along them on the middle of the
+    # cloud's. The centroids would not do: the cloud's point density is
+    # uneven (overlapping views), and a shift along a part's long axis is
+    # the one the refinements correct most slowly.
+    ca, sa = np.cos(axis_data), np.sin(axis_data)
+    frame = np.array([[ca, sa], [-sa, ca]])
+    mid_data = _mid_extent(sub[:, :2] @ frame.T)
+    back = sub[:score_points]
 
     hyps: list[tuple[bool, float, int, float, np.ndarray]] = []
     for k, pose in enumerate(model.poses):
-        centroid = pose.centroid
         if max(pose.elongation, elongation_data) <= footprint_ratio:
             # Both footprints have a clear major axis: the rotation about the
             # vertical lays the template's axis on the cloud's, pointing one
@@ -578,28 +591,37 @@ def align(
             angles = np.array([a0, (a0 + np.pi) % (2.0 * np.pi)])
         else:
             angles = scan
-        # The template's points are independent samples: a prefix scores as
-        # well as the whole, for less.
-        tpl = pose.template[:score_points] - centroid
-        # Every angle in one query: (n, M, 3) rotated templates.
         c, s_ = np.cos(angles)[:, None], np.sin(angles)[:, None]
+        # Per angle, the template turned about z (n, M) and the translation
+        # t (n, 3) that maps it onto the cloud: x_data = Rz(theta) x_rest + t.
+        full = pose.template
+        rx = c * full[:, 0] - s_ * full[:, 1]
+        ry = s_ * full[:, 0] + c * full[:, 1]
+        mid_u = _mid_extent((rx * frame[0, 0] + ry * frame[0, 1]).T)
+        mid_v = _mid_extent((rx * frame[1, 0] + ry * frame[1, 1]).T)
+        shift = (mid_data[None, :] - np.stack([mid_u, mid_v], axis=1)) @ frame
+        t = np.empty((len(angles), 3))
+        t[:, :2] = shift
+        t[:, 2] = c_data[2] - pose.centroid[2]
+        # The template's points are independent samples: a prefix scores as
+        # well as the whole, for less. Every angle in one query: (n, M, 3).
+        tpl = full[:score_points]
         y = np.empty((len(angles), len(tpl), 3))
-        y[:, :, 0] = c * tpl[:, 0] - s_ * tpl[:, 1] + c_data[0]
-        y[:, :, 1] = s_ * tpl[:, 0] + c * tpl[:, 1] + c_data[1]
-        y[:, :, 2] = tpl[:, 2] + c_data[2]
+        y[:, :, 0] = c * tpl[:, 0] - s_ * tpl[:, 1] + t[:, :1]
+        y[:, :, 1] = s_ * tpl[:, 0] + c * tpl[:, 1] + t[:, 1:2]
+        y[:, :, 2] = tpl[:, 2] + t[:, 2:]
         d, _ = data_tree.query(y.reshape(-1, 3), distance_upper_bound=trunc)
         scores = np.mean(np.minimum(d, trunc).reshape(len(angles), -1) ** 2, axis=1)
         # And the other way round: the cloud turned into the resting frame,
         # against the whole template, so that a pose whose visible side covers
         # only part of the cloud (a panel on its edge) does not score well.
-        b = back
-        yb = np.empty((len(angles), len(b), 3))
-        yb[:, :, 0] = c * b[:, 0] + s_ * b[:, 1]
-        yb[:, :, 1] = -s_ * b[:, 0] + c * b[:, 1]
-        yb[:, :, 2] = b[:, 2]
-        d, _ = cKDTree(pose.template - centroid).query(
-            yb.reshape(-1, 3), distance_upper_bound=trunc
-        )
+        bx = back[:, 0] - t[:, :1]
+        by = back[:, 1] - t[:, 1:2]
+        yb = np.empty((len(angles), len(back), 3))
+        yb[:, :, 0] = c * bx + s_ * by
+        yb[:, :, 1] = -s_ * bx + c * by
+        yb[:, :, 2] = back[:, 2] - t[:, 2:]
+        d, _ = cKDTree(full).query(yb.reshape(-1, 3), distance_upper_bound=trunc)
         scores += np.mean(np.minimum(d, trunc).reshape(len(angles), -1) ** 2, axis=1)
         # Hypotheses at neighbouring angles of a scan refine into the same
         # pose: the local minima of the score over the angle come first, so
@@ -609,10 +631,10 @@ def align(
         else:
             local_min = np.ones(len(angles), dtype=bool)
         for a in range(len(angles)):
-            # T_data_cad = Trans(c_data) Rz(theta) Trans(-centroid) T_rest_cad.
+            # T_data_cad = [Rz(theta) | t] T_rest_cad.
             T_dc = np.eye(4)
             T_dc[:3, :3] = _rot_z(angles[a])
-            T_dc[:3, 3] = c_data - _rot_z(angles[a]) @ centroid
+            T_dc[:3, 3] = t[a]
             T_dc = T_dc @ pose.transform
             hyps.append(
                 (
