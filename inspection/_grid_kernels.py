@@ -23,7 +23,10 @@ candidate faces (the distinct faces closest to the corners).
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from llvmlite import ir
+from numba import njit, prange, types
+from numba.core import cgutils
+from numba.extending import intrinsic
 
 REGION_INTERIOR = 0
 CELL_UNKNOWN = -1
@@ -41,13 +44,71 @@ _MAX_PLANE_STEPS = 6
 # records stay in the first-level caches between the passes.
 QUERY_CHUNK = 64
 
-# Layout of a face record, one row of the (F, REC_WIDTH) float64 array the
-# queries read: everything a query needs of one face in three adjacent cache
-# lines (rows are 192 bytes, 64-byte aligned), instead of one line or two in
-# each of several arrays.
-REC_WIDTH = 24
-REC_TRI = 12  # corners a, b, c (9 values); columns 0..11 are the plane row
-REC_SMOOTH = 21  # smooth_adj of the three edges, as floats (-1.0: none)
+# Layout of a face record, one row of the (F, HOT_WIDTH) 4-byte array the
+# queries read (as float32, and as int32 for the integer columns): 128
+# bytes, two cache lines per face. Line 0 holds what the plane test needs
+# (most queries read nothing else), line 1 the corners and the
+# neighbourhood for the exact test and the walk. Geometry is stored
+# relative to the face's home point (origin + home * home_step, the home
+# packed in HOT_HOME as three HOME_BITS-bit integers, corner a within a
+# few block edges of it): p - home is taken in float64, so the float32
+# values (relative error 6e-8) place planes and corners to nanometres.
+HOT_WIDTH = 32
+# Line 0: unit normal n (3), n.(a - home); U (3), U.(a - home); V (3),
+# V.(a - home) (U, V: the dual basis of the edges ab, ac in the plane).
+HOT_N, HOT_U, HOT_V = 0, 4, 8
+HOT_HOME = 12  # int32: home x | y << HOME_BITS | z << 2 * HOME_BITS
+HOT_SMOOTH = 13  # int32 (3): the face across edge e where it is smooth, else -1
+# Line 1: a - home (3), b - a (3), c - a (3).
+HOT_A, HOT_AB, HOT_AC = 16, 19, 22
+HOT_ADJ = 25  # int32 (3): the face across edge e, or -1
+HOT_VERT = 28  # int32 (3): the vertex index of corner e
+HOME_BITS = 10
+HOME_MASK = (1 << HOME_BITS) - 1
+
+
+@intrinsic
+def prefetch(typingctx, arr, index):
+    """Ask the CPU to start loading the cache line of ``arr[index]``.
+
+    ``index`` is an integer (1-D arrays) or a tuple of integers. A hint only
+    (LLVM's ``llvm.prefetch``): it never faults, changes no result and does
+    not wait, so one loop can start many loads at once; an out-of-range
+    index is allowed.
+    """
+    if not isinstance(arr, types.Array):
+        return None
+    if isinstance(index, types.Integer):
+        if arr.ndim != 1:
+            return None
+    elif not (
+        isinstance(index, types.BaseTuple)
+        and len(index) == arr.ndim
+        and all(isinstance(t, types.Integer) for t in index)
+    ):
+        return None
+    sig = types.void(arr, index)
+
+    def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def,unused-ignore]
+        aryty, idxty = signature.args
+        ary = context.make_array(aryty)(context, builder, args[0])
+        if isinstance(idxty, types.Integer):
+            idx = [context.cast(builder, args[1], idxty, types.intp)]
+        else:
+            idx = [
+                context.cast(builder, builder.extract_value(args[1], k), t, types.intp)
+                for k, t in enumerate(idxty)
+            ]
+        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, idx, wraparound=False)
+        i8p = ir.IntType(8).as_pointer()
+        i32 = ir.IntType(32)
+        fnty = ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32])
+        fn = cgutils.get_or_insert_function(builder.module, fnty, "llvm.prefetch.p0")
+        # read, high temporal locality, data cache
+        builder.call(fn, [builder.bitcast(ptr, i8p), i32(0), i32(3), i32(1)])
+        return context.get_dummy_value()
+
+    return sig, codegen
 
 
 @njit(cache=True)
@@ -73,21 +134,41 @@ def closest_on_triangle(px, py, pz, tri, f):
 
 
 @njit(cache=True, inline="always")
-def closest_on_record(px, py, pz, rec, f):
-    """:func:`closest_on_triangle` with the corners read from face record f (see REC_*)."""
+def _home(hot_i, f, origin, home_step):
+    """Face f's home point (see HOT_HOME), mm, float64."""
+    hm = hot_i[f, HOT_HOME]
+    return (
+        origin[0] + (hm & HOME_MASK) * home_step,
+        origin[1] + ((hm >> HOME_BITS) & HOME_MASK) * home_step,
+        origin[2] + ((hm >> (2 * HOME_BITS)) & HOME_MASK) * home_step,
+    )
+
+
+@njit(cache=True, inline="always")
+def closest_on_hot(px, py, pz, hot, hot_i, f, origin, home_step):
+    """:func:`closest_on_triangle` with the corners read from face record f (see HOT_*).
+
+    The corners are rebuilt in float64 from the home point and the record's
+    float32 offsets, so they are the CAD's to about 1e-7 of their distance
+    from the home point (nanometres).
+    """
+    ox, oy, oz = _home(hot_i, f, origin, home_step)
+    ax = ox + hot[f, HOT_A]
+    ay = oy + hot[f, HOT_A + 1]
+    az = oz + hot[f, HOT_A + 2]
     return _closest(
         px,
         py,
         pz,
-        rec[f, REC_TRI],
-        rec[f, REC_TRI + 1],
-        rec[f, REC_TRI + 2],
-        rec[f, REC_TRI + 3],
-        rec[f, REC_TRI + 4],
-        rec[f, REC_TRI + 5],
-        rec[f, REC_TRI + 6],
-        rec[f, REC_TRI + 7],
-        rec[f, REC_TRI + 8],
+        ax,
+        ay,
+        az,
+        ax + hot[f, HOT_AB],
+        ay + hot[f, HOT_AB + 1],
+        az + hot[f, HOT_AB + 2],
+        ax + hot[f, HOT_AC],
+        ay + hot[f, HOT_AC + 1],
+        az + hot[f, HOT_AC + 2],
     )
 
 
@@ -146,6 +227,28 @@ def _closest(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
     return qx, qy, qz, dx * dx + dy * dy + dz * dz, region
 
 
+@njit(cache=True, inline="always")
+def _closest_any(px, py, pz, hot, hot_i, f, origin, home_step, tri, exact):
+    """Closest point on face f: float64 ``tri`` when ``exact``, else its face record."""
+    if exact:
+        return closest_on_triangle(px, py, pz, tri, f)
+    return closest_on_hot(px, py, pz, hot, hot_i, f, origin, home_step)
+
+
+@njit(cache=True, inline="always")
+def _face_normal(hot, f, fnorm, exact):
+    """Unit normal of face f: float64 ``fnorm`` when ``exact``, else the record's, rescaled."""
+    if exact:
+        return fnorm[f, 0], fnorm[f, 1], fnorm[f, 2]
+    nx, ny, nz = (
+        np.float64(hot[f, HOT_N]),
+        np.float64(hot[f, HOT_N + 1]),
+        np.float64(hot[f, HOT_N + 2]),
+    )
+    s = 1.0 / np.sqrt(nx * nx + ny * ny + nz * nz)
+    return nx * s, ny * s, nz * s
+
+
 @njit(cache=True)
 def _walk_and_finish(
     i,
@@ -158,9 +261,13 @@ def _walk_and_finish(
     qz,
     d2,
     region,
-    rec,
-    faces,
-    face_adj,
+    hot,
+    hot_i,
+    origin,
+    home_step,
+    tri,
+    fnorm,
+    exact,
     vf_ptr,
     vf_idx,
     edge_pn,
@@ -179,7 +286,8 @@ def _walk_and_finish(
     face whose interior (or shared edge or corner) holds the foot point.
     The sign uses the angle-weighted pseudo-normal of the closest feature
     (Baerentzen and Aanaes 2005), so points off edges and corners get the
-    correct side.
+    correct side. With ``exact`` the faces are the float64 triangles ``tri``
+    and normals ``fnorm``, else the float32 face records (nanometres).
     """
     for _ in range(_MAX_WALK):
         moved = False
@@ -189,30 +297,36 @@ def _walk_and_finish(
             # still be closer, so look across the three edges too.
             bf, bx, by, bz, b2, br = f, qx, qy, qz, d2, region
             for e in range(3):
-                g = int(face_adj[f, e])
+                g = int(hot_i[f, HOT_ADJ + e])
                 if g < 0:
                     continue
-                rx, ry, rz, e2, rg = closest_on_record(px, py, pz, rec, g)
+                rx, ry, rz, e2, rg = _closest_any(
+                    px, py, pz, hot, hot_i, g, origin, home_step, tri, exact
+                )
                 if e2 < b2 * (1.0 - 1e-12) - 1e-18:
                     bf, bx, by, bz, b2, br = g, rx, ry, rz, e2, rg
             if bf != f:
                 f, qx, qy, qz, d2, region = bf, bx, by, bz, b2, br
                 moved = True
         elif region >= 4:
-            g = int(face_adj[f, region - 4])
+            g = int(hot_i[f, HOT_ADJ + region - 4])
             if g >= 0 and g != f:
-                rx, ry, rz, e2, rg = closest_on_record(px, py, pz, rec, g)
+                rx, ry, rz, e2, rg = _closest_any(
+                    px, py, pz, hot, hot_i, g, origin, home_step, tri, exact
+                )
                 if e2 < d2 * (1.0 - 1e-12) - 1e-18:
                     f, qx, qy, qz, d2, region = g, rx, ry, rz, e2, rg
                     moved = True
         else:
-            v = faces[f, region - 1]
+            v = hot_i[f, HOT_VERT + region - 1]
             bf, bx, by, bz, b2, br = f, qx, qy, qz, d2, region
             for k in range(vf_ptr[v], vf_ptr[v + 1]):
                 g = int(vf_idx[k])
                 if g == f:
                     continue
-                rx, ry, rz, e2, rg = closest_on_record(px, py, pz, rec, g)
+                rx, ry, rz, e2, rg = _closest_any(
+                    px, py, pz, hot, hot_i, g, origin, home_step, tri, exact
+                )
                 if e2 < b2 * (1.0 - 1e-12) - 1e-18:
                     bf, bx, by, bz, b2, br = g, rx, ry, rz, e2, rg
             if bf != f:
@@ -220,22 +334,23 @@ def _walk_and_finish(
                 moved = True
         if not moved:
             break
+    fx, fy, fz = _face_normal(hot, f, fnorm, exact)
     if region == 0:
-        nx, ny, nz = rec[f, 0], rec[f, 1], rec[f, 2]
+        nx, ny, nz = fx, fy, fz
     elif region >= 4:
         e = region - 4
         nx, ny, nz = edge_pn[f, e, 0], edge_pn[f, e, 1], edge_pn[f, e, 2]
     else:
-        v = faces[f, region - 1]
+        v = hot_i[f, HOT_VERT + region - 1]
         nx, ny, nz = vert_pn[v, 0], vert_pn[v, 1], vert_pn[v, 2]
     s = (px - qx) * nx + (py - qy) * ny + (pz - qz) * nz
     d = np.sqrt(d2)
     out_pts[i, 0] = qx
     out_pts[i, 1] = qy
     out_pts[i, 2] = qz
-    out_nrm[i, 0] = rec[f, 0]
-    out_nrm[i, 1] = rec[f, 1]
-    out_nrm[i, 2] = rec[f, 2]
+    out_nrm[i, 0] = fx
+    out_nrm[i, 1] = fy
+    out_nrm[i, 2] = fz
     out_dist[i] = d if s >= 0.0 else -d
     out_face[i] = face_id[f]
 
@@ -257,47 +372,65 @@ def _shift_of(block):
     return shift
 
 
-@njit(cache=True)
-def block_order(points, origin, inv_h, block, dims, coarse, n_blocks):
-    """Query rows grouped by fine block (a stable counting sort): (N,) int64.
+@njit(cache=True, inline="always")
+def _hot_foot(px, py, pz, hot, hot_i, f, origin, home_step):
+    """Plane test of p against face f's hot record: (hit, d, u, v).
 
-    Queries arrive in any order; visiting them block by block makes the
-    reads of the cell codes and of the faces they name local, where a random
-    order would miss the cache on nearly every one. Points outside the fine
-    blocks come last.
+    d is p's signed distance to the face's plane, (u, v) the barycentric
+    coordinates of its foot point (see HOT_*); hit when the foot lies inside
+    the triangle. Computed in float64 from p relative to the face's home
+    point, with the record's float32 values.
     """
-    n = points.shape[0]
-    shift = _shift_of(block)
-    nby, nbz = dims[1], dims[2]
-    limx = float(dims[0] * block)
-    limy = float(dims[1] * block)
-    limz = float(dims[2] * block)
-    key = np.empty(n, dtype=np.int32)
-    start = np.zeros(n_blocks + 2, dtype=np.int64)
-    for i in range(n):
-        gx = (points[i, 0] - origin[0]) * inv_h
-        gy = (points[i, 1] - origin[1]) * inv_h
-        gz = (points[i, 2] - origin[2]) * inv_h
-        b = n_blocks
-        if 0.0 <= gx < limx and 0.0 <= gy < limy and 0.0 <= gz < limz:
-            c = coarse[((int(gx) >> shift) * nby + (int(gy) >> shift)) * nbz + (int(gz) >> shift)]
-            if c >= 0:
-                b = c
-        key[i] = b
-        start[b + 1] += 1
-    for b in range(n_blocks + 1):
-        start[b + 1] += start[b]
-    order = np.empty(n, dtype=np.int64)
-    for i in range(n):
-        b = key[i]
-        order[start[b]] = i
-        start[b] += 1
-    return order
+    ox, oy, oz = _home(hot_i, f, origin, home_step)
+    qx, qy, qz = px - ox, py - oy, pz - oz
+    d = qx * hot[f, 0] + qy * hot[f, 1] + qz * hot[f, 2] - hot[f, 3]
+    u = qx * hot[f, 4] + qy * hot[f, 5] + qz * hot[f, 6] - hot[f, 7]
+    v = qx * hot[f, 8] + qy * hot[f, 9] + qz * hot[f, 10] - hot[f, 11]
+    return (u >= 0.0 and v >= 0.0 and u + v <= 1.0), d, u, v
+
+
+@njit(cache=True, inline="always")
+def _hot_distance(px, py, pz, hot, hot_i, f, origin, home_step):
+    """Signed distance of p to face f's plane, from its hot record."""
+    ox, oy, oz = _home(hot_i, f, origin, home_step)
+    qx, qy, qz = px - ox, py - oy, pz - oz
+    return qx * hot[f, 0] + qy * hot[f, 1] + qz * hot[f, 2] - hot[f, 3]
+
+
+@njit(cache=True, inline="always")
+def _exit_edge(u, v):
+    """The edge opposite the most negative barycentric coordinate of a foot point."""
+    la = 1.0 - u - v
+    if la <= u and la <= v:
+        return 1
+    if u <= v:
+        return 2
+    return 0
+
+
+@njit(cache=True, inline="always")
+def _write_foot(i, px, py, pz, d, f, hot, face_id, out_pts, out_nrm, out_dist, out_face):
+    """Row i of the outputs for a foot point inside face f at plane distance d.
+
+    d is measured with the record's float32 normal, whose length is 1 to
+    within 1e-7: both are rescaled so that the normal is a unit vector and
+    the point lies exactly d away.
+    """
+    nx, ny, nz = np.float64(hot[f, 0]), np.float64(hot[f, 1]), np.float64(hot[f, 2])
+    s = 1.0 / np.sqrt(nx * nx + ny * ny + nz * nz)
+    nx, ny, nz, d = nx * s, ny * s, nz * s, d * s
+    out_pts[i, 0] = px - d * nx
+    out_pts[i, 1] = py - d * ny
+    out_pts[i, 2] = pz - d * nz
+    out_nrm[i, 0] = nx
+    out_nrm[i, 1] = ny
+    out_nrm[i, 2] = nz
+    out_dist[i] = d
+    out_face[i] = face_id[f]
 
 
 @njit(cache=True, parallel=True)
 def query_grid(
-    order,
     points,
     origin,
     inv_h,
@@ -307,9 +440,11 @@ def query_grid(
     cells,
     mixed_ptr,
     mixed_faces,
-    rec,
-    faces,
-    face_adj,
+    hot,
+    hot_i,
+    home_step,
+    tri,
+    fnorm,
     vf_ptr,
     vf_idx,
     edge_pn,
@@ -319,17 +454,21 @@ def query_grid(
     out_nrm,
     out_dist,
     out_face,
-    sink,
+    n_slow,
 ):
-    """Fast path: cell lookup, exact distance to the cell's face(s), local walk.
+    """Fast path: cell lookup, plane tests on the cell's face(s), local walk.
 
     A cell with one face first tries the face's plane: when the foot point
-    falls inside the triangle (barycentric test with the precomputed dual
-    basis in the face record ``rec``) it is the exact closest point on that face and the
-    answer costs a dozen multiply-adds. Otherwise, and for cells with a
-    candidate list, the exact point-to-triangle test and the walk decide.
+    falls inside the triangle (barycentric test with the dual basis of the
+    face's hot record) it is the closest point on that face and the answer
+    costs a dozen multiply-adds; a foot outside steps across the smooth edge
+    it left by. Cells with a candidate list bound their candidates by their
+    planes first. Where no plane foot decides, the exact point-to-triangle
+    test on the float64 corners and the walk of :func:`_walk_and_finish` do.
+
     Points whose cell is unknown or outside the grid get
-    ``out_face = FACE_SLOW`` and their other outputs untouched.
+    ``out_face = FACE_SLOW`` and their other outputs untouched;
+    ``n_slow[c]`` counts them per chunk of QUERY_CHUNK rows.
     """
     n = points.shape[0]
     nby, nbz = dims[1], dims[2]
@@ -339,74 +478,192 @@ def query_grid(
     limx = float(dims[0] * block)
     limy = float(dims[1] * block)
     limz = float(dims[2] * block)
-    for c in prange(sink.shape[0]):
+    for c in prange(n_slow.shape[0]):
         j0 = c * QUERY_CHUNK
         j1 = min(n, j0 + QUERY_CHUNK)
-        # Pass 1 reads the chunk's cell codes, pass 2 touches the face
-        # records they name (every candidate's in a mixed cell). The loads of
-        # a pass do not depend on one another, so the memory system serves
-        # many at once; pass 3 then finds them in cache instead of waiting
-        # for each in turn.
-        codes = np.empty(QUERY_CHUNK, dtype=np.int32)
-        acc = 0.0
-        for j in range(j0, j1):
-            i = order[j]
+        # Memory, not arithmetic, sets the pace: each pass issues loads that
+        # do not depend on one another, so their cache misses overlap, and
+        # the next pass finds the lines in cache. Pass 1 reads the chunk's
+        # cell codes, pass 2 prefetches the hot records they name, pass 3
+        # answers every query it can and prefetches the record of the face
+        # a walk steps to, pass 4 finishes those walks.
+        cell = np.empty(QUERY_CHUNK, dtype=np.int64)
+        for i in range(j0, j1):
             gx = (points[i, 0] - origin[0]) * inv_h
             gy = (points[i, 1] - origin[1]) * inv_h
             gz = (points[i, 2] - origin[2]) * inv_h
-            code = CELL_UNKNOWN
+            k = -1
             # Also keeps far points from overflowing the integer conversion.
             if 0.0 <= gx < limx and 0.0 <= gy < limy and 0.0 <= gz < limz:
                 ix, iy, iz = int(gx), int(gy), int(gz)
                 b = coarse[((ix >> shift) * nby + (iy >> shift)) * nbz + (iz >> shift)]
                 if b >= 0:
                     local = ((((ix & mask) << shift) + (iy & mask)) << shift) + (iz & mask)
-                    code = cells[(np.int64(b) << (3 * shift)) + local]
-            codes[j - j0] = code
+                    k = (np.int64(b) << (3 * shift)) + local
+                    prefetch(cells, k)
+            cell[i - j0] = k
+        codes = np.empty(QUERY_CHUNK, dtype=np.int32)
+        for j in range(j1 - j0):
+            k = cell[j]
+            code = cells[k] if k >= 0 else CELL_UNKNOWN
+            if code < CELL_UNKNOWN:
+                prefetch(mixed_ptr, -code - 2)
+            codes[j] = code
         for j in range(j1 - j0):
             code = codes[j]
             if code >= 0:
-                f = int(code & FACE_MASK)
-                acc += rec[f, 3] + rec[f, 11]
+                prefetch(hot, (code & FACE_MASK, HOT_N))
+                prefetch(face_id, code & FACE_MASK)
             elif code != CELL_UNKNOWN:
                 m = -code - 2
                 for k in range(mixed_ptr[m], mixed_ptr[m + 1]):
-                    g = int(mixed_faces[k])
-                    acc += rec[g, 3] + rec[g, 11]
-        # Kept so that the compiler cannot drop the touches.
-        sink[c] = acc
-        for j in range(j0, j1):
-            _query_one(
-                order[j],
-                codes[j - j0],
-                points,
-                mixed_ptr,
-                mixed_faces,
-                rec,
-                faces,
-                face_adj,
-                vf_ptr,
-                vf_idx,
-                edge_pn,
-                vert_pn,
-                face_id,
-                out_pts,
-                out_nrm,
-                out_dist,
-                out_face,
-            )
+                    # Both lines: candidates often need the exact test.
+                    g = mixed_faces[k]
+                    prefetch(hot, (g, HOT_N))
+                    prefetch(hot, (g, HOT_A))
+                    prefetch(face_id, g)
+        wait_i = np.empty(QUERY_CHUNK, dtype=np.int64)
+        wait_f = np.empty(QUERY_CHUNK, dtype=np.int64)
+        wait_g = np.empty(QUERY_CHUNK, dtype=np.int64)
+        n_wait = 0
+        slow = 0
+        for i in range(j0, j1):
+            code = codes[i - j0]
+            px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+            if code == CELL_UNKNOWN:
+                out_face[i] = FACE_SLOW
+                slow += 1
+            elif code >= 0:
+                f = int(code & FACE_MASK)
+                if code & INTERIOR_FLAG:
+                    # Every point of this cell has its foot inside face f:
+                    # the plane gives the answer without any test.
+                    d = _hot_distance(px, py, pz, hot, hot_i, f, origin, home_step)
+                    _write_foot(
+                        i, px, py, pz, d, f, hot, face_id, out_pts, out_nrm, out_dist, out_face
+                    )
+                    continue
+                hit, d, u, v = _hot_foot(px, py, pz, hot, hot_i, f, origin, home_step)
+                if hit:
+                    _write_foot(
+                        i, px, py, pz, d, f, hot, face_id, out_pts, out_nrm, out_dist, out_face
+                    )
+                    continue
+                # The foot left the triangle: step across the edge it left
+                # by, if that edge is smooth (a patch where plane feet are
+                # the exact answer); pass 4 tests the neighbour.
+                g = int(hot_i[f, HOT_SMOOTH + _exit_edge(u, v)])
+                if g >= 0:
+                    prefetch(hot, (g, HOT_N))
+                    wait_i[n_wait] = i
+                    wait_f[n_wait] = f
+                    wait_g[n_wait] = g
+                    n_wait += 1
+                    continue
+                _exact_from(
+                    i,
+                    px,
+                    py,
+                    pz,
+                    f,
+                    hot,
+                    hot_i,
+                    origin,
+                    home_step,
+                    tri,
+                    fnorm,
+                    vf_ptr,
+                    vf_idx,
+                    edge_pn,
+                    vert_pn,
+                    face_id,
+                    out_pts,
+                    out_nrm,
+                    out_dist,
+                    out_face,
+                )
+            else:
+                _query_mixed(
+                    i,
+                    px,
+                    py,
+                    pz,
+                    code,
+                    mixed_ptr,
+                    mixed_faces,
+                    hot,
+                    hot_i,
+                    origin,
+                    home_step,
+                    tri,
+                    fnorm,
+                    vf_ptr,
+                    vf_idx,
+                    edge_pn,
+                    vert_pn,
+                    face_id,
+                    out_pts,
+                    out_nrm,
+                    out_dist,
+                    out_face,
+                )
+        for w in range(n_wait):
+            i = wait_i[w]
+            f = wait_f[w]
+            g = wait_g[w]
+            prev = f
+            px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+            hit, d, u, v = _hot_foot(px, py, pz, hot, hot_i, g, origin, home_step)
+            for _ in range(_MAX_PLANE_STEPS - 1):
+                if hit:
+                    break
+                nxt = int(hot_i[g, HOT_SMOOTH + _exit_edge(u, v)])
+                if nxt < 0 or nxt == prev:
+                    break
+                prev = g
+                g = nxt
+                hit, d, u, v = _hot_foot(px, py, pz, hot, hot_i, g, origin, home_step)
+            if hit:
+                _write_foot(i, px, py, pz, d, g, hot, face_id, out_pts, out_nrm, out_dist, out_face)
+            else:
+                _exact_from(
+                    i,
+                    px,
+                    py,
+                    pz,
+                    f,
+                    hot,
+                    hot_i,
+                    origin,
+                    home_step,
+                    tri,
+                    fnorm,
+                    vf_ptr,
+                    vf_idx,
+                    edge_pn,
+                    vert_pn,
+                    face_id,
+                    out_pts,
+                    out_nrm,
+                    out_dist,
+                    out_face,
+                )
+        n_slow[c] = slow
 
 
-@njit(cache=True, inline="always")
-def _query_one(
+@njit(cache=True)
+def _exact_from(
     i,
-    code,
-    points,
-    mixed_ptr,
-    mixed_faces,
-    rec,
-    faces,
-    face_adj,
+    px,
+    py,
+    pz,
+    f,
+    hot,
+    hot_i,
+    origin,
+    home_step,
+    tri,
+    fnorm,
     vf_ptr,
     vf_idx,
     edge_pn,
@@ -417,121 +674,8 @@ def _query_one(
     out_dist,
     out_face,
 ):
-    """Row i of the fast path, given the code of its cell (see :func:`query_grid`)."""
-    px, py, pz = points[i, 0], points[i, 1], points[i, 2]
-    if code == CELL_UNKNOWN:
-        out_face[i] = FACE_SLOW
-        return
-    if code >= 0:
-        f = int(code & FACE_MASK)
-        if code & INTERIOR_FLAG:
-            # Every point of this cell has its foot inside face f: the
-            # plane gives the answer without any test.
-            nx, ny, nz = rec[f, 0], rec[f, 1], rec[f, 2]
-            d = px * nx + py * ny + pz * nz - rec[f, 3]
-            out_pts[i, 0] = px - d * nx
-            out_pts[i, 1] = py - d * ny
-            out_pts[i, 2] = pz - d * nz
-            out_nrm[i, 0] = nx
-            out_nrm[i, 1] = ny
-            out_nrm[i, 2] = nz
-            out_dist[i] = d
-            out_face[i] = face_id[f]
-            return
-        hit, d, u, v = _plane_foot(px, py, pz, rec, f)
-        g = f
-        prev = -1
-        for _ in range(_MAX_PLANE_STEPS):
-            if hit:
-                break
-            # The foot left the triangle: step across the edge opposite
-            # the most negative barycentric coordinate, if that edge is
-            # smooth (a patch where plane feet are the exact answer).
-            la = 1.0 - u - v
-            if la <= u and la <= v:
-                e = 1
-            elif u <= v:
-                e = 2
-            else:
-                e = 0
-            nxt = int(rec[g, REC_SMOOTH + e])
-            if nxt < 0 or nxt == prev:
-                break
-            prev = g
-            g = nxt
-            hit, d, u, v = _plane_foot(px, py, pz, rec, g)
-        if hit:
-            f = g
-        if hit:
-            nx, ny, nz = rec[f, 0], rec[f, 1], rec[f, 2]
-            out_pts[i, 0] = px - d * nx
-            out_pts[i, 1] = py - d * ny
-            out_pts[i, 2] = pz - d * nz
-            out_nrm[i, 0] = nx
-            out_nrm[i, 1] = ny
-            out_nrm[i, 2] = nz
-            out_dist[i] = d
-            out_face[i] = face_id[f]
-            return
-        qx, qy, qz, d2, region = closest_on_record(px, py, pz, rec, f)
-    else:
-        m = -code - 2
-        k0, k1 = mixed_ptr[m], mixed_ptr[m + 1]
-        # First the candidates' planes: a foot inside its triangle is
-        # that face's exact distance, and |plane distance| bounds every
-        # other face's distance from below, so most candidates never
-        # need the full point-to-triangle test.
-        f = -1
-        d2 = np.inf
-        fd = 0.0
-        for k in range(k0, k1):
-            g = int(mixed_faces[k])
-            hit, d, u, v = _plane_foot(px, py, pz, rec, g)
-            if hit and d * d < d2:
-                f, d2, fd = g, d * d, d
-        region = 0
-        qx = qy = qz = 0.0
-        if f >= 0:
-            qx = px - fd * rec[f, 0]
-            qy = py - fd * rec[f, 1]
-            qz = pz - fd * rec[f, 2]
-        for k in range(k0, k1):
-            g = int(mixed_faces[k])
-            hit, d, u, v = _plane_foot(px, py, pz, rec, g)
-            if hit or d * d >= d2:
-                continue
-            rx, ry, rz, e2, rg = closest_on_record(px, py, pz, rec, g)
-            if e2 < d2:
-                f, qx, qy, qz, d2, region = g, rx, ry, rz, e2, rg
-        if region == 0:
-            # A foot inside f: a closer face can only lie across one of
-            # f's edges. Across a smooth edge it would be closer by at
-            # most distance * angle^2 (the single-face cells' bound), so
-            # only sharp edges are looked across, each first bounded by
-            # its plane.
-            g_best = -1
-            for e in range(3):
-                g = int(face_adj[f, e])
-                if g < 0 or rec[f, REC_SMOOTH + e] >= 0.0:
-                    continue
-                hit, d, u, v = _plane_foot(px, py, pz, rec, g)
-                if d * d >= d2:
-                    continue
-                rx, ry, rz, e2, rg = closest_on_record(px, py, pz, rec, g)
-                if e2 < d2:
-                    g_best, qx, qy, qz, d2, region = g, rx, ry, rz, e2, rg
-            if g_best < 0:
-                nx, ny, nz = rec[f, 0], rec[f, 1], rec[f, 2]
-                out_pts[i, 0] = qx
-                out_pts[i, 1] = qy
-                out_pts[i, 2] = qz
-                out_nrm[i, 0] = nx
-                out_nrm[i, 1] = ny
-                out_nrm[i, 2] = nz
-                out_dist[i] = fd
-                out_face[i] = face_id[f]
-                return
-            f = g_best
+    """Row i by the exact point-to-triangle test on face f and the walk from there."""
+    qx, qy, qz, d2, region = closest_on_hot(px, py, pz, hot, hot_i, f, origin, home_step)
     _walk_and_finish(
         i,
         px,
@@ -543,9 +687,121 @@ def _query_one(
         qz,
         d2,
         region,
-        rec,
-        faces,
-        face_adj,
+        hot,
+        hot_i,
+        origin,
+        home_step,
+        tri,
+        fnorm,
+        False,
+        vf_ptr,
+        vf_idx,
+        edge_pn,
+        vert_pn,
+        face_id,
+        out_pts,
+        out_nrm,
+        out_dist,
+        out_face,
+    )
+
+
+@njit(cache=True)
+def _query_mixed(
+    i,
+    px,
+    py,
+    pz,
+    code,
+    mixed_ptr,
+    mixed_faces,
+    hot,
+    hot_i,
+    origin,
+    home_step,
+    tri,
+    fnorm,
+    vf_ptr,
+    vf_idx,
+    edge_pn,
+    vert_pn,
+    face_id,
+    out_pts,
+    out_nrm,
+    out_dist,
+    out_face,
+):
+    """Row i of the fast path for a cell with a candidate list (code <= -2)."""
+    m = -code - 2
+    k0, k1 = mixed_ptr[m], mixed_ptr[m + 1]
+    # First the candidates' planes: a foot inside its triangle is that
+    # face's distance, and |plane distance| bounds every other face's
+    # distance from below, so most candidates never need the full
+    # point-to-triangle test.
+    f = -1
+    d2 = np.inf
+    fd = 0.0
+    for k in range(k0, k1):
+        g = int(mixed_faces[k])
+        hit, d, u, v = _hot_foot(px, py, pz, hot, hot_i, g, origin, home_step)
+        if hit and d * d < d2:
+            f, d2, fd = g, d * d, d
+    region = 0
+    qx = qy = qz = 0.0
+    if f >= 0:
+        qx = px - fd * hot[f, 0]
+        qy = py - fd * hot[f, 1]
+        qz = pz - fd * hot[f, 2]
+    for k in range(k0, k1):
+        g = int(mixed_faces[k])
+        hit, d, u, v = _hot_foot(px, py, pz, hot, hot_i, g, origin, home_step)
+        if hit or d * d >= d2:
+            continue
+        rx, ry, rz, e2, rg = closest_on_hot(px, py, pz, hot, hot_i, g, origin, home_step)
+        if e2 < d2:
+            f, qx, qy, qz, d2, region = g, rx, ry, rz, e2, rg
+            if rg == REGION_INTERIOR:
+                # The float32 plane test and the float64 triangle test can
+                # disagree within nanometres of an edge: keep fd this face's.
+                fd = d
+    if region == 0:
+        # A foot inside f: a closer face can only lie across one of f's
+        # edges. Across a smooth edge it would be closer by at most
+        # distance * angle^2 (the single-face cells' bound), so only sharp
+        # edges are looked across, each first bounded by its plane.
+        g_best = -1
+        for e in range(3):
+            g = int(hot_i[f, HOT_ADJ + e])
+            if g < 0 or hot_i[f, HOT_SMOOTH + e] >= 0:
+                continue
+            d = _hot_distance(px, py, pz, hot, hot_i, g, origin, home_step)
+            if d * d >= d2:
+                continue
+            rx, ry, rz, e2, rg = closest_on_hot(px, py, pz, hot, hot_i, g, origin, home_step)
+            if e2 < d2:
+                g_best, qx, qy, qz, d2, region = g, rx, ry, rz, e2, rg
+        if g_best < 0:
+            _write_foot(i, px, py, pz, fd, f, hot, face_id, out_pts, out_nrm, out_dist, out_face)
+            return
+        f = g_best
+    _walk_and_finish(
+        i,
+        px,
+        py,
+        pz,
+        f,
+        qx,
+        qy,
+        qz,
+        d2,
+        region,
+        hot,
+        hot_i,
+        origin,
+        home_step,
+        tri,
+        fnorm,
+        False,
         vf_ptr,
         vf_idx,
         edge_pn,
@@ -895,9 +1151,12 @@ def query_bvh(
     hi,
     child,
     span,
-    rec,
-    faces,
-    face_adj,
+    hot,
+    hot_i,
+    origin,
+    home_step,
+    tri,
+    fnorm,
     vf_ptr,
     vf_idx,
     edge_pn,
@@ -929,7 +1188,7 @@ def query_bvh(
             if c0 < 0:
                 for k in range(span[node, 0], span[node, 1]):
                     g = int(order[k])
-                    rx, ry, rz, e2, rg = closest_on_record(px, py, pz, rec, g)
+                    rx, ry, rz, e2, rg = closest_on_triangle(px, py, pz, tri, g)
                     if e2 < d2:
                         f, qx, qy, qz, d2, region = g, rx, ry, rz, e2, rg
                 continue
@@ -954,9 +1213,13 @@ def query_bvh(
             qz,
             d2,
             region,
-            rec,
-            faces,
-            face_adj,
+            hot,
+            hot_i,
+            origin,
+            home_step,
+            tri,
+            fnorm,
+            True,
             vf_ptr,
             vf_idx,
             edge_pn,

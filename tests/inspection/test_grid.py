@@ -15,6 +15,11 @@ from inspection.errors import InvalidInput, TreeMismatch
 from inspection.grid import FORMAT_VERSION, Closest, GridTree, warmup
 from inspection.panel import PanelSpec, sheet_metal_panel
 
+# The fast path reads float32 face records (planes and corners relative to a
+# home point near the face): its answers are exact up to that rounding, a few
+# nanometres. The slow path (far from the surface) is exact in float64.
+FAST_TOL_MM = 1e-5
+
 
 # ---------------------------------------------------------------------- oracle
 def brute_closest(points: np.ndarray, cad: CadModel) -> tuple[np.ndarray, np.ndarray]:
@@ -93,7 +98,7 @@ def check_against_oracle(tree: GridTree, cad: CadModel, q: np.ndarray, *, mean_m
     tri = cad.vertices[cad.faces]
     for p, f in zip(got.points[:50], got.face[:50], strict=True):
         _, on_face = _brute(p[None], tri[[f]], cad.face_normals[[f]])
-        assert on_face[0] < 1e-9
+        assert on_face[0] < FAST_TOL_MM
     return got, ref_pts, ref_d
 
 
@@ -176,7 +181,7 @@ def test_signed_distance_inside_and_outside_a_closed_surface(sphere_tree, sphere
     got = sphere_tree.query(q)
     _, ref_d = brute_closest(q, sphere)
     inside = trimesh.Trimesh(sphere.vertices, sphere.faces).contains(q)
-    np.testing.assert_allclose(np.abs(got.distances), ref_d, atol=1e-9)
+    np.testing.assert_allclose(np.abs(got.distances), ref_d, atol=FAST_TOL_MM)
     assert np.all((got.distances < 0) == inside)
 
 
@@ -190,7 +195,7 @@ def test_signed_distance_off_edges_and_corners_of_a_box():
     inside_d = np.min([30.0, 20.0, 10.0] - np.abs(q), axis=1)
     expected = np.where(inside, -inside_d, outside_d)
     got = tree.query(q)
-    np.testing.assert_allclose(got.distances, expected, atol=1e-9)
+    np.testing.assert_allclose(got.distances, expected, atol=FAST_TOL_MM)
 
 
 @pytest.mark.parametrize(
@@ -222,7 +227,11 @@ def test_shared_meshes_match_oracle(shared_cad, name, scale):
     # corners, a point beside it may get the wall's far side (well under 1 mm).
     assert err.max() <= 1.0
     far = offset_queries(cad, 40, 10.0, 30.0, rng)
-    check_against_oracle(tree, cad, far, mean_mm=1e-9, p99_mm=1e-9, max_mm=1e-9)
+    # Where the part folds back, a point 10-30 mm off one face can lie within
+    # the band of another and take the fast path.
+    check_against_oracle(
+        tree, cad, far, mean_mm=FAST_TOL_MM, p99_mm=FAST_TOL_MM, max_mm=FAST_TOL_MM
+    )
 
 
 def test_save_load_round_trip(tmp_path, panel_tree, small_panel):
@@ -422,7 +431,7 @@ def test_faces_stay_in_the_cad_order(panel_tree, small_panel, tmp_path):
             tri[got.face[k : k + 1]],
             small_panel.face_normals[got.face[k : k + 1]],
         )
-        assert d[0] < 1e-9
+        assert d[0] < FAST_TOL_MM
     assert (got.face == f).mean() > 0.9
 
 
