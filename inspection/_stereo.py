@@ -640,13 +640,14 @@ def refine_warped(
                 rrow = right[yy]
                 wrrow = wr[yy]
                 for u in range(2 * radius + 1):
-                    if mrow[u] == 0.0:
-                        continue
+                    # Branch-free: samples off the field or off the image get
+                    # weight 0 (clamped to a valid column) rather than a skip.
                     xr = (x - radius + u) - d - (srow[u] - s0)
-                    xb = int(math.floor(xr))
-                    if xb - 1 < 0 or xb + 2 >= wr_cols:
-                        continue
-                    a = xr - xb
+                    xf = math.floor(xr)
+                    a = xr - xf
+                    xb0 = int(xf)
+                    xb = min(max(xb0, 1), wr_cols - 3)
+                    m = mrow[u] * (1.0 if xb == xb0 else 0.0)
                     a2 = a * a
                     a3 = a2 * a
                     r0 = rrow[xb - 1]
@@ -665,7 +666,7 @@ def refine_warped(
                         + (-4.5 * a2 + 4.0 * a + 0.5) * r2
                         + (1.5 * a2 - a) * r3
                     )
-                    wt = wlrow[u] * wrrow[xb] * wrrow[xb + 1]
+                    wt = m * wlrow[u] * wrrow[xb] * wrrow[xb + 1]
                     t = lrow[u]
                     s1 += wt
                     sw += wt * rv

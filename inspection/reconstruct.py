@@ -163,7 +163,7 @@ class ReconstructParams:
     warp_passes: int = 2
     threads: int = 2
     score_full: float = 0.95
-    warp_curvature_px: float = 0.02
+    warp_curvature_px: float = 0.03
     warp_slope: float = 0.1
     warp_iterations: int = 2
     warp_smooth: int = 5
