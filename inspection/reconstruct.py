@@ -532,6 +532,8 @@ def _frame_flags(img: npt.NDArray[np.uint8], p: ReconstructParams) -> tuple[set[
 
 _EXECUTORS: dict[int, ThreadPoolExecutor] = {}
 _EXECUTOR_LOCK = threading.Lock()
+# A forked child inherits the pool's bookkeeping but not its threads: it starts its own.
+os.register_at_fork(after_in_child=_EXECUTORS.clear)
 
 
 def _executor(threads: int) -> ThreadPoolExecutor:
