@@ -49,11 +49,11 @@ fit is arranged to query few points, few times:
   several um short). A part whose pose the subset does not pin down to
   ``uncertainty_mm`` (a plate whose in-plane position rests on a few edges)
   continues on every point.
-- Once the scale has narrowed to the noise, a step that moves the points
-  by less than 0.02 mm is evaluated against each point's last closest face
-  (exact point-to-triangle distance) instead of a fresh query; only the few
-  points whose closest point leaves that face's interior, or that cross its
-  plane, are queried again. The distance to one face is at least the distance to the
+- Past the coarse stage, a step that moves the points by less than 0.02 mm
+  is evaluated against each point's last closest face (exact point-to-
+  triangle distance) instead of a fresh query; only the few points whose
+  closest point leaves that face's interior, or that cross its plane, are
+  queried again. The distance to one face is at least the distance to the
   surface, so such a cost bounds the true one from above, and a step it
   accepts lowers the true cost too (the classic ICP argument).
 - ``weights``, ``residuals``, ``rms_mm`` and ``inlier_fraction`` of every
@@ -1167,11 +1167,12 @@ def register(
     def trial(T_: Transform, step_mm: float) -> tuple[np.ndarray, ...]:
         """Points, residual gradients and residuals of the first m points at a
         trial pose T_, reached from the current one by a step moving the
-        points by ``step_mm`` (RMS), and the faces they refer to. Once the
-        scale has narrowed to the noise, a small step keeps each point's
-        closest face (an upper bound of the true cost, no query); otherwise
-        a fresh query."""
-        if geometry is not None and gnc == 0.0:
+        points by ``step_mm`` (RMS), and the faces they refer to. Past the
+        coarse stage a small step keeps each point's closest face (an upper
+        bound of the true cost, no query); otherwise a fresh query. (In the
+        coarse stage too it saves a few hundred queries, but costs accuracy
+        on some parts: the 512 points' faces then steer the next stages.)"""
+        if geometry is not None and gnc == 0.0 and m > initial_subset:
             if step_mm < _FIXED_FACE_STEP_MM:
                 X_ = _transform(T_[:3, :3].copy(), T_[:3, 3].copy(), P[:m])
                 r_, U_, again = _face_residuals(X_, Fi, *geometry, Fn, r, residual == "distance")
