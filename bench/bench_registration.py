@@ -24,6 +24,12 @@ On the generated sheet-metal panel scaled to 300 x 200 mm, in one run:
   that scales with the machine's load, the time of one tree query of
   ``REFERENCE_QUERY`` points (about what one fit queries in all).
 - Determinism: the same cloud twice gives a bit-identical transform.
+- Accuracy on the meshes: the panel and the shared CAD meshes (as stored,
+  seen from above, scaled to ~300 mm; skipped when ../shared/data/cad or
+  ``INSPECTION_SHARED_CAD`` is absent), 50,000 points, noise 0.02 mm, start
+  10 degrees and 20 mm off, seeds ``BENCH_MESH_SEEDS`` (3,4,5; empty to
+  skip), with and without ``view_direction``; printed beside the bound the
+  noise sets from the fit's observability.
 - Global alignment: ``ALIGN_TRIALS`` seeded placements of the panel (random
   stable pose, any rotation about the vertical, up to 200 mm from the
   origin), 50,000 points; success = 0.005 degrees and 5 um after refinement
@@ -46,6 +52,7 @@ import statistics  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from collections.abc import Callable  # noqa: E402
+from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
@@ -91,14 +98,14 @@ def _blobs(points, normals, fraction, seed, n_blobs=8):
     return out
 
 
-def _start(rng, center):
+def _start(rng, center, deg=START_DEG, mm=START_MM):
     axis = rng.normal(size=3)
     axis /= np.linalg.norm(axis)
-    R = Rotation.from_rotvec(axis * np.radians(START_DEG)).as_matrix()
+    R = Rotation.from_rotvec(axis * np.radians(deg)).as_matrix()
     d = rng.normal(size=3)
     T = np.eye(4)
     T[:3, :3] = R
-    T[:3, 3] = center - R @ center + START_MM * d / np.linalg.norm(d)
+    T[:3, 3] = center - R @ center + mm * d / np.linalg.norm(d)
     return T
 
 
@@ -329,6 +336,66 @@ def bench_align(cad, tree, trials: int) -> bool:
     return found >= 0.99 * trials
 
 
+# The shared meshes as stored, seen from above (+z), scaled to ~300 mm.
+SHARED_SCALE = {
+    "busted.STL": 30.0,
+    "featuretype.STL": 60.0,
+    "fandisk.obj": 180.0,
+    "counter.unitsmm.STL": 1.0,
+    "plate_holes.STL": 1.0,
+    "1002_tray_bottom.STL": 1.0,
+}
+
+
+def bench_meshes(seeds: list[int]) -> None:
+    """Accuracy on the shared meshes and the panel, 50k points, noise 0.02 mm,
+    start 10 deg / 20 mm off, with and without the sensor's view direction."""
+    from inspection.cad import load_cad
+    from inspection.grid import GridTree
+    from inspection.panel import PanelSpec, sheet_metal_panel
+    from inspection.registration import register
+
+    env = os.environ.get("INSPECTION_SHARED_CAD")
+    shared = Path(env) if env else Path(__file__).resolve().parents[1].parent / "shared/data/cad"
+    cases = [("panel 300 x 200", None)] + [(n, shared / n) for n in SHARED_SCALE]
+    print(
+        f"\nfine registration on the meshes: {N_POINTS} points, noise {NOISE_MM} mm, "
+        "start 10 deg / 20 mm off; goal 0.005 deg and 5 um"
+    )
+    print(
+        f"{'mesh':<22} {'seed':>4} {'view':>5} {'rot deg':>9} {'disp um':>9} "
+        f"{'bound um':>9} {'points':>7} {'CPU ms':>7}  ok"
+    )
+    for name, path in cases:
+        if path is None:
+            cad = sheet_metal_panel(PanelSpec().scaled(300.0, 200.0))
+        elif path.is_file():
+            cad = load_cad(path, scale=SHARED_SCALE[name])
+        else:
+            print(f"{name:<22} (not found at {path.parent})")
+            continue
+        tree = GridTree.build(cad)
+        for seed in seeds:
+            pts, _ = _facing(cad, np.eye(4), N_POINTS, seed=seed)
+            T_data_cad = _start(np.random.default_rng(seed), pts.mean(axis=0), 10.0, 20.0)
+            data = pts @ T_data_cad[:3, :3].T + T_data_cad[:3, 3]
+            T_true = np.linalg.inv(T_data_cad)
+            for view in (None, (0.0, 0.0, 1.0)):
+                c0 = time.process_time()
+                reg = register(tree, data, view_direction=view)
+                ct = time.process_time() - c0
+                rot, disp = _errors(reg.transform, T_true, data)
+                # What the noise leaves: NOISE sqrt(trace(H^-1) / N).
+                bound = NOISE_MM * np.sqrt(np.sum(1.0 / reg.observability) / len(data))
+                ok = rot <= 0.005 and disp <= 0.005
+                print(
+                    f"{name:<22} {seed:>4} {'up' if view else '-':>5} {rot:9.5f} "
+                    f"{disp * 1e3:9.2f} {bound * 1e3:9.2f} {int(reg.subset_sizes.max()):>7} "
+                    f"{ct * 1e3:7.0f}  {'yes' if ok else 'NO'}",
+                    flush=True,
+                )
+
+
 def main() -> int:
     from inspection.grid import GridTree
     from inspection.panel import PanelSpec, sheet_metal_panel
@@ -350,6 +417,9 @@ def main() -> int:
     )
     register(wide, pts)
     ok = bench_fine(cad, tree, wide)
+    seeds = [int(x) for x in os.environ.get("BENCH_MESH_SEEDS", "3,4,5").split(",") if x]
+    if seeds:
+        bench_meshes(seeds)
     trials = int(os.environ.get("BENCH_ALIGN_TRIALS", "100"))
     if trials > 0:
         ok &= bench_align(cad, tree, trials)

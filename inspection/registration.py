@@ -1169,9 +1169,9 @@ def register(
         trial pose T_, reached from the current one by a step moving the
         points by ``step_mm`` (RMS), and the faces they refer to. Past the
         coarse stage a small step keeps each point's closest face (an upper
-        bound of the true cost, no query); otherwise a fresh query. (In the
-        coarse stage too it saves a few hundred queries, but costs accuracy
-        on some parts: the 512 points' faces then steer the next stages.)"""
+        bound of the true cost, no query); otherwise a fresh query. (Allowing it
+        in the coarse stage too saved ~6 % of the queries on some clouds and
+        cost accuracy on one tray cloud, 2.5 -> 5.5 um.)"""
         if geometry is not None and gnc == 0.0 and m > initial_subset:
             if step_mm < _FIXED_FACE_STEP_MM:
                 X_ = _transform(T_[:3, :3].copy(), T_[:3, 3].copy(), P[:m])
