@@ -18,9 +18,11 @@ anywhere in the measurement volume. The search runs in three stages:
    refined and the rest score clearly worse.
 2. *Coarse refinement.* The best few distinct hypotheses are refined by
    :func:`inspection.registration.register` on a subsample of the cloud
-   against a dense sampling of the CAD surface (point-to-plane against the
-   samples' face normals), and re-scored with one common truncated
-   residual cost. Two distinct poses that fit equally well (a box turned by
+   and re-scored with one common truncated residual cost: against the CAD
+   tree when the rotation came from the footprints' axes (such hypotheses
+   start within a few mm), else against a dense sampling of the CAD
+   surface, as cheap far from the surface as near it (point-to-plane
+   against the samples' face normals). Two distinct poses that fit equally well (a box turned by
    180 degrees, a disc at any angle) make the result *ambiguous*.
 3. *Fine registration* of every point from the best pose with
    :func:`~inspection.registration.register` on the CAD tree.
@@ -582,6 +584,9 @@ def align(
     back = sub[:score_points]
 
     hyps: list[tuple[bool, float, int, float, np.ndarray]] = []
+    # Poses whose hypotheses come from the footprints' axes: near enough to
+    # be refined on the CAD tree directly (exact, and cheap near the surface).
+    by_axes: set[int] = set()
     for k, pose in enumerate(model.poses):
         if max(pose.elongation, elongation_data) <= footprint_ratio:
             # Both footprints have a clear major axis: the rotation about the
@@ -589,6 +594,7 @@ def align(
             # way or the other (two hypotheses instead of a scan).
             a0 = (axis_data - pose.axis_rad) % (2.0 * np.pi)
             angles = np.array([a0, (a0 + np.pi) % (2.0 * np.pi)])
+            by_axes.add(k)
         else:
             angles = scan
         c, s_ = np.cos(angles)[:, None], np.sin(angles)[:, None]
@@ -649,7 +655,7 @@ def align(
     best_hyp = hyps[0][1]
     log.debug("hypotheses: %s", [(h[2], round(h[3]), round(h[1], 2)) for h in hyps[:8]])
 
-    # Coarse refinement of the best hypotheses against the sampled surface.
+    # Coarse refinement of the best hypotheses (on the tree or the sampled surface).
     refined: list[Candidate] = []
     residuals: list[np.ndarray] = []
     tried = 0
@@ -663,7 +669,7 @@ def align(
         tried += 1
         try:
             reg = register(
-                model.surface,
+                tree if k in by_axes else model.surface,
                 sub[:refine_points],
                 init=T,
                 loss="tukey",
