@@ -471,12 +471,14 @@ class PartRegistry:
             return
         if self.alignment and loaded.alignment_model is not None:
             self._update_job(job_id, progress=0.98, message="warming up")
+            from inspection.deviations import warmup as deviations_warmup
             from inspection.grid import warmup
 
             from .inspect import warm_up
 
             # Readiness means the first real part is not the one paying for compilation.
             log.info("grid kernels ready in %.1f s", warmup())
+            deviations_warmup()
             log.info("part %s: measured once in %.1f s (warm-up)", name, warm_up(loaded))
         with self._lock:
             entry.loaded = loaded
