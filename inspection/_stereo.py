@@ -727,3 +727,40 @@ def refine_warped(
             out_d[i] = np.nan
             out_score[i] = -1.0
             out_step[i] = 99.0
+
+
+@njit(cache=True, nogil=True)
+def fill_row_gaps(disparity, passes):  # pragma: no cover
+    """Fill NaN pixels from their measured row neighbours, in place, ``passes`` times.
+
+    Each pass sets every NaN pixel with a measured left or right neighbour
+    to the mean of the measured ones (values of the previous pass), so gaps
+    of up to ``2 * passes`` columns between measured pixels close and
+    outlines grow by ``passes`` columns.
+
+    Parameters
+    ----------
+    disparity : (H, W) float32
+        NaN where not measured; modified in place.
+    passes : int
+    """
+    H, W = disparity.shape
+    prev = np.empty(W, np.float32)
+    for _ in range(passes):
+        for y in range(H):
+            row = disparity[y]
+            for x in range(W):
+                prev[x] = row[x]
+            for x in range(W):
+                if not np.isnan(prev[x]):
+                    continue
+                s = np.float32(0.0)
+                c = 0
+                if x > 0 and not np.isnan(prev[x - 1]):
+                    s += prev[x - 1]
+                    c += 1
+                if x + 1 < W and not np.isnan(prev[x + 1]):
+                    s += prev[x + 1]
+                    c += 1
+                if c > 0:
+                    row[x] = s / np.float32(c)
