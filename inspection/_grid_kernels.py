@@ -464,7 +464,8 @@ def query_grid(
     costs a dozen multiply-adds; a foot outside steps across the smooth edge
     it left by. Cells with a candidate list bound their candidates by their
     planes first. Where no plane foot decides, the exact point-to-triangle
-    test on the float64 corners and the walk of :func:`_walk_and_finish` do.
+    test on the record's corners and the walk of :func:`_walk_and_finish` do.
+    All of it reads the float32 face records: exact to a few nanometres.
 
     Points whose cell is unknown or outside the grid get
     ``out_face = FACE_SLOW`` and their other outputs untouched;
@@ -761,8 +762,8 @@ def _query_mixed(
         if e2 < d2:
             f, qx, qy, qz, d2, region = g, rx, ry, rz, e2, rg
             if rg == REGION_INTERIOR:
-                # The float32 plane test and the float64 triangle test can
-                # disagree within nanometres of an edge: keep fd this face's.
+                # The plane test and the triangle test round differently and
+                # can disagree within nanometres of an edge: keep fd this face's.
                 fd = d
     if region == 0:
         # A foot inside f: a closer face can only lie across one of f's

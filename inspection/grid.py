@@ -457,7 +457,10 @@ class GridTree:
         Returns
         -------
         Closest
-            One row per query point, in the input order.
+            One row per query point, in the input order. Points the fast path
+            answers (within the band) are exact up to the float32 rounding of
+            the face records, a few nanometres; the others are exact in
+            float64 (see the module notes on accuracy).
 
         Raises
         ------
