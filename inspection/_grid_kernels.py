@@ -296,6 +296,13 @@ def _walk_and_finish(
             # on the concave side of a bend a neighbour tilted towards p can
             # still be closer, so look across the three edges too.
             bf, bx, by, bz, b2, br = f, qx, qy, qz, d2, region
+            if not exact:
+                # Start all three neighbours' loads before testing any.
+                for e in range(3):
+                    g = int(hot_i[f, HOT_ADJ + e])
+                    if g >= 0:
+                        prefetch(hot, (g, HOT_N))
+                        prefetch(hot, (g, HOT_A))
             for e in range(3):
                 g = int(hot_i[f, HOT_ADJ + e])
                 if g < 0:
@@ -320,6 +327,11 @@ def _walk_and_finish(
         else:
             v = hot_i[f, HOT_VERT + region - 1]
             bf, bx, by, bz, b2, br = f, qx, qy, qz, d2, region
+            if not exact:
+                # Start the loads of the faces around the corner first.
+                for k in range(vf_ptr[v], vf_ptr[v + 1]):
+                    prefetch(hot, (vf_idx[k], HOT_N))
+                    prefetch(hot, (vf_idx[k], HOT_A))
             for k in range(vf_ptr[v], vf_ptr[v + 1]):
                 g = int(vf_idx[k])
                 if g == f:
