@@ -467,7 +467,10 @@ class GridTree:
         InvalidInput
             Not an (N, 3) array of finite numbers.
         """
-        p = _as_points(points)
+        # NaN and inf fail the fast path's range test, so they can only be
+        # among the rows it leaves to the slow path: checked there, which
+        # spares a pass over the whole batch.
+        p = _as_points(points, check_finite=False)
         n = len(p)
         m = self._mesh
         out_pts = np.empty((n, 3))
@@ -504,6 +507,7 @@ class GridTree:
             )
             if n_slow.sum():
                 slow = np.flatnonzero(out_face == K.FACE_SLOW)
+                _check_finite(p[slow])
                 self._query_slow(p, slow, out_pts, out_nrm, out_dist, out_face)
         return Closest(points=out_pts, normals=out_nrm, distances=out_dist, face=out_face)
 
@@ -821,6 +825,13 @@ def _check_layout(path: Path, meta: dict[str, Any], arrays: set[str]) -> None:
         )
 
 
+def _check_finite(p: np.ndarray) -> None:
+    """InvalidInput unless every row of p (N, 3) is finite."""
+    if not np.isfinite(p).all():
+        bad = int((~np.isfinite(p)).any(axis=1).sum())
+        raise InvalidInput(f"points: {bad} rows hold NaN or inf")
+
+
 def _positive(name: str, value: float) -> float:
     try:
         x = float(value)
@@ -831,17 +842,20 @@ def _positive(name: str, value: float) -> float:
     return x
 
 
-def _as_points(points: Any) -> np.ndarray:
-    """(N, 3) C-contiguous float64 view or copy of finite points, else InvalidInput."""
+def _as_points(points: Any, *, check_finite: bool = True) -> np.ndarray:
+    """(N, 3) C-contiguous float64 view or copy of points, else InvalidInput.
+
+    With ``check_finite=False`` the caller checks for NaN and inf itself
+    (see :func:`_check_finite`).
+    """
     try:
         p = np.asarray(points, dtype=np.float64)
     except (TypeError, ValueError) as exc:
         raise InvalidInput(f"points must be an (N, 3) array of numbers: {exc}") from exc
     if p.ndim != 2 or p.shape[1] != 3:
         raise InvalidInput(f"points must have shape (N, 3), got {p.shape}")
-    if not np.isfinite(p).all():
-        bad = int((~np.isfinite(p)).any(axis=1).sum())
-        raise InvalidInput(f"points: {bad} rows hold NaN or inf")
+    if check_finite:
+        _check_finite(p)
     p = np.ascontiguousarray(p)
     # The kernels are compiled for writable arrays; a read-only view (a
     # frozen cloud, say) would trigger a second compilation.

@@ -343,6 +343,8 @@ def test_tree_hash_depends_on_parameters(sphere, sphere_tree):
         np.zeros((2, 3, 1)),
         np.array([[0.0, 0.0, np.nan]]),
         np.array([[np.inf, 0.0, 0.0]]),
+        # one bad row among points near and far from the surface
+        np.vstack([np.zeros((100, 3)), [[0.0, -np.inf, 1.0]], np.full((5, 3), 300.0)]),
         [["a", "b", "c"]],
         None,
     ],
