@@ -50,7 +50,13 @@ def test_align_prints_the_transform_as_json(files, capsys):
     out = json.loads(capsys.readouterr().out)
     assert code == 0
     assert out["converged"] and out["stop_reason"] == "converged"
-    assert np.allclose(out["transform"], files["T_cad_data"], atol=1e-2)
+    # Seen from above, the block's in-plane position rests on a few vertical
+    # edges (the fit reports two weak directions): 20k points with 0.02 mm of
+    # noise fix it to ~10 um, its rotation far better.
+    T = np.asarray(out["transform"])
+    assert np.allclose(T[:3, :3], files["T_cad_data"][:3, :3], atol=1e-3)
+    assert np.allclose(T[:3, 3], files["T_cad_data"][:3, 3], atol=0.05)
+    assert len(out["degenerate_directions"]) > 0
     assert 0.015 < out["rms_mm"] < 0.025
 
 
