@@ -336,12 +336,12 @@ class SimulatorSection(_Strict):
         default=60.0, ge=0, le=400, description="Half-range of the part's x on the belt, mm."
     )
     position_range_y_mm: float = Field(
-        default=30.0, ge=0, le=250, description="Half-range of the part's y on the belt, mm."
+        default=10.0, ge=0, le=250, description="Half-range of the part's y on the belt, mm."
     )
     yaw_range_deg: float = Field(
-        default=5.0, ge=0, le=180, description="Half-range of the in-plane rotation, degrees."
+        default=180.0, ge=0, le=180, description="Half-range of the in-plane rotation, degrees."
     )
-    flip: bool = Field(default=True, description="Half of the parts arrive turned by 180 deg.")
+    flip: bool = Field(default=False, description="Half of the parts arrive turned by 180 deg.")
     seed: int = Field(default=0, ge=0)
 
 

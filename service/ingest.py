@@ -54,8 +54,9 @@ class SimulationSettings:
         Half-ranges of the random x, y position of the part's centre on the conveyor.
     yaw_range_deg : float
         Half-range of the random in-plane rotation about the part's long axis
-        lying along the conveyor; 180 allows any rotation. The default keeps a
-        600 x 400 mm part inside the 800 x 500 mm volume.
+        lying along the conveyor; 180 (the default) allows any rotation, which
+        keeps a part of up to about 400 x 260 mm inside the 800 x 500 mm volume
+        when its centre stays within 10 mm of the belt's middle across it.
     flip : bool
         Also turn half of the parts by a half turn (arriving either way round).
     seed : int
@@ -66,9 +67,9 @@ class SimulationSettings:
     defect_rate: float = 0.1
     dent_depth_mm: float = 1.5
     dent_radius_mm: float = 15.0
-    position_range_mm: tuple[float, float] = (60.0, 30.0)
-    yaw_range_deg: float = 5.0
-    flip: bool = True
+    position_range_mm: tuple[float, float] = (60.0, 10.0)
+    yaw_range_deg: float = 180.0
+    flip: bool = False
     seed: int = 0
 
     def __post_init__(self) -> None:
