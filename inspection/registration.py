@@ -91,7 +91,7 @@ import logging
 import threading
 import weakref
 from dataclasses import dataclass, field
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numba
 import numpy as np
@@ -849,7 +849,9 @@ def validate_transform(T: object, *, name: str = "init") -> Transform:
     return M.copy()
 
 
-def _query(tree: ClosestPointQuery, X: Points) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _query(
+    tree: ClosestPointQuery, X: Points
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     # One numba thread for the tree's parallel kernels: the queries here are
     # small (a few hundred to 50k points), and on a shared, loaded machine
     # every parallel launch waits for a second core; measured on 2 busy cores,
@@ -1164,7 +1166,7 @@ def register(
 
     X, Nrm, r, d, Fn, Fi = evaluate(T, 0, m)
 
-    def trial(T_: Transform, step_mm: float) -> tuple[np.ndarray, ...]:
+    def trial(T_: Transform, step_mm: float) -> tuple[Any, ...]:
         """Points, residual gradients and residuals of the first m points at a
         trial pose T_, reached from the current one by a step moving the
         points by ``step_mm`` (RMS), and the faces they refer to. Past the

@@ -162,8 +162,7 @@ def cmd_info(args: argparse.Namespace) -> int:
         f"loaded in {t_load:.3f} s)",
         f"format        version {info['format_version']}",
         f"CAD           {info['name']}: {info['faces']} faces, {info['vertices']} vertices",
-        f"CAD hash      {info['cad_hash']}"
-        + (" (matches --cad)" if cad is not None else ""),
+        f"CAD hash      {info['cad_hash']}" + (" (matches --cad)" if cad is not None else ""),
         f"tree hash     {info['tree_hash']}",
         f"parameters    spacing {p['spacing_mm']} mm, band {p['band_mm']} mm, "
         f"block {p['block']}^3 cells",
