@@ -125,10 +125,11 @@ def test_pose_rotation_recovered(measured) -> None:
 @pytest.mark.xfail(
     strict=False,
     reason=(
-        "the part's corners come out 0.05-0.20 mm off over six poses (0.13 mm in this one; "
-        "0.23-0.91 mm before windows were warped at bends): what remains sits at the panel's "
-        "edge radii (putting the true surface under the points within 3 px of a bend alone "
-        "gives 0.016-0.020 mm), plus ~0.03 mm from the calibrated rig's frame"
+        "the part's corners come out 0.05-0.22 mm off over six poses at seed 11 (0.14 mm in "
+        "this one) and up to 0.33 mm at seeds 12-14: the in-plane pose rests on the few points "
+        "at the panel's edge radii, whose errors change with the sensor noise and dirt; windows "
+        "warped by the true disparity field, frames without specular light, blur or dirt, and "
+        "the fine fit on every point leave it there (~0.03 mm of it is the calibrated rig)"
     ),
 )
 def test_pose_translation_recovered(measured) -> None:
