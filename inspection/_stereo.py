@@ -241,6 +241,30 @@ def coarse_disparity(
     return np.asarray(cv2.resize(disp, (w, h), interpolation=cv2.INTER_NEAREST), dtype=np.float32)
 
 
+@njit(cache=True, nogil=True, fastmath=True, inline="always")
+def _gauss_newton_step(a11, a12, a13, a22, a23, a33, b1, b2, b3):  # pragma: no cover
+    """One Gauss-Newton step of the window fits: the symmetric 3x3 system
+    A x = b solved by Cramer's rule, its first (disparity) component clamped
+    to +-1 px. Returns (ok, x1, x2, x3); ok is False for a singular A."""
+    c11 = a22 * a33 - a23 * a23
+    c12 = a13 * a23 - a12 * a33
+    c13 = a12 * a23 - a13 * a22
+    det = a11 * c11 + a12 * c12 + a13 * c13
+    if abs(det) < 1e-12:
+        return False, 0.0, 0.0, 0.0
+    c22 = a11 * a33 - a13 * a13
+    c23 = a12 * a13 - a11 * a23
+    c33 = a11 * a22 - a12 * a12
+    dd = (c11 * b1 + c12 * b2 + c13 * b3) / det
+    dg = (c12 * b1 + c22 * b2 + c23 * b3) / det
+    do = (c13 * b1 + c23 * b2 + c33 * b3) / det
+    if dd > 1.0:
+        dd = 1.0
+    elif dd < -1.0:
+        dd = -1.0
+    return True, dd, dg, do
+
+
 @njit(cache=True, nogil=True, fastmath=True)
 def refine_pixels(
     left, right, wl, wr, px, py, d0, radius, iterations, out_d, out_score, out_step
@@ -360,24 +384,9 @@ def refine_pixels(
             b1 = -g * (stg - g * sgw - o * sg)
             b2 = stw - g * sww - o * sw
             b3 = se
-            # Solve the symmetric 3x3 system by Cramer's rule.
-            c11 = a22 * a33 - a23 * a23
-            c12 = a13 * a23 - a12 * a33
-            c13 = a12 * a23 - a13 * a22
-            det = a11 * c11 + a12 * c12 + a13 * c13
-            if abs(det) < 1e-12:
-                ok = False
+            ok, dd, dg, do = _gauss_newton_step(a11, a12, a13, a22, a23, a33, b1, b2, b3)
+            if not ok:
                 break
-            c22 = a11 * a33 - a13 * a13
-            c23 = a12 * a13 - a11 * a23
-            c33 = a11 * a22 - a12 * a12
-            dd = (c11 * b1 + c12 * b2 + c13 * b3) / det
-            dg = (c12 * b1 + c22 * b2 + c23 * b3) / det
-            do = (c13 * b1 + c23 * b2 + c33 * b3) / det
-            if dd > 1.0:
-                dd = 1.0
-            elif dd < -1.0:
-                dd = -1.0
             d += dd
             g += dg
             o += do
@@ -545,23 +554,9 @@ def refine_cyclopean(
             b1 = -sje
             b2_ = sre
             b3_ = se
-            c11 = a22 * a33 - a23 * a23
-            c12 = a13 * a23 - a12 * a33
-            c13 = a12 * a23 - a13 * a22
-            det = a11 * c11 + a12 * c12 + a13 * c13
-            if abs(det) < 1e-12:
-                ok = False
+            ok, dd, dg, do = _gauss_newton_step(a11, a12, a13, a22, a23, a33, b1, b2_, b3_)
+            if not ok:
                 break
-            c22 = a11 * a33 - a13 * a13
-            c23 = a12 * a13 - a11 * a23
-            c33 = a11 * a22 - a12 * a12
-            dd = (c11 * b1 + c12 * b2_ + c13 * b3_) / det
-            dg = (c12 * b1 + c22 * b2_ + c23 * b3_) / det
-            do = (c13 * b1 + c23 * b2_ + c33 * b3_) / det
-            if dd > 1.0:
-                dd = 1.0
-            elif dd < -1.0:
-                dd = -1.0
             d += dd
             g += dg
             o += do
@@ -696,23 +691,9 @@ def refine_warped(
             b1 = -g * (stg - g * sgw - o * sg)
             b2 = stw - g * sww - o * sw
             b3 = st - g * sw - o * s1
-            c11 = a22 * a33 - a23 * a23
-            c12 = a13 * a23 - a12 * a33
-            c13 = a12 * a23 - a13 * a22
-            det = a11 * c11 + a12 * c12 + a13 * c13
-            if abs(det) < 1e-12:
-                ok = False
+            ok, dd, dg, do = _gauss_newton_step(a11, a12, a13, a22, a23, a33, b1, b2, b3)
+            if not ok:
                 break
-            c22 = a11 * a33 - a13 * a13
-            c23 = a12 * a13 - a11 * a23
-            c33 = a11 * a22 - a12 * a12
-            dd = (c11 * b1 + c12 * b2 + c13 * b3) / det
-            dg = (c12 * b1 + c22 * b2 + c23 * b3) / det
-            do = (c13 * b1 + c23 * b2 + c33 * b3) / det
-            if dd > 1.0:
-                dd = 1.0
-            elif dd < -1.0:
-                dd = -1.0
             d += dd
             g += dg
             o += do
