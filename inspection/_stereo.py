@@ -265,6 +265,20 @@ def _gauss_newton_step(a11, a12, a13, a22, a23, a33, b1, b2, b3):  # pragma: no 
     return True, dd, dg, do
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _store(i, ok, d, score, step, out_d, out_score, out_step):  # pragma: no cover
+    """Row i of a window fit's outputs: its disparity, score and last step, or
+    NaN / -1 / 99 for a fit that failed."""
+    if ok:
+        out_d[i] = d
+        out_score[i] = score
+        out_step[i] = step
+    else:
+        out_d[i] = np.nan
+        out_score[i] = -1.0
+        out_step[i] = 99.0
+
+
 @njit(cache=True, nogil=True, fastmath=True)
 def refine_pixels(
     left, right, wl, wr, px, py, d0, radius, iterations, out_d, out_score, out_step
@@ -393,14 +407,7 @@ def refine_pixels(
             step = dd
             if abs(dd) < 0.002:
                 break
-        if ok:
-            out_d[i] = d
-            out_score[i] = score
-            out_step[i] = step
-        else:
-            out_d[i] = np.nan
-            out_score[i] = -1.0
-            out_step[i] = 99.0
+        _store(i, ok, d, score, step, out_d, out_score, out_step)
 
 
 @njit(cache=True, nogil=True, fastmath=True)
@@ -563,14 +570,7 @@ def refine_cyclopean(
             step = dd
             if abs(dd) < 0.002:
                 break
-        if ok:
-            out_d[i] = d
-            out_score[i] = score
-            out_step[i] = step
-        else:
-            out_d[i] = np.nan
-            out_score[i] = -1.0
-            out_step[i] = 99.0
+        _store(i, ok, d, score, step, out_d, out_score, out_step)
 
 
 @njit(cache=True, nogil=True, fastmath=True)
@@ -700,14 +700,7 @@ def refine_warped(
             step = dd
             if abs(dd) < 0.002:
                 break
-        if ok:
-            out_d[i] = d
-            out_score[i] = score
-            out_step[i] = step
-        else:
-            out_d[i] = np.nan
-            out_score[i] = -1.0
-            out_step[i] = 99.0
+        _store(i, ok, d, score, step, out_d, out_score, out_step)
 
 
 @njit(cache=True, nogil=True)

@@ -316,6 +316,17 @@ class Deviations:
         return self.summary
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _in_ball(points, i, centres, j, r2):  # pragma: no cover - compiled
+    """Whether point i lies within ball j (squared radii ``r2``); x first, as a cheap reject."""
+    dx = points[i, 0] - centres[j, 0]
+    if dx * dx > r2[j]:
+        return False
+    dy = points[i, 1] - centres[j, 1]
+    dz = points[i, 2] - centres[j, 2]
+    return dx * dx + dy * dy + dz * dz <= r2[j]
+
+
 @njit(cache=True, nogil=True)
 def _gather_balls(
     points: np.ndarray, centres: np.ndarray, radii: np.ndarray
@@ -330,24 +341,14 @@ def _gather_balls(
     counts = np.zeros(k + 1, dtype=np.int64)
     for i in range(n):
         for j in range(k):
-            dx = points[i, 0] - centres[j, 0]
-            if dx * dx > r2[j]:
-                continue
-            dy = points[i, 1] - centres[j, 1]
-            dz = points[i, 2] - centres[j, 2]
-            if dx * dx + dy * dy + dz * dz <= r2[j]:
+            if _in_ball(points, i, centres, j, r2):
                 counts[j + 1] += 1
     start = np.cumsum(counts)
     fill = start[:-1].copy()
     index = np.empty(start[-1], dtype=np.int64)
     for i in range(n):
         for j in range(k):
-            dx = points[i, 0] - centres[j, 0]
-            if dx * dx > r2[j]:
-                continue
-            dy = points[i, 1] - centres[j, 1]
-            dz = points[i, 2] - centres[j, 2]
-            if dx * dx + dy * dy + dz * dz <= r2[j]:
+            if _in_ball(points, i, centres, j, r2):
                 index[fill[j]] = i
                 fill[j] += 1
     return start, index
