@@ -16,8 +16,12 @@ Faces are numbered in the tree's own (spatial) order; ``face_id`` maps that
 number to the CAD model's face index, which is what the queries return.
 Cell codes of the fine grid: ``>= 0`` a face that is closest to all eight
 corners of the cell, ``-1`` unknown (a corner lies outside the computed band:
-use the exact slow path), ``<= -2`` mixed: ``-code - 2`` indexes a list of
-candidate faces (the distinct faces closest to the corners).
+use the exact slow path), ``<= -2`` mixed: the cell is split in eight
+subcells of half its edge, whose codes are ``subcells[8 * (-code - 2) + s]``
+(``s = 4 sx + 2 sy + sz``, the half the point lies in along each axis).
+Subcell codes read like cell codes, except that a mixed one, ``<= -2``,
+indexes a list of candidate faces: ``mixed_faces[mixed_ptr[m]:mixed_ptr[m + 1]]``
+with ``m = -code - 2`` (the distinct faces closest to the subcell's corners).
 """
 
 from __future__ import annotations
@@ -450,6 +454,7 @@ def query_grid(
     dims,
     coarse,
     cells,
+    subcells,
     mixed_ptr,
     mixed_faces,
     hot,
@@ -478,6 +483,8 @@ def query_grid(
     planes first. Where no plane foot decides, the exact point-to-triangle
     test on the record's corners and the walk of :func:`_walk_and_finish` do.
     All of it reads the float32 face records: exact to a few nanometres.
+    A query in a mixed cell reads the code of its subcell first (one more
+    pass, for those queries only), which most often names a single face.
 
     Points whose cell is unknown or outside the grid get
     ``out_face = FACE_SLOW`` and their other outputs untouched;
@@ -497,10 +504,12 @@ def query_grid(
         # Memory, not arithmetic, sets the pace: each pass issues loads that
         # do not depend on one another, so their cache misses overlap, and
         # the next pass finds the lines in cache. Pass 1 reads the chunk's
-        # cell codes, pass 2 prefetches the hot records they name, pass 3
+        # cell codes (and those of the subcells of mixed cells), pass 2
+        # prefetches the hot records they name, pass 3
         # answers every query it can and prefetches the record of the face
         # a walk steps to, pass 4 finishes those walks.
         cell = np.empty(QUERY_CHUNK, dtype=np.int64)
+        sub = np.empty(QUERY_CHUNK, dtype=np.int64)
         for i in range(j0, j1):
             gx = (points[i, 0] - origin[0]) * inv_h
             gy = (points[i, 1] - origin[1]) * inv_h
@@ -514,14 +523,32 @@ def query_grid(
                     local = ((((ix & mask) << shift) + (iy & mask)) << shift) + (iz & mask)
                     k = (np.int64(b) << (3 * shift)) + local
                     prefetch(cells, k)
+                # The half-cell the point lies in, should its cell be mixed
+                # (doubling is exact, so these agree with ix, iy, iz).
+                sub[i - j0] = (
+                    ((int(gx * 2.0) & 1) << 2) | ((int(gy * 2.0) & 1) << 1) | (int(gz * 2.0) & 1)
+                )
             cell[i - j0] = k
         codes = np.empty(QUERY_CHUNK, dtype=np.int32)
+        n_mixed = 0
         for j in range(j1 - j0):
             k = cell[j]
             code = cells[k] if k >= 0 else CELL_UNKNOWN
             if code < CELL_UNKNOWN:
-                prefetch(mixed_ptr, -code - 2)
+                # A mixed cell: its code names eight subcells; the one
+                # holding the point has its own code, read in the next pass.
+                s = (np.int64(-code - 2) << 3) + sub[j]
+                prefetch(subcells, s)
+                cell[j] = s
+                n_mixed += 1
             codes[j] = code
+        if n_mixed:
+            for j in range(j1 - j0):
+                if codes[j] < CELL_UNKNOWN:
+                    code = subcells[cell[j]]
+                    if code < CELL_UNKNOWN:
+                        prefetch(mixed_ptr, -code - 2)
+                    codes[j] = code
         for j in range(j1 - j0):
             code = codes[j]
             if code >= 0:

@@ -168,7 +168,8 @@ def cmd_info(args: argparse.Namespace) -> int:
         f"block {p['block']}^3 cells",
         "bounds mm     " + "  ".join(str([round(x, 2) for x in row]) for row in info["bounds_mm"]),
         f"grid          {info['blocks']} blocks of {info['coarse_dims']} coarse, "
-        f"{info['fine_cells']} fine cells ({info['mixed_cells']} with candidate lists, "
+        f"{info['fine_cells']} fine cells ({info['mixed_cells']} mixed, split in subcells of "
+        f"which {info['mixed_subcells']} keep candidate lists; "
         f"{info['unknown_cells']} beyond the band)",
         f"memory        {info['nbytes'] / 1e6:.1f} MB in arrays",
     ]
