@@ -67,6 +67,12 @@ HOT_SMOOTH = 13  # int32 (3): the face across edge e where it is smooth, else -1
 HOT_A, HOT_AB, HOT_AC = 16, 19, 22
 HOT_ADJ = 25  # int32 (3): the face across edge e, or -1
 HOT_VERT = 28  # int32 (3): the vertex index of corner e
+# int32: for each edge e, bits 2e..2e+1: the corner of the face g across
+# edge e opposite their shared edge (3: unknown); bits 6+2e..7+2e: the side
+# of this face's plane g lies on (ACROSS_ABOVE, ACROSS_BELOW, or 0).
+HOT_ACROSS = 31
+ACROSS_ABOVE = 1
+ACROSS_BELOW = 2
 HOME_BITS = 10
 HOME_MASK = (1 << HOME_BITS) - 1
 
@@ -445,6 +451,26 @@ def _write_foot(i, px, py, pz, d, f, hot, face_id, out_pts, out_nrm, out_dist, o
     out_face[i] = face_id[f]
 
 
+@njit(cache=True, inline="always")
+def _behind(across, e, d):
+    """Whether the face across edge e lies wholly on the other side of this
+    face's plane than a point at signed plane distance d (then it is no
+    closer to it than the plane)."""
+    side = (across >> (6 + 2 * e)) & 3
+    return (side == ACROSS_BELOW and d > 0.0) or (side == ACROSS_ABOVE and d < 0.0)
+
+
+@njit(cache=True, inline="always")
+def _sharp_prefetch(hot, hot_i, f, d):
+    """Start the loads of the planes of the faces across f's sharp edges that
+    a point at plane distance d may be closer to."""
+    across = hot_i[f, HOT_ACROSS]
+    for e in range(3):
+        g = int(hot_i[f, HOT_ADJ + e])
+        if g >= 0 and hot_i[f, HOT_SMOOTH + e] < 0 and not _behind(across, e, d):
+            prefetch(hot, (g, HOT_N))
+
+
 @njit(cache=True, parallel=True)
 def query_grid(
     points,
@@ -505,9 +531,10 @@ def query_grid(
         # do not depend on one another, so their cache misses overlap, and
         # the next pass finds the lines in cache. Pass 1 reads the chunk's
         # cell codes (and those of the subcells of mixed cells), pass 2
-        # prefetches the hot records they name, pass 3
-        # answers every query it can and prefetches the record of the face
-        # a walk steps to, pass 4 finishes those walks.
+        # prefetches the hot records they name, pass 3 answers every query
+        # it can and prefetches the record of the face a walk steps to (or
+        # of the faces across the sharp edges of a subcell's face), passes
+        # 4 and 5 finish those.
         cell = np.empty(QUERY_CHUNK, dtype=np.int64)
         sub = np.empty(QUERY_CHUNK, dtype=np.int64)
         for i in range(j0, j1):
@@ -515,6 +542,7 @@ def query_grid(
             gy = (points[i, 1] - origin[1]) * inv_h
             gz = (points[i, 2] - origin[2]) * inv_h
             k = -1
+            sub[i - j0] = 0
             # Also keeps far points from overflowing the integer conversion.
             if 0.0 <= gx < limx and 0.0 <= gy < limy and 0.0 <= gz < limz:
                 ix, iy, iz = int(gx), int(gy), int(gz)
@@ -542,18 +570,29 @@ def query_grid(
                 cell[j] = s
                 n_mixed += 1
             codes[j] = code
+        # A subcell storing one face takes the path of a one-face cell when
+        # marked safe (INTERIOR_FLAG, see mark_safe_subcells); otherwise it
+        # also checks the face's sharp neighbours (passes 3 and 5), marked
+        # by sub[j] = -1.
         if n_mixed:
             for j in range(j1 - j0):
                 if codes[j] < CELL_UNKNOWN:
                     code = subcells[cell[j]]
                     if code < CELL_UNKNOWN:
                         prefetch(mixed_ptr, -code - 2)
+                    elif code >= 0:
+                        if code & INTERIOR_FLAG:
+                            code = code & FACE_MASK
+                        else:
+                            sub[j] = -1
                     codes[j] = code
         for j in range(j1 - j0):
             code = codes[j]
             if code >= 0:
                 prefetch(hot, (code & FACE_MASK, HOT_N))
                 prefetch(face_id, code & FACE_MASK)
+                if sub[j] < 0:
+                    prefetch(hot, (code & FACE_MASK, HOT_A))
             elif code != CELL_UNKNOWN:
                 m = -code - 2
                 for k in range(mixed_ptr[m], mixed_ptr[m + 1]):
@@ -565,7 +604,12 @@ def query_grid(
         wait_i = np.empty(QUERY_CHUNK, dtype=np.int64)
         wait_f = np.empty(QUERY_CHUNK, dtype=np.int64)
         wait_g = np.empty(QUERY_CHUNK, dtype=np.int64)
+        wait_one = np.empty(QUERY_CHUNK, dtype=np.bool_)
         n_wait = 0
+        edge_i = np.empty(QUERY_CHUNK, dtype=np.int64)
+        edge_f = np.empty(QUERY_CHUNK, dtype=np.int64)
+        edge_d = np.empty(QUERY_CHUNK)
+        n_edge = 0
         slow = 0
         for i in range(j0, j1):
             code = codes[i - j0]
@@ -583,8 +627,24 @@ def query_grid(
                         i, px, py, pz, d, f, hot, face_id, out_pts, out_nrm, out_dist, out_face
                     )
                     continue
+                one = sub[i - j0] < 0
                 hit, d, u, v = _hot_foot(px, py, pz, hot, hot_i, f, origin, home_step)
                 if hit:
+                    if one:
+                        # A subcell of a mixed cell storing one face: its
+                        # corners all have f closest among the cell's
+                        # candidates, but a face across one of f's sharp
+                        # edges may still be closer inside it (on the
+                        # concave side, or a narrow face along the edge,
+                        # closest at no corner). As in a candidate list, a
+                        # foot inside f is checked across those edges, in
+                        # pass 5, once their records have been fetched.
+                        _sharp_prefetch(hot, hot_i, f, d)
+                        edge_i[n_edge] = i
+                        edge_f[n_edge] = f
+                        edge_d[n_edge] = d
+                        n_edge += 1
+                        continue
                     _write_foot(
                         i, px, py, pz, d, f, hot, face_id, out_pts, out_nrm, out_dist, out_face
                     )
@@ -598,6 +658,7 @@ def query_grid(
                     wait_i[n_wait] = i
                     wait_f[n_wait] = f
                     wait_g[n_wait] = g
+                    wait_one[n_wait] = one
                     n_wait += 1
                     continue
                 _exact_from(
@@ -663,7 +724,13 @@ def query_grid(
                 prev = g
                 g = nxt
                 hit, d, u, v = _hot_foot(px, py, pz, hot, hot_i, g, origin, home_step)
-            if hit:
+            if hit and wait_one[w]:
+                _sharp_prefetch(hot, hot_i, g, d)
+                edge_i[n_edge] = i
+                edge_f[n_edge] = g
+                edge_d[n_edge] = d
+                n_edge += 1
+            elif hit:
                 _write_foot(i, px, py, pz, d, g, hot, face_id, out_pts, out_nrm, out_dist, out_face)
             else:
                 _exact_from(
@@ -688,6 +755,39 @@ def query_grid(
                     out_dist,
                     out_face,
                 )
+        for w in range(n_edge):
+            i = edge_i[w]
+            f = edge_f[w]
+            d = edge_d[w]
+            px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+            _finish_best(
+                i,
+                px,
+                py,
+                pz,
+                f,
+                px - d * hot[f, 0],
+                py - d * hot[f, 1],
+                pz - d * hot[f, 2],
+                d * d,
+                d,
+                REGION_INTERIOR,
+                hot,
+                hot_i,
+                origin,
+                home_step,
+                tri,
+                fnorm,
+                vf_ptr,
+                vf_idx,
+                edge_pn,
+                vert_pn,
+                face_id,
+                out_pts,
+                out_nrm,
+                out_dist,
+                out_face,
+            )
         n_slow[c] = slow
 
 
@@ -804,20 +904,101 @@ def _query_mixed(
                 # The plane test and the triangle test round differently and
                 # can disagree within nanometres of an edge: keep fd this face's.
                 fd = d
+    _finish_best(
+        i,
+        px,
+        py,
+        pz,
+        f,
+        qx,
+        qy,
+        qz,
+        d2,
+        fd,
+        region,
+        hot,
+        hot_i,
+        origin,
+        home_step,
+        tri,
+        fnorm,
+        vf_ptr,
+        vf_idx,
+        edge_pn,
+        vert_pn,
+        face_id,
+        out_pts,
+        out_nrm,
+        out_dist,
+        out_face,
+    )
+
+
+@njit(cache=True)
+def _finish_best(
+    i,
+    px,
+    py,
+    pz,
+    f,
+    qx,
+    qy,
+    qz,
+    d2,
+    fd,
+    region,
+    hot,
+    hot_i,
+    origin,
+    home_step,
+    tri,
+    fnorm,
+    vf_ptr,
+    vf_idx,
+    edge_pn,
+    vert_pn,
+    face_id,
+    out_pts,
+    out_nrm,
+    out_dist,
+    out_face,
+):
+    """Row i from the best candidate f (closest point q, squared distance d2,
+    region; fd its plane distance when the foot is inside it)."""
     if region == 0:
         # A foot inside f: a closer face can only lie across one of f's
         # edges. Across a smooth edge it would be closer by at most
         # distance * angle^2 (the single-face cells' bound), so only sharp
-        # edges are looked across, each first bounded by its plane.
+        # edges are looked across, each first bounded by its plane. A face
+        # g lying wholly on the other side of f's plane (a convex edge) is
+        # farther than that plane. A foot on g's plane inside g gives g's
+        # distance; one beyond their shared edge alone puts g's closest
+        # point on that edge, which is no closer than f's plane (p's foot
+        # is inside f): neither needs the full point-to-triangle test.
         g_best = -1
+        across = hot_i[f, HOT_ACROSS]
         for e in range(3):
             g = int(hot_i[f, HOT_ADJ + e])
-            if g < 0 or hot_i[f, HOT_SMOOTH + e] >= 0:
+            if g < 0 or hot_i[f, HOT_SMOOTH + e] >= 0 or _behind(across, e, fd):
                 continue
-            d = _hot_distance(px, py, pz, hot, hot_i, g, origin, home_step)
+            hit, d, u, v = _hot_foot(px, py, pz, hot, hot_i, g, origin, home_step)
             if d * d >= d2:
                 continue
-            rx, ry, rz, e2, rg = closest_on_hot(px, py, pz, hot, hot_i, g, origin, home_step)
+            if hit:
+                rx = px - d * hot[g, 0]
+                ry = py - d * hot[g, 1]
+                rz = pz - d * hot[g, 2]
+                e2, rg = d * d, REGION_INTERIOR
+            else:
+                k = (across >> (2 * e)) & 3
+                la = 1.0 - u - v
+                if (
+                    (k == 0 and la < 0.0 and u >= 0.0 and v >= 0.0)
+                    or (k == 1 and u < 0.0 and la >= 0.0 and v >= 0.0)
+                    or (k == 2 and v < 0.0 and la >= 0.0 and u >= 0.0)
+                ):
+                    continue
+                rx, ry, rz, e2, rg = closest_on_hot(px, py, pz, hot, hot_i, g, origin, home_step)
             if e2 < d2:
                 g_best, qx, qy, qz, d2, region = g, rx, ry, rz, e2, rg
         if g_best < 0:
@@ -1091,6 +1272,101 @@ def cells_from_nodes(
                     cells_out[cell] = -(mixed_base + nm) - 2
                     nm += 1
     return counts[:nm].copy(), buf[:nbuf].copy()
+
+
+@njit(cache=True)
+def _never_closer(f, g, k, x0, y0, z0, h, plane):
+    """Whether face g is nowhere in the cube [x0, x0 + h]^3 closer than face f,
+    given that every point of the cube has its foot inside f (so its distance
+    to f is its plane distance) and that g meets f along the edge of g
+    opposite its corner k.
+
+    Either every corner's foot on g's plane lies beyond that shared edge
+    only (barycentric coordinate k negative, the other two not): then g's
+    closest point lies on the shared edge, at least as far as f's plane.
+    Or every corner's foot lies inside g, on one side of each plane, with
+    |d_g| >= |d_f|: the difference is affine on the cube, so it holds
+    inside too. Both regions are convex: the corners decide.
+    """
+    beyond = True
+    inside = True
+    sf = 0.0
+    sg = 0.0
+    for dx in range(2):
+        for dy in range(2):
+            for dz in range(2):
+                px, py, pz = x0 + dx * h, y0 + dy * h, z0 + dz * h
+                hit_f, df, uf, vf = _plane_foot(px, py, pz, plane, f)
+                hit, dg, u, v = _plane_foot(px, py, pz, plane, g)
+                lam0 = 1.0 - u - v
+                lk = lam0 if k == 0 else (u if k == 1 else v)
+                others_ok = (
+                    (lam0 >= 0.0 or k == 0) and (u >= 0.0 or k == 1) and (v >= 0.0 or k == 2)
+                )
+                if not (lk < 0.0 and others_ok):
+                    beyond = False
+                if not (hit and abs(dg) >= abs(df)):
+                    inside = False
+                if dx == 0 and dy == 0 and dz == 0:
+                    sf, sg = df, dg
+                elif df * sf <= 0.0 or dg * sg <= 0.0:
+                    inside = False
+    return beyond or inside
+
+
+@njit(cache=True)
+def _all_behind(f, across, e, x0, y0, z0, h, plane):
+    """Whether every point of the cube [x0, x0 + h]^3 has the face across
+    edge e of f behind f's plane (:func:`_behind`; the plane distance is
+    affine, so the corners decide)."""
+    for dx in range(2):
+        for dy in range(2):
+            for dz in range(2):
+                hit, d, u, v = _plane_foot(x0 + dx * h, y0 + dy * h, z0 + dz * h, plane, f)
+                if not _behind(across, e, d):
+                    return False
+    return True
+
+
+@njit(cache=True)
+def mark_safe_subcells(codes, ijk, origin, h, plane, face_adj, smooth_adj, across):
+    """Recode the one-face subcells: INTERIOR_FLAG now marks those where no
+    face across a sharp edge of their face f can be closer to a point whose
+    foot lies inside f.
+
+    ``codes`` (8 M,) are the subcell codes of the mixed cells with corner
+    ``origin + ijk[m] * 2 h`` (h the subcell edge), as cells_from_nodes gave
+    them (INTERIOR_FLAG: every foot inside f). A sharp neighbour is harmless
+    when it lies behind f's plane for every point of the subcell
+    (:func:`_all_behind`, a convex edge), or when every foot lies inside f
+    and :func:`_never_closer` holds. Queries in a marked subcell take the
+    one-face path of a cell; the others also look across f's sharp edges.
+    """
+    for m in range(ijk.shape[0]):
+        for s in range(8):
+            code = codes[8 * m + s]
+            if code < 0:
+                continue
+            interior = (code & INTERIOR_FLAG) != 0
+            f = code & FACE_MASK
+            x0 = origin[0] + (2 * ijk[m, 0] + (s >> 2)) * h
+            y0 = origin[1] + (2 * ijk[m, 1] + ((s >> 1) & 1)) * h
+            z0 = origin[2] + (2 * ijk[m, 2] + (s & 1)) * h
+            safe = True
+            for e in range(3):
+                g = face_adj[f, e]
+                if g < 0 or smooth_adj[f, e] >= 0:
+                    continue
+                if _all_behind(f, across[f], e, x0, y0, z0, h, plane):
+                    continue
+                k = -1
+                for e2 in range(3):
+                    if face_adj[g, e2] == f:
+                        k = (e2 + 2) % 3
+                if not interior or k < 0 or not _never_closer(f, g, k, x0, y0, z0, h, plane):
+                    safe = False
+                    break
+            codes[8 * m + s] = f | INTERIOR_FLAG if safe else f
 
 
 # ---------------------------------------------------------------------------

@@ -9,6 +9,7 @@ import numba
 import numpy as np
 import pytest
 import trimesh
+from _fitcases import measure
 
 from inspection.cad import CadModel, load_cad
 from inspection.errors import InvalidInput, TreeMismatch
@@ -232,6 +233,23 @@ def test_shared_meshes_match_oracle(shared_cad, name, scale):
     check_against_oracle(
         tree, cad, far, mean_mm=FAST_TOL_MM, p99_mm=FAST_TOL_MM, max_mm=FAST_TOL_MM
     )
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_faces_across_sharp_edges_are_not_missed(shared_cad, seed):
+    """Points within a few tenths of a mm of the featured block: in the
+    subcells of mixed cells, a face across a sharp edge of the subcell's face
+    (closest at none of its corners) must still be found. Exact, not within
+    the tolerance of the thin-wall tail above."""
+    cad = load_cad(shared_cad("featuretype.STL"), scale=60.0)
+    tree = GridTree.build(cad)
+    rng = np.random.default_rng(seed)
+    pts, _ = measure(cad, np.eye(4), 4000, noise_mm=0.0, seed=seed)
+    q = pts + rng.normal(0.0, 0.3, pts.shape)
+    got = tree.query(q)
+    _, ref_d, _ = trimesh.proximity.closest_point(cad.to_trimesh(), q)
+    err = np.abs(np.abs(got.distances) - ref_d)
+    assert err.max() <= 1e-6, f"max |error| {err.max() * 1e3:.3f} um at {q[np.argmax(err)]}"
 
 
 def test_save_load_round_trip(tmp_path, panel_tree, small_panel):
