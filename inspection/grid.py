@@ -287,6 +287,9 @@ class GridTree:
         for arr in (origin, dims, coarse, cells, subcells, mixed_ptr, mixed_faces):
             arr.setflags(write=False)
         self._n_blocks = int((coarse >= 0).sum())
+        # Asked for by every registration before its first query: computed once.
+        self._bounds = np.stack([mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)])
+        self._bounds.setflags(write=False)
         # The queries' copy of face_id: half the cache lines of the int64 one.
         self._face_id32 = mesh.face_id.astype(np.int32)
         self._face_id32.setflags(write=False)
@@ -579,9 +582,8 @@ class GridTree:
 
     @property
     def bounds(self) -> np.ndarray:
-        """(2, 3) float64, mm: bounding box of the CAD model, min row then max row."""
-        v = self._mesh.vertices
-        return np.stack([v.min(axis=0), v.max(axis=0)])
+        """(2, 3) float64, mm: bounding box of the CAD model, min row then max row (read-only)."""
+        return self._bounds
 
     @property
     def n_blocks(self) -> int:
@@ -1018,6 +1020,9 @@ def _split_mixed(
     which are the faces closest to its corners: the subcells that then see
     one face (or one smooth patch) take the single-face path, about half of
     them, and the others keep the shorter list of their own corners' faces.
+    A one-face subcell is answered by its face's plane alone only where no
+    face across a sharp edge of it can be closer (:func:`K.mark_safe_subcells`);
+    elsewhere its queries look across those edges, as a list's would.
 
     Returns
     -------
@@ -1066,6 +1071,9 @@ def _split_mixed(
         counts_parts.append(counts)
         faces_parts.append(mixed)
         n_sub += len(counts)
+    K.mark_safe_subcells(
+        subcells, ijk, origin, h / 2, mesh.plane, mesh.face_adj, mesh.smooth_adj, _across(mesh)
+    )
     mixed_ptr, mixed_faces = _lists(counts_parts, faces_parts)
     return subcells, mixed_ptr, mixed_faces
 
@@ -1115,10 +1123,38 @@ def _hot_records(
     hot[:, K.HOT_AC : K.HOT_AC + 3] = tri[:, 2] - tri[:, 0]
     hot_i[:, K.HOT_ADJ : K.HOT_ADJ + 3] = mesh.face_adj
     hot_i[:, K.HOT_VERT : K.HOT_VERT + 3] = mesh.faces
-    hot_i[:, K.HOT_VERT + 3] = 0
+    hot_i[:, K.HOT_ACROSS] = _across(mesh)
     hot.setflags(write=False)
     hot_i.setflags(write=False)
     return home_step, hot, hot_i
+
+
+def _across(mesh: _Mesh) -> np.ndarray:
+    """Per face f and edge e, what a query needs to know of the face g across
+    it (see ``K.HOT_ACROSS``): bits 2e..2e+1 the corner of g opposite their
+    shared edge (3: g's adjacency does not name f back, or no g), bits
+    6+2e..7+2e the side of f's plane g lies on (1 above, 2 below, 0 on
+    it or unknown). (F,) int32."""
+    face_adj, faces = mesh.face_adj, mesh.faces
+    nf = len(face_adj)
+    out = np.zeros(nf, dtype=np.int32)
+    rows = np.arange(nf)
+    for e in range(3):
+        g = face_adj[:, e]
+        has = g >= 0
+        gg = np.where(has, g, 0)
+        back = face_adj[gg] == rows[:, None]
+        k = np.full(nf, 3, dtype=np.int32)
+        for e2 in range(3):
+            k = np.where(has & back[:, e2] & (k == 3), (e2 + 2) % 3, k)
+        # g's corner off the shared edge against f's plane: the whole of g
+        # lies on that side.
+        far = mesh.vertices[faces[gg, np.minimum(k, 2)]]
+        h = np.einsum("ij,ij->i", far - mesh.tri[:, 0], mesh.face_normals)
+        side = np.where(h > 1e-9, 1, np.where(h < -1e-9, 2, 0)).astype(np.int32)
+        side[~has | (k == 3)] = 0
+        out |= (k << (2 * e)) | (side << (6 + 2 * e))
+    return out
 
 
 def _smooth_adjacency(face_adj: np.ndarray, normals: np.ndarray) -> np.ndarray:
