@@ -88,6 +88,7 @@ from typing import Any
 import numpy as np
 
 from . import _grid_kernels as K
+from ._faces import face_planes
 from .arrays import Faces, Indices, Points, Scalars, Vectors
 from .cad import CadModel
 from .errors import InvalidInput, TreeMismatch
@@ -951,7 +952,7 @@ def _mesh_arrays(
     vf_ptr = np.zeros(nv + 1, dtype=np.int64)
     np.cumsum(np.bincount(flat_v, minlength=nv), out=vf_ptr[1:])
 
-    plane = _plane_data(tri, fn)
+    plane = face_planes(tri, fn)
     bvh = K.bvh_build(tri)
     smooth_adj = _smooth_adjacency(face_adj, fn)
     mesh = _Mesh(
@@ -1165,33 +1166,6 @@ def _smooth_adjacency(face_adj: np.ndarray, normals: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(
         np.where((face_adj >= 0) & (cos >= _COS_SMOOTH), face_adj, -1)
     ).astype(np.int32)
-
-
-def _plane_data(tri: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """(F, 12) float64 rows [n, n.a, U, U.a, V, V.a] of each face.
-
-    n is the unit normal, U and V the dual basis of the edges ab and ac (both
-    in the plane), so for a point p: d = p.n - n.a is its signed plane
-    distance and u = p.U - U.a, v = p.V - V.a the barycentric coordinates of
-    its foot point. The normal comes first so a query that needs only the
-    plane reads one cache line.
-    """
-    a = tri[:, 0]
-    e1 = tri[:, 1] - a
-    e2 = tri[:, 2] - a
-    g11 = (e1 * e1).sum(axis=1)
-    g12 = (e1 * e2).sum(axis=1)
-    g22 = (e2 * e2).sum(axis=1)
-    det = g11 * g22 - g12 * g12
-    det = np.where(det > 0, det, np.inf)
-    U = (g22[:, None] * e1 - g12[:, None] * e2) / det[:, None]
-    V = (g11[:, None] * e2 - g12[:, None] * e1) / det[:, None]
-
-    def dot(x: np.ndarray) -> np.ndarray:
-        return (x * a).sum(axis=1, keepdims=True)
-
-    rows = [normals, dot(normals), U, dot(U), V, dot(V)]
-    return np.ascontiguousarray(np.concatenate(rows, axis=1))
 
 
 __all__ = ["Closest", "GridParams", "GridTree", "warmup", "FORMAT_VERSION"]
