@@ -50,10 +50,10 @@ fit is arranged to query few points, few times:
   ``uncertainty_mm`` (a plate whose in-plane position rests on a few edges)
   continues on every point.
 - Past the coarse stage, a step that moves the points by less than 0.02 mm
-  is evaluated against each point's last closest face (exact point-to-
-  triangle distance) instead of a fresh query; only the few points whose
-  closest point leaves that face's interior, or that cross its plane, are
-  queried again. The distance to one face is at least the distance to the
+  is evaluated against each point's last closest face (its plane, while
+  the foot point stays inside the triangle) instead of a fresh query; only
+  the few points whose foot leaves that face's interior, or that cross its
+  plane, are queried again. The distance to one face is at least the distance to the
   surface, so such a cost bounds the true one from above, and a step it
   accepts lowers the true cost too (the classic ICP argument).
 - ``weights``, ``residuals``, ``rms_mm`` and ``inlier_fraction`` of every
@@ -96,6 +96,7 @@ from typing import Any, Protocol, runtime_checkable
 import numba
 import numpy as np
 
+from ._faces import face_planes
 from .arrays import Points, Scalars, Transform, Vectors
 from .errors import InsufficientOverlap, InvalidInput
 
@@ -428,112 +429,46 @@ def _distance_residuals(
 def _face_residuals(
     X: np.ndarray,
     face: np.ndarray,
-    tri: np.ndarray,
-    N: np.ndarray,
+    plane: np.ndarray,
     sign: np.ndarray,
     distance: bool,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Residuals and their gradients against one given face per point.
 
-    The distance of ``x_i`` to the triangle ``face[i]``, corners
-    ``tri[face[i]]`` (F, 9) float64 (its closest point on
-    the triangle, edges and corners included; Ericson, "Real-Time Collision
-    Detection", 2005, 5.1.5), signed with ``sign[i]``; with ``distance``
-    False the distance to the face's plane. The distance to one face is at
-    least the distance to the surface, so a cost evaluated this way bounds
-    the true cost from above. ``N[i]`` is the unit normal of ``face[i]``.
-    Also returns, per point, whether another face may now be the closest:
-    its closest point left the face's interior, or it crossed the face's
-    plane (a point overhanging a wall that moves back over the part).
+    ``plane[face[i]]`` (F, 12) float64 holds the face's unit normal n and
+    ``n . a``, then the dual basis U, V of its edges ab, ac with ``U . a``
+    and ``V . a`` (see :func:`face_planes`). The residual is the signed
+    distance of ``x_i`` to the face's plane; with ``distance`` it stands
+    for the distance to the triangle, which it equals while the foot point
+    lies inside the triangle (barycentric coordinates from U and V). The distance
+    to one face is at least the distance to the surface, so a cost evaluated
+    this way bounds the true cost from above.
+
+    Also returns, per point, whether another face may now be the closest (the
+    caller queries those again and overwrites their residuals): with
+    ``distance``, its foot point left the face's interior; in either mode, it
+    crossed the face's plane (``sign[i]`` is the sign it had), such as a point
+    overhanging a wall that moves back over the part.
     """
     n = X.shape[0]
     r = np.empty(n)
     U = np.empty((n, 3))
-    recheck = np.zeros(n, dtype=np.bool_)
+    recheck = np.empty(n, dtype=np.bool_)
     for i in range(n):
         f = face[i]
-        a0 = tri[f, 0]
-        a1 = tri[f, 1]
-        a2 = tri[f, 2]
-        nx, ny, nz = N[i, 0], N[i, 1], N[i, 2]
         px, py, pz = X[i, 0], X[i, 1], X[i, 2]
-        if not distance:
-            r[i] = nx * (px - a0) + ny * (py - a1) + nz * (pz - a2)
-            U[i, 0] = nx
-            U[i, 1] = ny
-            U[i, 2] = nz
-            recheck[i] = (r[i] >= 0.0) != (sign[i] >= 0.0)
-            continue
-        b0 = tri[f, 3]
-        b1 = tri[f, 4]
-        b2 = tri[f, 5]
-        c0 = tri[f, 6]
-        c1 = tri[f, 7]
-        c2 = tri[f, 8]
-        ab0, ab1, ab2 = b0 - a0, b1 - a1, b2 - a2
-        ac0, ac1, ac2 = c0 - a0, c1 - a1, c2 - a2
-        ap0, ap1, ap2 = px - a0, py - a1, pz - a2
-        d1 = ab0 * ap0 + ab1 * ap1 + ab2 * ap2
-        d2 = ac0 * ap0 + ac1 * ap1 + ac2 * ap2
-        interior = False
-        if d1 <= 0.0 and d2 <= 0.0:
-            q0, q1, q2 = a0, a1, a2
-        else:
-            bp0, bp1, bp2 = px - b0, py - b1, pz - b2
-            d3 = ab0 * bp0 + ab1 * bp1 + ab2 * bp2
-            d4 = ac0 * bp0 + ac1 * bp1 + ac2 * bp2
-            if d3 >= 0.0 and d4 <= d3:
-                q0, q1, q2 = b0, b1, b2
-            else:
-                vc = d1 * d4 - d3 * d2
-                if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
-                    s = d1 / (d1 - d3)
-                    q0, q1, q2 = a0 + s * ab0, a1 + s * ab1, a2 + s * ab2
-                else:
-                    cp0, cp1, cp2 = px - c0, py - c1, pz - c2
-                    d5 = ab0 * cp0 + ab1 * cp1 + ab2 * cp2
-                    d6 = ac0 * cp0 + ac1 * cp1 + ac2 * cp2
-                    if d6 >= 0.0 and d5 <= d6:
-                        q0, q1, q2 = c0, c1, c2
-                    else:
-                        vb = d5 * d2 - d1 * d6
-                        if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
-                            s = d2 / (d2 - d6)
-                            q0, q1, q2 = a0 + s * ac0, a1 + s * ac1, a2 + s * ac2
-                        else:
-                            va = d3 * d6 - d5 * d4
-                            if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
-                                s = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-                                q0 = b0 + s * (c0 - b0)
-                                q1 = b1 + s * (c1 - b1)
-                                q2 = b2 + s * (c2 - b2)
-                            else:
-                                interior = True
-                                q0 = q1 = q2 = 0.0
-        if interior:
-            r[i] = nx * ap0 + ny * ap1 + nz * ap2
-            U[i, 0] = nx
-            U[i, 1] = ny
-            U[i, 2] = nz
-            recheck[i] = (r[i] >= 0.0) != (sign[i] >= 0.0)
-            continue
-        recheck[i] = True
-        e0, e1, e2 = px - q0, py - q1, pz - q2
-        dist = np.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
-        along = nx * e0 + ny * e1 + nz * e2
-        # Off the face's interior, as in _distance_residuals: the distance
-        # grows along x - q (unless x - q is along the normal after all).
-        if dist > 1e-12 and dist * dist - along * along > 1e-6 * dist * dist:
-            ri = dist if sign[i] >= 0.0 else -dist
-            r[i] = ri
-            U[i, 0] = e0 / ri
-            U[i, 1] = e1 / ri
-            U[i, 2] = e2 / ri
-        else:
-            r[i] = along
-            U[i, 0] = nx
-            U[i, 1] = ny
-            U[i, 2] = nz
+        nx, ny, nz = plane[f, 0], plane[f, 1], plane[f, 2]
+        ri = nx * px + ny * py + nz * pz - plane[f, 3]
+        r[i] = ri
+        U[i, 0] = nx
+        U[i, 1] = ny
+        U[i, 2] = nz
+        again = (ri >= 0.0) != (sign[i] >= 0.0)
+        if distance and not again:
+            u = plane[f, 4] * px + plane[f, 5] * py + plane[f, 6] * pz - plane[f, 7]
+            v = plane[f, 8] * px + plane[f, 9] * py + plane[f, 10] * pz - plane[f, 11]
+            again = not (u >= 0.0 and v >= 0.0 and u + v <= 1.0)
+        recheck[i] = again
     return r, U, recheck
 
 
@@ -871,19 +806,19 @@ def _query(
     return Q, N, d, f
 
 
-# Triangle corners per tree, (F, 9) float64: one gather per face instead of
-# four per point and trial. Keyed by id, checked by a weak reference.
-_TRIANGLES: dict[int, tuple[weakref.ref, np.ndarray]] = {}
-_TRIANGLES_LOCK = threading.Lock()
+# Face planes per tree, (F, 12) float64 (see face_planes): computed once per
+# tree, keyed by id and checked by a weak reference.
+_PLANES: dict[int, tuple[weakref.ref, np.ndarray]] = {}
+_PLANES_LOCK = threading.Lock()
 
 
 def _tree_geometry(tree: object) -> tuple[np.ndarray] | None:
-    """The tree's triangles as (F, 9) float64 corners (a, b, c), in the
-    numbering of its answers' ``face``, or None when it does not expose them
+    """The tree's face planes (:func:`face_planes`), in the numbering of its
+    answers' ``face``, or None when it does not expose its triangles
     (``vertices`` and ``faces``)."""
     key = id(tree)
-    with _TRIANGLES_LOCK:
-        hit = _TRIANGLES.get(key)
+    with _PLANES_LOCK:
+        hit = _PLANES.get(key)
     if hit is not None and hit[0]() is tree:
         return (hit[1],)
     vertices = getattr(tree, "vertices", None)
@@ -894,16 +829,21 @@ def _tree_geometry(tree: object) -> tuple[np.ndarray] | None:
     faces = np.asarray(faces, dtype=np.int64)
     if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
         return None
-    tri = np.ascontiguousarray(vertices[faces].reshape(-1, 9))
+    tri = vertices[faces]
+    normals = getattr(tree, "face_normals", None)
+    if normals is None or np.shape(normals) != (len(faces), 3):
+        cr = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        normals = cr / np.maximum(np.linalg.norm(cr, axis=1, keepdims=True), 1e-300)
+    planes = face_planes(tri, np.asarray(normals, dtype=np.float64))
     try:
         ref = weakref.ref(tree)
     except TypeError:
-        return (tri,)
-    with _TRIANGLES_LOCK:
-        for k in [k for k, (r, _) in _TRIANGLES.items() if r() is None]:
-            del _TRIANGLES[k]
-        _TRIANGLES[key] = (ref, tri)
-    return (tri,)
+        return (planes,)
+    with _PLANES_LOCK:
+        for k in [k for k, (r, _) in _PLANES.items() if r() is None]:
+            del _PLANES[k]
+        _PLANES[key] = (ref, planes)
+    return (planes,)
 
 
 def _orthonormalised(T: Transform) -> Transform:
@@ -1114,8 +1054,9 @@ def register(
     perm = _partial_shuffle(n_all, cap, np.uint64(seed % (1 << 63)))
     # Only the points the fit can use are gathered now; the rest, if ever
     # needed, when the per-point figures are first asked for.
-    P = np.ascontiguousarray(P_in[perm[:cap]])
-    V = np.ascontiguousarray(v_in[perm])  # becomes 0 for points gated out as far
+    # (np.take gathers rows several times faster than fancy indexing.)
+    P = np.take(P_in, perm[:cap], axis=0)
+    V = np.take(v_in, perm)  # becomes 0 for points gated out as far
     m = min(initial_subset, cap)
 
     # Before any query: a cloud that lies, at the initial pose, far outside
@@ -1124,7 +1065,7 @@ def register(
     if bounds is not None:
         b = np.asarray(bounds, dtype=np.float64)
         if b.shape == (2, 3) and np.isfinite(b).all():
-            k0 = min(n_all, 1024)
+            k0 = min(cap, 1024)
             X0 = _transform(T[:3, :3].copy(), T[:3, 3].copy(), P[:k0])
             gap = np.linalg.norm(np.maximum(np.maximum(b[0] - X0, X0 - b[1]), 0.0), axis=1)
             inside = int(np.sum((gap <= max_distance_mm) & (V[:k0] > 0)))
@@ -1137,7 +1078,7 @@ def register(
     def evaluate(T_: Transform, lo: int, hi: int) -> tuple[np.ndarray, ...]:
         """Points at pose T_, their residual gradients, residuals, signed
         distances, closest face normals and closest faces (fresh queries)."""
-        P_ = P[lo:hi] if hi <= cap else np.ascontiguousarray(P_in[perm[lo:hi]])
+        P_ = P[lo:hi] if hi <= cap else np.take(P_in, perm[lo:hi], axis=0)
         X_ = _transform(T_[:3, :3].copy(), T_[:3, 3].copy(), P_)
         Q_, N_, d_, f_ = _query(tree, X_)
         if residual == "distance":
@@ -1177,7 +1118,7 @@ def register(
         if geometry is not None and gnc == 0.0 and m > initial_subset:
             if step_mm < _FIXED_FACE_STEP_MM:
                 X_ = _transform(T_[:3, :3].copy(), T_[:3, 3].copy(), P[:m])
-                r_, U_, again = _face_residuals(X_, Fi, *geometry, Fn, r, residual == "distance")
+                r_, U_, again = _face_residuals(X_, Fi, *geometry, r, residual == "distance")
                 idx = np.flatnonzero(again)
                 if len(idx) == 0:
                     return X_, U_, r_, (Fn, Fi)
@@ -1371,7 +1312,7 @@ def register(
             # A weakly constrained pose: these points do not pin it down to
             # the uncertainty asked for, so the fit goes on with all of them.
             cap = n_all
-            P = np.concatenate([P, P_in[perm[m:]]])
+            P = np.concatenate([P, np.take(P_in, perm[m:], axis=0)])
         if m < cap:
             # Only the new points are queried, at the current pose.
             m2 = min(cap, subset_growth * m)
@@ -1417,10 +1358,12 @@ def register(
 
     # The points the fit did not use are queried later, when a per-point
     # figure is first asked for: keep a copy, the caller may reuse its array.
-    P_rest = np.ascontiguousarray(P_in[perm[m:]]) if m < n_all else P[:0]
+    P_keep = P_in.copy() if m < n_all else P_in[:0]
 
     def evaluate_rest(lo: int, hi: int) -> tuple[np.ndarray, np.ndarray]:
-        X_ = _transform(T_final[:3, :3].copy(), T_final[:3, 3].copy(), P_rest[lo - m : hi - m])
+        X_ = _transform(
+            T_final[:3, :3].copy(), T_final[:3, 3].copy(), np.take(P_keep, perm[lo:hi], axis=0)
+        )
         Q_, N_, d_, _ = _query(tree, X_)
         if residual == "distance":
             r_, _ = _distance_residuals(X_, Q_, N_, d_)

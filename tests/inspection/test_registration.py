@@ -192,6 +192,21 @@ def test_input_weights_remove_known_outliers(panel):
     assert np.all(reg.weights[moved] == 0.0)
 
 
+@pytest.mark.parametrize("max_subset", [64, 512])
+def test_small_last_subsets_fit_a_large_cloud(panel, max_subset):
+    """A last subset smaller than the cloud's first sample of 1024 points
+    (checked against the CAD's box before any query) still fits; the rest of
+    the points get their figures at the final pose."""
+    cad, tree = panel
+    data, _, T_true = scenario(cad, n=5000, deg=3.0, mm=5.0, seed=11)
+    reg = register(tree, data, initial_subset=64, max_subset=max_subset, uncertainty_mm=None)
+    rot, disp = pose_errors(reg.transform, T_true, data)
+    assert reg.converged
+    assert rot <= 0.05 and disp <= 0.05
+    assert reg.subset_sizes.max() <= max_subset
+    assert reg.weights.shape == (5000,) and reg.inlier_fraction > 0.95
+
+
 # ------------------------------------------------------------- trust region
 @pytest.mark.parametrize("seed", range(24))
 def test_cost_never_rises(panel, seed):
