@@ -150,9 +150,6 @@ _MAX_FINE_CELLS = 400_000_000
 # Blocks whose nodes are computed per kernel call: bounds the build's scratch
 # memory ((BLOCK+1)^3 int32 per block) and sets the progress granularity.
 _CHUNK_BLOCKS = 2048
-# Mixed cells split per kernel call (their scratch: 27 nodes and 64 list
-# slots of int32 each).
-_CHUNK_MIXED = 65536
 # Adjacent faces meeting at less than this dihedral angle count as one smooth
 # patch, whose cells store a single face. Where their regions overlap (the
 # concave side) picking the wrong one errs by at most distance * angle^2:
@@ -392,56 +389,12 @@ class GridTree:
                 "use a larger spacing_mm or a smaller band_mm"
             )
         cells = np.empty(nblocks * BLOCK**3, dtype=np.int32)
-        counts_parts: list[np.ndarray] = []
-        faces_parts: list[np.ndarray] = []
-        n_mixed = 0
-        for b0 in range(0, nblocks, _CHUNK_BLOCKS):
-            b1 = min(nblocks, b0 + _CHUNK_BLOCKS)
-            nodes = K.block_nodes(
-                b0,
-                b1,
-                coords,
-                ptr,
-                face_idx,
-                lo,
-                hi,
-                centre,
-                radius,
-                tri,
-                origin,
-                h,
-                BLOCK,
-                reach * reach,
-            )
-            counts, mixed = K.cells_from_nodes(
-                nodes,
-                b0,
-                coords,
-                origin,
-                h,
-                BLOCK,
-                tri,
-                mesh.plane,
-                mesh.faces,
-                mesh.face_normals,
-                _COS_SMOOTH,
-                cells[b0 * BLOCK**3 : b1 * BLOCK**3],
-                n_mixed,
-            )
-            counts_parts.append(counts)
-            faces_parts.append(mixed)
-            n_mixed += len(counts)
-            if progress is not None:
-                progress(b1 / nblocks)
+        boxes = (lo, hi, centre, radius)
+        lists = _cells(
+            cells, coords, (ptr, face_idx), mesh, origin, h, BLOCK, boxes, reach * reach, progress
+        )
         subcells, mixed_ptr, mixed_faces = _split_mixed(
-            cells,
-            coords,
-            _lists(counts_parts, faces_parts),
-            mesh,
-            origin,
-            h,
-            (lo, hi, centre, radius),
-            reach * reach,
+            cells, coords, lists, mesh, origin, h, boxes, reach * reach
         )
 
         params = GridParams(spacing_mm=h, band_mm=band_mm, block=BLOCK)
@@ -464,7 +417,7 @@ class GridTree:
             cad.name,
             len(cad.faces),
             nblocks,
-            n_mixed,
+            tree.n_mixed_cells,
             tree.nbytes / 1e6,
             time.perf_counter() - t0,
         )
@@ -993,6 +946,63 @@ def _mesh_arrays(
     return mesh
 
 
+def _cells(
+    out: np.ndarray,
+    coords: np.ndarray,
+    lists: tuple[np.ndarray, np.ndarray],
+    mesh: _Mesh,
+    origin: np.ndarray,
+    h: float,
+    block: int,
+    boxes: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    reach2: float,
+    progress: ProgressFn | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Cell codes of blocks of block^3 cells of edge h, a chunk of blocks per
+    kernel call, written to ``out``; returns their candidate lists.
+
+    Block b has its corner at ``origin + coords[b] * block * h`` and its
+    nodes' closest faces are sought among ``faces[ptr[b]:ptr[b + 1]]`` of
+    ``lists = (ptr, faces)``; ``boxes`` are the faces' expanded boxes, centres
+    and radii. Used for the blocks of the grid and for the subcells of its
+    mixed cells (blocks of 2^3).
+    """
+    ptr, faces = lists
+    lo, hi, centre, radius = boxes
+    n = len(coords)
+    chunk = max(1, (_CHUNK_BLOCKS * BLOCK**3) // block**3)
+    counts_parts: list[np.ndarray] = []
+    faces_parts: list[np.ndarray] = []
+    n_mixed = 0
+    b3 = block**3
+    for b0 in range(0, n, chunk):
+        b1 = min(n, b0 + chunk)
+        nodes = K.block_nodes(
+            b0, b1, coords, ptr, faces, lo, hi, centre, radius, mesh.tri, origin, h, block, reach2
+        )
+        counts, mixed = K.cells_from_nodes(
+            nodes,
+            b0,
+            coords,
+            origin,
+            h,
+            block,
+            mesh.tri,
+            mesh.plane,
+            mesh.faces,
+            mesh.face_normals,
+            _COS_SMOOTH,
+            out[b0 * b3 : b1 * b3],
+            n_mixed,
+        )
+        counts_parts.append(counts)
+        faces_parts.append(mixed)
+        n_mixed += len(counts)
+        if progress is not None:
+            progress(b1 / n)
+    return _lists(counts_parts, faces_parts)
+
+
 def _lists(counts_parts: list[np.ndarray], faces_parts: list[np.ndarray]) -> tuple[Any, Any]:
     """Candidate lists gathered chunk by chunk as (ptr (M+1,) int64, faces (P,) int32)."""
     counts = np.concatenate(counts_parts) if counts_parts else np.zeros(0, dtype=np.int64)
@@ -1044,38 +1054,11 @@ def _split_mixed(
         [local // (BLOCK * BLOCK), (local // BLOCK) % BLOCK, local % BLOCK], axis=1
     )
     ijk = np.ascontiguousarray(ijk, dtype=np.int64)
-    lo, hi, centre, radius = boxes
     subcells = np.empty(8 * n_mixed, dtype=np.int32)
-    counts_parts: list[np.ndarray] = []
-    faces_parts: list[np.ndarray] = []
-    n_sub = 0
-    for m0 in range(0, n_mixed, _CHUNK_MIXED):
-        m1 = min(n_mixed, m0 + _CHUNK_MIXED)
-        nodes = K.block_nodes(
-            m0, m1, ijk, ptr0, faces0, lo, hi, centre, radius, mesh.tri, origin, h / 2, 2, reach2
-        )
-        counts, mixed = K.cells_from_nodes(
-            nodes,
-            m0,
-            ijk,
-            origin,
-            h / 2,
-            2,
-            mesh.tri,
-            mesh.plane,
-            mesh.faces,
-            mesh.face_normals,
-            _COS_SMOOTH,
-            subcells[8 * m0 : 8 * m1],
-            n_sub,
-        )
-        counts_parts.append(counts)
-        faces_parts.append(mixed)
-        n_sub += len(counts)
+    mixed_ptr, mixed_faces = _cells(subcells, ijk, lists, mesh, origin, h / 2, 2, boxes, reach2)
     K.mark_safe_subcells(
         subcells, ijk, origin, h / 2, mesh.plane, mesh.face_adj, mesh.smooth_adj, _across(mesh)
     )
-    mixed_ptr, mixed_faces = _lists(counts_parts, faces_parts)
     return subcells, mixed_ptr, mixed_faces
 
 
