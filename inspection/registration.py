@@ -81,9 +81,7 @@ before and after its step so that both properties can be checked.
 
 Determinism: the subsets come from a seeded generator, every reduction runs
 in a fixed order in single-threaded numba kernels (no parallel reductions,
-no BLAS on the hot path), and each closest point depends on its query point
-alone (large queries run on several threads), so the same input gives a
-bit-identical transform.
+no BLAS on the hot path), so the same input gives a bit-identical transform.
 """
 
 from __future__ import annotations
@@ -188,11 +186,6 @@ _DEGENERATE_REL_EIG = 1e-3
 # Graduated scale: it starts at this quantile of the first |residuals| and
 # narrows by this factor each time the pose settles at it.
 _GNC_QUANTILE = 0.9
-# Queries of at least this many points may use every numba thread, handed
-# out _PARALLEL_CHUNKS loop iterations (of the tree's 64-query chunks) at a
-# time (see _query).
-_PARALLEL_QUERY = 2048
-_PARALLEL_CHUNKS = 4
 _GNC_FACTOR = 4.0
 # ... once a step lowers the cost by less than this fraction, or moves the
 # points by less than this fraction of the scale.
@@ -794,28 +787,18 @@ def validate_transform(T: object, *, name: str = "init") -> Transform:
 def _query(
     tree: ClosestPointQuery, X: Points
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    # Threads for the tree's parallel kernels. A parallel launch waits for
-    # every thread it starts: on a loaded machine a 512-point query once took
-    # 15 ms on two threads against 0.1 ms on one, so small queries run on
-    # one. Queries of _PARALLEL_QUERY points or more (a subset's new points,
-    # the per-point figures) use the caller's thread count, with small
-    # chunks handed out as threads come free, so that a thread that starts
-    # late finds the work done rather than holding its share (register on
-    # the benchmark's clouds: 12 % faster, paired). The answer does not
-    # depend on the thread count.
-    if len(X) >= _PARALLEL_QUERY:
-        chunk = numba.set_parallel_chunksize(_PARALLEL_CHUNKS)
-        try:
-            cl = tree.query(X)
-        finally:
-            numba.set_parallel_chunksize(chunk)
-    else:
-        threads = numba.get_num_threads()
-        numba.set_num_threads(1)
-        try:
-            cl = tree.query(X)
-        finally:
-            numba.set_num_threads(threads)
+    # One numba thread for the tree's parallel kernels: the queries here are
+    # small (a few hundred to 50k points), and on a shared, loaded machine
+    # every parallel launch waits for a second core; measured on 2 busy cores,
+    # a 512-point query took 15 ms on two threads and 0.1 ms on one, and a
+    # 50k-point one 20-28 ms against 12.5 ms. The answer does not depend on
+    # the thread count.
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        cl = tree.query(X)
+    finally:
+        numba.set_num_threads(threads)
     Q = np.ascontiguousarray(cl.points, dtype=np.float64)
     N = np.ascontiguousarray(cl.normals, dtype=np.float64)
     d = np.asarray(cl.distances, dtype=np.float64)

@@ -3,7 +3,6 @@ region's monotone cost, observability, determinism and input validation."""
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 import pytest
 import trimesh
@@ -280,22 +279,6 @@ def test_bit_identical_results(panel):
     assert a.transform.tobytes() == b.transform.tobytes()
     assert a.weights.tobytes() == b.weights.tobytes()
     assert a.cost_history.tobytes() == b.cost_history.tobytes()
-
-
-def test_same_fit_on_one_or_two_threads(panel):
-    """Large queries use the caller's numba threads: the fit must not notice."""
-    cad, tree = panel
-    data, normals, _ = scenario(cad, n=20_000, deg=5.0, mm=10.0, seed=12)
-    before = numba.get_num_threads()
-    try:
-        numba.set_num_threads(1)
-        a = register(tree, data)
-        numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
-        b = register(tree, data)
-    finally:
-        numba.set_num_threads(before)
-    assert a.transform.tobytes() == b.transform.tobytes()
-    assert a.weights.tobytes() == b.weights.tobytes()
 
 
 def test_order_of_points_does_not_change_the_fit(panel):
