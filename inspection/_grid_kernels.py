@@ -1359,11 +1359,8 @@ def mark_safe_subcells(codes, ijk, origin, h, plane, face_adj, smooth_adj, acros
                     continue
                 if _all_behind(f, across[f], e, x0, y0, z0, h, plane):
                     continue
-                k = -1
-                for e2 in range(3):
-                    if face_adj[g, e2] == f:
-                        k = (e2 + 2) % 3
-                if not interior or k < 0 or not _never_closer(f, g, k, x0, y0, z0, h, plane):
+                k = (across[f] >> (2 * e)) & 3
+                if not interior or k == 3 or not _never_closer(f, g, k, x0, y0, z0, h, plane):
                     safe = False
                     break
             codes[8 * m + s] = f | INTERIOR_FLAG if safe else f

@@ -23,8 +23,8 @@ neighbouring face when the foot point lies on an edge or corner of the
 current one. Cells hold a face per *corner* of the cell rather than per
 centre, so a query inside the cell has the faces of all the regions around
 it to start from; the walk then makes the answer exact wherever the surface
-is connected. Signs come from the
-angle-weighted pseudo-normal of the closest feature (face, edge or corner).
+is connected. Signs come from the angle-weighted pseudo-normal of the
+closest feature (face, edge or corner).
 
 Memory, not arithmetic, sets the speed of a batch (the cells and the face
 data are tens of MB, queries arrive in any order): what counts is how many
@@ -41,10 +41,13 @@ a cell with a candidate list the candidates' planes bound their distances
 from below, so few need the full point-to-triangle test. Such lists cost a
 query several times a single face, which is why mixed cells are split: on
 the 600 x 400 mm panel 12 % of near queries fall in mixed cells, 8 % in
-mixed subcells, whose lists are shorter (2.6 faces on average, from 3.9). Faces are numbered
-in a spatial order (``face_id`` maps them back to the CAD's numbering). Each
-query's answer depends on that query alone: results are the same for any
-order, chunking or number of threads.
+mixed subcells, whose lists are shorter (2.6 faces on average, from 3.9).
+A subcell left with one face also looks across that face's sharp edges,
+unless the build proved no face there can be closer (93 % of them), so
+splitting changes no answer. Faces are numbered in a spatial order
+(``face_id`` maps them back to the CAD's numbering). Each query's answer
+depends on that query alone: results are the same for any order, chunking
+or number of threads.
 
 Points outside the band, outside the bounding box, or in cells whose corners
 lie outside the band take the exact slow path: a bounding volume hierarchy
@@ -1003,7 +1006,9 @@ def _cells(
     return _lists(counts_parts, faces_parts)
 
 
-def _lists(counts_parts: list[np.ndarray], faces_parts: list[np.ndarray]) -> tuple[Any, Any]:
+def _lists(
+    counts_parts: list[np.ndarray], faces_parts: list[np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
     """Candidate lists gathered chunk by chunk as (ptr (M+1,) int64, faces (P,) int32)."""
     counts = np.concatenate(counts_parts) if counts_parts else np.zeros(0, dtype=np.int64)
     ptr = np.zeros(len(counts) + 1, dtype=np.int64)
