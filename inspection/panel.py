@@ -2,8 +2,11 @@
 a character line and an embossing.
 
 The project's own demo and test part, so that nothing depends on external CAD
-files. The mesh is the outer skin of the part (a single surface, normals on the
-visible side), which is what an optical rig above the conveyor measures.
+files. By default the mesh is the outer skin of the part (a single surface,
+normals on the visible side), which is what an optical rig above the conveyor
+measures. With ``thickness_mm`` it is a closed solid sheet, as the CAD of a
+sheet-metal part often is: the same outer skin, an inner skin that far below
+it, and the narrow faces joining them along the outline and the holes.
 
 Panel frame: x along the length, y along the width, z up; the origin is the
 centre of the panel's footprint at the lower edge of the flange, so the part
@@ -63,6 +66,8 @@ class PanelSpec:
     """Mesh spacing on smooth regions."""
     feature_spacing_mm: float = 0.7
     """Mesh spacing across rounded feature edges."""
+    thickness_mm: float = 0.0
+    """Sheet thickness: 0 for the outer skin only, else a closed solid (see the module notes)."""
 
     def scaled(self, length_mm: float, width_mm: float) -> PanelSpec:
         """The same design at another size: features move and shrink with the footprint."""
@@ -88,6 +93,7 @@ class PanelSpec:
             ),
             spacing_mm=self.spacing_mm,
             feature_spacing_mm=self.feature_spacing_mm,
+            thickness_mm=self.thickness_mm,
         )
 
 
@@ -109,6 +115,11 @@ def sheet_metal_panel(spec: PanelSpec | None = None, *, name: str = "panel") -> 
     spec = spec or PanelSpec()
     _validate(spec)
     vertices, faces = _panel_mesh(spec)
+    skin = CadModel.from_arrays(vertices, faces, name=name, source=f"<generated {name}>")
+    if spec.thickness_mm == 0:
+        return skin
+    # Thickened from the cleaned skin (the grid's seams merged, slivers dropped).
+    vertices, faces = _solid_sheet(skin.vertices, skin.faces, spec.thickness_mm)
     return CadModel.from_arrays(vertices, faces, name=name, source=f"<generated {name}>")
 
 
@@ -161,6 +172,11 @@ def _validate(spec: PanelSpec) -> None:
     for key, value in positive.items():
         if not np.isfinite(value) or value <= 0:
             raise InvalidInput(f"PanelSpec.{key} must be positive, got {value!r}")
+    t = spec.thickness_mm
+    if not np.isfinite(t) or not 0.0 <= t < spec.bend_radius_mm:
+        raise InvalidInput(
+            f"PanelSpec.thickness_mm must be >= 0 and below bend_radius_mm, got {t!r}"
+        )
     if spec.bend_radius_mm >= spec.flange_mm:
         raise InvalidInput("PanelSpec.bend_radius_mm must be smaller than flange_mm")
     if spec.feature_spacing_mm > spec.spacing_mm:
@@ -171,6 +187,58 @@ def _validate(spec: PanelSpec) -> None:
             raise InvalidInput(f"hole radius {h.radius_mm} mm is below 1.5 x spacing_mm")
         if abs(h.x_mm) + margin > L / 2 or abs(h.y_mm) + margin > W / 2:
             raise InvalidInput(f"hole at ({h.x_mm}, {h.y_mm}) is too close to the panel edge")
+
+
+_NORMAL_SMOOTHING = 5
+
+
+def _vertex_sums(faces: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
+    """Per vertex, the sum of ``values`` (one row per face) over its faces."""
+    out = np.zeros((n, values.shape[1]))
+    for k in range(3):
+        np.add.at(out, faces[:, k], values)
+    return out
+
+
+def _solid_sheet(
+    vertices: np.ndarray, faces: np.ndarray, thickness: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The skin made a closed sheet: an inner copy ``thickness`` below it along
+    the (smoothed) vertex normals, faces reversed so that normals point out of
+    the material, joined to it along the boundary edges by a band of two
+    triangles per edge.
+
+    Raises
+    ------
+    InvalidInput
+        A feature bends more tightly than the thickness: some inner face
+        would turn over.
+    """
+    v, f = vertices, faces
+    n = len(v)
+    tri = v[f]
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # area-weighted
+    vn = _vertex_sums(f, fn, n)
+    # Normals averaged over a few rings of faces: the embossing's corners are
+    # creases, where the inner copy along the raw normals would fold over.
+    for _ in range(_NORMAL_SMOOTHING):
+        vn /= np.linalg.norm(vn, axis=1, keepdims=True)
+        vn = _vertex_sums(f, vn[f].sum(axis=1), n)
+    vn /= np.linalg.norm(vn, axis=1, keepdims=True)
+    inner = v - thickness * vn
+    itri = inner[f]
+    ifn = np.cross(itri[:, 1] - itri[:, 0], itri[:, 2] - itri[:, 0])
+    if np.any(np.einsum("ij,ij->i", ifn, fn) <= 0.0):
+        raise InvalidInput(
+            f"PanelSpec.thickness_mm {thickness} is too large for the panel's tightest bends"
+        )
+    # Boundary edges (used by one face), directed as in that face: a -> b.
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    key = np.minimum(e[:, 0], e[:, 1]) * n + np.maximum(e[:, 0], e[:, 1])
+    _, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
+    a, b = e[counts[inv] == 1].T
+    band = np.concatenate([np.stack([b, a, a + n], 1), np.stack([b, a + n, b + n], 1)])
+    return np.concatenate([v, inner]), np.concatenate([f, f[:, ::-1] + n, band])
 
 
 def _axis(

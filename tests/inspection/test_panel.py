@@ -94,8 +94,32 @@ def test_scaled_panel_fits_the_rig_volume():
         PanelSpec(holes=(Hole(295.0, 0.0, 10.0),)),
         PanelSpec(holes=(Hole(0.0, 0.0, 2.0),)),
         PanelSpec(feature_spacing_mm=10.0),
+        PanelSpec(thickness_mm=-1.0),
+        PanelSpec(thickness_mm=float("nan")),
+        PanelSpec(thickness_mm=5.0),  # the bend radius
+        PanelSpec(thickness_mm=3.0),  # folds over at the embossing's corners
     ],
 )
 def test_bad_specs_are_refused(spec):
     with pytest.raises(InvalidInput):
         sheet_metal_panel(spec)
+
+
+@pytest.mark.parametrize("size", [(400.0, 260.0), (300.0, 200.0)])
+def test_thickness_makes_a_closed_solid_sheet(size):
+    """The same outer skin, an inner one 1 mm below along the normals, closed
+    along the outline and the holes: a watertight solid of volume area x 1 mm."""
+    skin = sheet_metal_panel(PanelSpec().scaled(*size))
+    solid = sheet_metal_panel(PanelSpec(thickness_mm=1.0).scaled(*size))
+    s = solid.to_trimesh()
+    assert s.is_watertight and s.is_winding_consistent
+    assert s.volume == pytest.approx(skin.to_trimesh().area * 1.0, rel=0.02)
+    # The outer skin is unchanged, and the solid rests on the same plane.
+    assert np.array_equal(solid.vertices[: len(skin.vertices)], skin.vertices)
+    np.testing.assert_allclose(solid.bounds, skin.bounds, atol=1e-9)
+    # The inner skin lies 1 mm inside the outer one (a little less at the
+    # embossing's corners, creases where the offset follows smoothed normals).
+    inner = solid.vertices[len(skin.vertices) :]
+    _, dist, _ = trimesh.proximity.closest_point(skin.to_trimesh(), inner[::25])
+    assert np.median(np.abs(dist - 1.0)) < 1e-3
+    assert np.all(np.abs(dist - 1.0) < 0.15)
