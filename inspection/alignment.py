@@ -42,7 +42,13 @@ from scipy.spatial import cKDTree
 
 from .arrays import Faces, Points, Scalars, Transform, Vectors
 from .errors import InsufficientOverlap, InvalidInput
-from .registration import ClosestPointQuery, Registration, register, validate_points
+from .registration import (
+    ClosestPointQuery,
+    Registration,
+    register,
+    validate_points,
+    validate_view,
+)
 
 log = logging.getLogger(__name__)
 
@@ -488,6 +494,7 @@ def align(
     finalist_ratio: float = 2.0,
     n_finalists: int = 3,
     seed: int = 0,
+    view_direction: Vectors | None = None,
     **register_kwargs: Any,
 ) -> Alignment:
     """Find ``T_cad_data`` for a part lying anywhere, then refine it.
@@ -535,6 +542,12 @@ def align(
         the best after coarse refinement are refined again on the CAD tree
         and compared.
     seed : int
+    view_direction : (3,) float64, optional
+        Direction from the part towards the sensor, data frame (+z for the
+        rig). Every refinement then counts a point whose closest face is
+        turned away from the sensor as an outlier (see :func:`register`), so
+        that a thin part modelled as a solid is not fitted half onto its
+        underside. Needs ``loss`` tukey or welsch.
     **register_kwargs
         Passed on to the final :func:`register`.
 
@@ -550,6 +563,7 @@ def align(
         No hypothesis brings enough points near the CAD.
     """
     P = validate_points(points, min_points=30)
+    view = validate_view(view_direction, loss)
     if n_angles < 1 or n_refine < 1 or min(sample_points, refine_points, score_points) < 30:
         raise InvalidInput(
             "n_angles and n_refine must be >= 1, sample_points, refine_points and "
@@ -682,6 +696,7 @@ def align(
                 tolerance_mm=2e-2,
                 subset_tolerance_factor=10.0,
                 seed=seed,
+                view_direction=view,
             )
         except InsufficientOverlap:
             continue
@@ -720,6 +735,7 @@ def align(
                 max_subset=None,
                 max_distance_mm=max(model.size_mm, 1.0),
                 seed=seed,
+                view_direction=view,
             )
         except InsufficientOverlap:
             continue
@@ -737,7 +753,14 @@ def align(
     best = ranked[0]
     ambiguous = len(ranked) > 1 and ranked[1].score <= ambiguity_ratio * best.score
     fine = register(
-        tree, P, init=best.transform, loss=loss, weights=weights, seed=seed, **register_kwargs
+        tree,
+        P,
+        init=best.transform,
+        loss=loss,
+        weights=weights,
+        seed=seed,
+        view_direction=view,
+        **register_kwargs,
     )
     log.debug(
         "align: %d candidates, %d finalists, best %.4g, runner-up %s, ambiguous %s",

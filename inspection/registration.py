@@ -764,6 +764,27 @@ def validate_points(points: object, *, name: str = "points", min_points: int = 1
     return np.ascontiguousarray(p)
 
 
+def validate_view(view_direction: Vectors | None, loss: str) -> np.ndarray | None:
+    """``view_direction`` as a unit 3-vector (None stays None), checked
+    against the loss it is used with (see :func:`register`).
+
+    Raises
+    ------
+    InvalidInput
+        Not a finite non-zero 3-vector, or a loss without a plateau.
+    """
+    if view_direction is None:
+        return None
+    view = np.asarray(view_direction, dtype=np.float64)
+    if view.shape != (3,) or not np.isfinite(view).all() or not np.linalg.norm(view) > 0:
+        raise InvalidInput(f"view_direction must be a finite non-zero 3-vector, got {view!r}")
+    if loss not in ("tukey", "welsch"):
+        raise InvalidInput(
+            "view_direction needs a loss with a plateau (tukey or welsch), got " + repr(loss)
+        )
+    return view / np.linalg.norm(view)
+
+
 def validate_transform(T: object, *, name: str = "init") -> Transform:
     """A finite rigid (4, 4) transform: orthonormal rotation, det +1, last row 0 0 0 1."""
     try:
@@ -1038,16 +1059,7 @@ def register(
         if not (v_in > 0).any():
             raise InvalidInput("all weights are zero")
     loss_id, c = LOSSES[loss]
-    view = None
-    if view_direction is not None:
-        view = np.asarray(view_direction, dtype=np.float64)
-        if view.shape != (3,) or not np.isfinite(view).all() or not np.linalg.norm(view) > 0:
-            raise InvalidInput(f"view_direction must be a finite non-zero 3-vector, got {view!r}")
-        if loss not in ("tukey", "welsch"):
-            raise InvalidInput(
-                "view_direction needs a loss with a plateau (tukey or welsch), got " + repr(loss)
-            )
-        view = view / np.linalg.norm(view)
+    view = validate_view(view_direction, loss)
 
     # A seeded permutation: every subset is a prefix of the next one.
     cap = n_all if max_subset is None else min(n_all, int(max_subset))
