@@ -138,6 +138,28 @@ class RegistrationSettings(_Strict):
         le=10_000_000,
         description="Clouds are subsampled to this size to fit.",
     )
+    seen_from_above: bool | None = Field(
+        default=None,
+        description="The rig looks down on the part (+z of the rig frame): a point can only "
+        "have been measured on a CAD face turned up towards it, so one whose closest face is "
+        "turned away counts as an outlier. Keeps a thin part modelled as a solid (sheet metal "
+        "with its underside) from being fitted half onto that underside. Needs loss 'tukey'; "
+        "unset: on with 'tukey', off with the others. Applies to clouds in the rig frame.",
+    )
+
+    @model_validator(mode="after")
+    def _view_needs_plateau(self) -> RegistrationSettings:
+        if self.seen_from_above and self.loss != Loss.tukey:
+            raise ValueError(
+                f"seen_from_above needs loss 'tukey' (a loss whose outliers do not pull), "
+                f"got {self.loss.value!r}"
+            )
+        return self
+
+    def view_direction(self) -> tuple[float, float, float] | None:
+        """Direction towards the sensor in the rig frame, or None when not used."""
+        on = self.loss == Loss.tukey if self.seen_from_above is None else self.seen_from_above
+        return (0.0, 0.0, 1.0) if on else None
 
 
 class TreeSettings(_Strict):

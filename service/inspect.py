@@ -148,13 +148,18 @@ def _apply(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     return points @ T[:3, :3].T + T[:3, 3]
 
 
-def _registration_kwargs(part: LoadedPart) -> dict[str, Any]:
+def _registration_kwargs(part: LoadedPart, *, rig_frame: bool = True) -> dict[str, Any]:
+    """Keyword arguments of ``align``/``register`` from the part's settings; the
+    direction towards the sensor is known only for clouds in the rig frame."""
     r = part.spec.registration
-    return {
+    kwargs: dict[str, Any] = {
         "loss": r.loss.value,
         "max_iterations": r.max_iterations,
         "max_distance_mm": r.max_correspondence_mm,
     }
+    if rig_frame and (view := r.view_direction()) is not None:
+        kwargs["view_direction"] = view
+    return kwargs
 
 
 def _field_stats(distances: np.ndarray, inliers: np.ndarray) -> FieldStats:
@@ -303,7 +308,12 @@ def inspect_cloud(
                 **_registration_kwargs(part),
             )  # fmt: skip
         else:
-            reg = register(part.tree, fit_points, init=np.eye(4), **_registration_kwargs(part))
+            reg = register(
+                part.tree,
+                fit_points,
+                init=np.eye(4),
+                **_registration_kwargs(part, rig_frame=False),
+            )
     except InspectionError as exc:
         timings["align"] = (time.perf_counter() - t0) * 1e3
         return error(f"alignment failed: {exc}")

@@ -60,6 +60,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
             action="store_true",
             help="skip the global search: fine registration from the identity",
         )
+        p.add_argument(
+            "--seen-from-above",
+            action="store_true",
+            help="the cloud was measured from above (+z of its frame): points are not fitted "
+            "onto faces turned away from the sensor, such as a thin part's underside "
+            "(loss tukey or welsch)",
+        )
         p.add_argument("--seed", type=int, default=0, help="seed of the random subsets (0)")
         p.add_argument("--json", action="store_true", help="print JSON instead of text")
 
@@ -131,10 +138,11 @@ def _fit(args: argparse.Namespace) -> tuple[Any, Any, np.ndarray, dict[str, floa
     points = read_cloud(args.cloud)
     timings["read_ms"] = (time.perf_counter() - t0) * 1e3
     t0 = time.perf_counter()
+    view = (0.0, 0.0, 1.0) if args.seen_from_above else None
     if args.no_global:
-        reg = fine(tree, points, loss=args.loss, seed=args.seed)
+        reg = fine(tree, points, loss=args.loss, seed=args.seed, view_direction=view)
     else:
-        reg = align(tree, points, loss=args.loss, seed=args.seed)
+        reg = align(tree, points, loss=args.loss, seed=args.seed, view_direction=view)
     timings["fit_ms"] = (time.perf_counter() - t0) * 1e3
     return tree, reg, points, timings
 

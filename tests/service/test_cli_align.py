@@ -93,3 +93,16 @@ def test_bad_input_exits_2(files, capsys):
     code = main(["align", str(files["stl"]), str(files["dir"] / "missing.ply")])
     assert code == 2
     assert "no such file" in capsys.readouterr().err
+
+
+def test_seen_from_above(files, capsys):
+    """The flag reaches the fit (same pose on this block, whose faces all face
+    up or sideways), and needs a loss with a plateau."""
+    args = ["align", str(files["stl"]), str(files["cloud"]), "--no-global", "--json"]
+    code = main([*args, "--seen-from-above"])
+    out = json.loads(capsys.readouterr().out)
+    assert code == 0 and out["converged"]
+    assert np.allclose(np.asarray(out["transform"])[:3, 3], files["T_cad_data"][:3, 3], atol=0.05)
+    code = main([*args, "--seen-from-above", "--loss", "cauchy"])
+    assert code == 2
+    assert "plateau" in capsys.readouterr().err

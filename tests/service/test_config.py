@@ -153,6 +153,26 @@ def test_bad_part_specs(tmp_path, change, match):
         load_part_spec(write(tmp_path, "bracket.toml", PART.replace(*change)))
 
 
+@pytest.mark.parametrize(
+    "settings, view",
+    [
+        ("", (0.0, 0.0, 1.0)),  # tukey, the default: on
+        ('loss = "cauchy"', None),  # a loss without a plateau: off unless asked
+        ("seen_from_above = false", None),
+        ('loss = "huber"\nseen_from_above = false', None),
+    ],
+)
+def test_seen_from_above_follows_the_loss(tmp_path, settings, view):
+    spec = load_part_spec(write(tmp_path, "bracket.toml", f"{PART}\n[registration]\n{settings}\n"))
+    assert spec.registration.view_direction() == view
+
+
+def test_seen_from_above_needs_tukey(tmp_path):
+    text = f'{PART}\n[registration]\nloss = "l2"\nseen_from_above = true\n'
+    with pytest.raises(ConfigError, match="seen_from_above needs loss 'tukey'"):
+        load_part_spec(write(tmp_path, "bracket.toml", text))
+
+
 def test_part_name_must_match_file(tmp_path):
     with pytest.raises(ConfigError, match="file name"):
         load_part_spec(write(tmp_path, "other.toml", PART))

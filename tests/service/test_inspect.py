@@ -71,3 +71,51 @@ def test_reason_names_the_points_and_the_note():
     assert _reason(Status.fail, pts, None) == "out of tolerance at a, c"
     assert _reason(Status.passed, pts[1:2], "pose ambiguous") == "pose ambiguous"
     assert _reason(Status.passed, pts[1:2], None) is None
+
+
+@pytest.fixture(scope="module")
+def thin_sheet(tmp_path_factory):
+    """A 1 mm sheet modelled as a solid, as a part of the line."""
+    from service.config import PartSpec
+    from service.parts import load_part
+
+    spec = PartSpec(
+        name="sheet",
+        cad="generated:panel",
+        panel={"length_mm": 300.0, "width_mm": 200.0, "thickness_mm": 1.0, "holes": []},
+    )
+    tmp = tmp_path_factory.mktemp("sheet")
+    return load_part(spec, tmp, tmp / "trees")
+
+
+@pytest.mark.parametrize("seen_from_above", [None, False])
+def test_the_line_fits_a_thin_solid_to_its_top(thin_sheet, seen_from_above):
+    """A cloud in the rig frame of the sheet lying flat (where the rig measures:
+    faces within 60 deg of up). By default (tukey) the fit knows the cameras
+    look down and keeps the points off the underside, 1 mm below; turned
+    off, this cloud ends on it."""
+    from dataclasses import replace
+
+    from inspection.alignment import sample_facing
+    from service.inspect import Trigger, inspect_cloud
+
+    part = thin_sheet
+    settings = part.spec.registration.model_copy(update={"seen_from_above": seen_from_above})
+    part = replace(part, spec=part.spec.model_copy(update={"registration": settings}))
+    cad = part.cad
+    T_rig_cad = np.eye(4)
+    T_rig_cad[:3, :3] = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+    T_rig_cad[:3, 3] = (-74.0, 55.0, 0.0)
+    pts, _ = sample_facing(
+        cad.vertices, cad.faces, cad.face_normals, T_rig_cad, 50_000, seed=0, min_cos=0.5
+    )
+    cloud = pts + np.random.default_rng(0).normal(scale=0.02, size=pts.shape)
+    trigger = Trigger("r1", "line", "station", "s1", 1, 0)
+    res = inspect_cloud(part, cloud, trigger).result
+    T = np.asarray(res.transform) @ T_rig_cad  # identity when exact
+    corners = cad.bounds[[0, 1]]
+    off = np.abs(corners @ T[:3, :3].T + T[:3, 3] - corners).max()
+    if seen_from_above is None:
+        assert off < 0.01, off
+    else:
+        assert off > 0.5, off
