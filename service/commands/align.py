@@ -138,7 +138,7 @@ def _fit(args: argparse.Namespace) -> tuple[Any, Any, np.ndarray, dict[str, floa
     points = read_cloud(args.cloud)
     timings["read_ms"] = (time.perf_counter() - t0) * 1e3
     t0 = time.perf_counter()
-    view = (0.0, 0.0, 1.0) if args.seen_from_above else None
+    view = np.array([0.0, 0.0, 1.0]) if args.seen_from_above else None
     if args.no_global:
         reg = fine(tree, points, loss=args.loss, seed=args.seed, view_direction=view)
     else:
