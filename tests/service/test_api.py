@@ -223,6 +223,16 @@ def test_create_part_builds_tree_as_a_job_then_delete(client, line, tmp_path):
         ({"cad": ("p.txt", b"hello")}, {"spec": '{"name": "bad2"}'}, 415, "unsupported_cad_format"),
         ({"cad": ("p.stl", b"x")}, {"spec": '{"name": "bad name"}'}, 422, "invalid_spec"),
         ({"cad": ("p.stl", b"x")}, {"spec": "{not json"}, 422, "invalid_spec"),
+        (
+            {"cad": ("p.stl", b"x")},
+            {
+                "spec": json.dumps(
+                    {"name": "bad4", "registration": {"loss": "l2", "seen_from_above": True}}
+                )
+            },
+            422,
+            "invalid_spec",
+        ),
         ({"cad": ("p.stl", b"x")}, {}, 422, "validation_error"),
         ({}, {"spec": '{"name": "bad3"}'}, 415, "unsupported_media_type"),  # no file: not multipart
     ],
