@@ -79,11 +79,19 @@ WIDE_BAND_MM, WIDE_SPACING_MM = 16.0, 2.0
 THIN_MM = 1.0
 
 
-def _facing(cad, T_data_cad, n, seed):
-    from inspection.alignment import sample_facing
+def _facing(cad, T_data_cad, n, seed, min_cos=None):
+    from inspection.alignment import DEFAULT_MIN_COS, sample_facing
 
     rng = np.random.default_rng(seed + 1000)
-    pts, face = sample_facing(cad.vertices, cad.faces, cad.face_normals, T_data_cad, n, seed=seed)
+    pts, face = sample_facing(
+        cad.vertices,
+        cad.faces,
+        cad.face_normals,
+        T_data_cad,
+        n,
+        seed=seed,
+        min_cos=DEFAULT_MIN_COS if min_cos is None else min_cos,
+    )
     normals = cad.face_normals[face] @ np.asarray(T_data_cad)[:3, :3].T
     return pts + rng.normal(scale=NOISE_MM, size=pts.shape), normals
 
@@ -346,7 +354,7 @@ def bench_thin_solid(trials: int) -> bool:
     """A 1 mm sheet modelled as a solid, lying flat anywhere, measured where a
     rig looking down measures (faces within 60 deg of up): global alignment
     with and without the sensor's side (``view_direction``)."""
-    from inspection.alignment import align, alignment_model, sample_facing
+    from inspection.alignment import align, alignment_model
     from inspection.grid import GridTree
     from inspection.panel import PanelSpec, sheet_metal_panel
 
@@ -364,11 +372,7 @@ def bench_thin_solid(trials: int) -> bool:
             T[:3, :3] = Rotation.from_rotvec([0.0, 0.0, rng.uniform(0.0, 2.0 * np.pi)]).as_matrix()
             T[:2, 3] = rng.uniform(-150.0, 150.0, 2)
             T_data_cad = T @ flat.transform
-            pts, _ = sample_facing(
-                cad.vertices, cad.faces, cad.face_normals, T_data_cad, N_POINTS, seed=seed,
-                min_cos=0.5,
-            )  # fmt: skip
-            data = pts + np.random.default_rng(seed).normal(scale=NOISE_MM, size=pts.shape)
+            data, _ = _facing(cad, T_data_cad, N_POINTS, seed, min_cos=0.5)
             t = time.perf_counter()
             res = align(tree, data, model=model, view_direction=view)
             times.append(time.perf_counter() - t)

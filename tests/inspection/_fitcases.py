@@ -11,7 +11,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from inspection.alignment import sample_facing
+from inspection.alignment import DEFAULT_MIN_COS, sample_facing
 from inspection.cad import CadModel
 
 
@@ -30,11 +30,21 @@ def perturbation(rng: np.random.Generator, deg: float, mm: float, center: np.nda
 
 
 def measure(
-    cad: CadModel, T_data_cad: np.ndarray, n: int, *, noise_mm: float = 0.02, seed: int = 0
+    cad: CadModel,
+    T_data_cad: np.ndarray,
+    n: int,
+    *,
+    noise_mm: float = 0.02,
+    seed: int = 0,
+    min_cos: float = DEFAULT_MIN_COS,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Points on the sensor-facing side, in the data frame, and their data-frame normals."""
+    """Points on the sensor-facing side (faces whose normal's cosine to +z of
+    the data frame exceeds ``min_cos``), in the data frame, and their
+    data-frame normals."""
     rng = np.random.default_rng(seed + 1000)
-    pts, face = sample_facing(cad.vertices, cad.faces, cad.face_normals, T_data_cad, n, seed=seed)
+    pts, face = sample_facing(
+        cad.vertices, cad.faces, cad.face_normals, T_data_cad, n, seed=seed, min_cos=min_cos
+    )
     normals = cad.face_normals[face] @ T_data_cad[:3, :3].T
     return pts + rng.normal(scale=noise_mm, size=pts.shape), normals
 
