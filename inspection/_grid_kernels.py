@@ -259,6 +259,53 @@ def _face_normal(hot, f, fnorm, exact):
     return nx * s, ny * s, nz * s
 
 
+@njit(cache=True, inline="always")
+def _closer_across(px, py, pz, f, fd, qx, qy, qz, d2, hot, hot_i, origin, home_step):
+    """The face across one of f's sharp edges closer to p than f's foot point.
+
+    p's foot lies inside f at signed plane distance fd, at squared distance
+    d2 (closest point q). Across a smooth edge a closer face would be closer
+    by at most distance * angle^2 (the single-face cells' bound), so only
+    sharp edges are looked across, each first bounded by its plane. A face
+    g lying wholly on the other side of f's plane (a convex edge) is
+    farther than that plane. A foot on g's plane inside g gives g's
+    distance; one beyond their shared edge alone puts g's closest point on
+    that edge, which is no closer than f's plane (p's foot is inside f):
+    neither needs the full point-to-triangle test.
+
+    Returns (g, qx, qy, qz, d2, region): the closest such face and its
+    closest point, or g = -1 and the inputs when there is none.
+    """
+    g_best = -1
+    region = REGION_INTERIOR
+    across = hot_i[f, HOT_ACROSS]
+    for e in range(3):
+        g = int(hot_i[f, HOT_ADJ + e])
+        if g < 0 or hot_i[f, HOT_SMOOTH + e] >= 0 or _behind(across, e, fd):
+            continue
+        hit, d, u, v = _hot_foot(px, py, pz, hot, hot_i, g, origin, home_step)
+        if d * d >= d2:
+            continue
+        if hit:
+            rx = px - d * hot[g, 0]
+            ry = py - d * hot[g, 1]
+            rz = pz - d * hot[g, 2]
+            e2, rg = d * d, REGION_INTERIOR
+        else:
+            k = (across >> (2 * e)) & 3
+            la = 1.0 - u - v
+            if (
+                (k == 0 and la < 0.0 and u >= 0.0 and v >= 0.0)
+                or (k == 1 and u < 0.0 and la >= 0.0 and v >= 0.0)
+                or (k == 2 and v < 0.0 and la >= 0.0 and u >= 0.0)
+            ):
+                continue
+            rx, ry, rz, e2, rg = closest_on_hot(px, py, pz, hot, hot_i, g, origin, home_step)
+        if e2 < d2:
+            g_best, qx, qy, qz, d2, region = g, rx, ry, rz, e2, rg
+    return g_best, qx, qy, qz, d2, region
+
+
 @njit(cache=True)
 def _walk_and_finish(
     i,
@@ -304,15 +351,20 @@ def _walk_and_finish(
         if region == 0:
             # A foot inside f is a local minimum of the distance to f alone;
             # on the concave side of a bend a neighbour tilted towards p can
-            # still be closer, so look across the three edges too.
+            # still be closer, so look across the edges too.
             bf, bx, by, bz, b2, br = f, qx, qy, qz, d2, region
             if not exact:
-                # Start all three neighbours' loads before testing any.
-                for e in range(3):
-                    g = int(hot_i[f, HOT_ADJ + e])
-                    if g >= 0:
-                        prefetch(hot, (g, HOT_N))
-                        prefetch(hot, (g, HOT_A))
+                # The face records: across the sharp edges only, each
+                # bounded by its plane first (as _finish_best does). The
+                # float64 path tests all three neighbours exactly.
+                fd = _hot_distance(px, py, pz, hot, hot_i, f, origin, home_step)
+                bf, bx, by, bz, b2, br = _closer_across(
+                    px, py, pz, f, fd, qx, qy, qz, d2, hot, hot_i, origin, home_step
+                )
+                if bf < 0:
+                    break
+                f, qx, qy, qz, d2, region = bf, bx, by, bz, b2, br
+                continue
             for e in range(3):
                 g = int(hot_i[f, HOT_ADJ + e])
                 if g < 0:
@@ -881,11 +933,30 @@ def _query_mixed(
     f = -1
     d2 = np.inf
     fd = 0.0
+    near_g, near2, near_u, near_v = -1, np.inf, 0.0, 0.0
     for k in range(k0, k1):
         g = int(mixed_faces[k])
         hit, d, u, v = _hot_foot(px, py, pz, hot, hot_i, g, origin, home_step)
         if hit and d * d < d2:
             f, d2, fd = g, d * d, d
+        elif not hit and f < 0 and d * d < near2:
+            near_g, near2, near_u, near_v = g, d * d, u, v
+    if f < 0:
+        # No candidate's plane foot lies inside it: the closest face is
+        # often none of them (one closest at no corner of the subcell).
+        # Step from the candidate nearest by its plane across the smooth
+        # edges its foot leaves by, as a one-face cell does; a plane foot
+        # inside a face gives a first answer that bounds the exact tests.
+        g, prev, u, v = near_g, -1, near_u, near_v
+        for _ in range(_MAX_PLANE_STEPS):
+            nxt = int(hot_i[g, HOT_SMOOTH + _exit_edge(u, v)])
+            if nxt < 0 or nxt == prev:
+                break
+            prev, g = g, nxt
+            hit, d, u, v = _hot_foot(px, py, pz, hot, hot_i, g, origin, home_step)
+            if hit:
+                f, d2, fd = g, d * d, d
+                break
     region = 0
     qx = qy = qz = 0.0
     if f >= 0:
@@ -967,40 +1038,10 @@ def _finish_best(
     region; fd its plane distance when the foot is inside it)."""
     if region == 0:
         # A foot inside f: a closer face can only lie across one of f's
-        # edges. Across a smooth edge it would be closer by at most
-        # distance * angle^2 (the single-face cells' bound), so only sharp
-        # edges are looked across, each first bounded by its plane. A face
-        # g lying wholly on the other side of f's plane (a convex edge) is
-        # farther than that plane. A foot on g's plane inside g gives g's
-        # distance; one beyond their shared edge alone puts g's closest
-        # point on that edge, which is no closer than f's plane (p's foot
-        # is inside f): neither needs the full point-to-triangle test.
-        g_best = -1
-        across = hot_i[f, HOT_ACROSS]
-        for e in range(3):
-            g = int(hot_i[f, HOT_ADJ + e])
-            if g < 0 or hot_i[f, HOT_SMOOTH + e] >= 0 or _behind(across, e, fd):
-                continue
-            hit, d, u, v = _hot_foot(px, py, pz, hot, hot_i, g, origin, home_step)
-            if d * d >= d2:
-                continue
-            if hit:
-                rx = px - d * hot[g, 0]
-                ry = py - d * hot[g, 1]
-                rz = pz - d * hot[g, 2]
-                e2, rg = d * d, REGION_INTERIOR
-            else:
-                k = (across >> (2 * e)) & 3
-                la = 1.0 - u - v
-                if (
-                    (k == 0 and la < 0.0 and u >= 0.0 and v >= 0.0)
-                    or (k == 1 and u < 0.0 and la >= 0.0 and v >= 0.0)
-                    or (k == 2 and v < 0.0 and la >= 0.0 and u >= 0.0)
-                ):
-                    continue
-                rx, ry, rz, e2, rg = closest_on_hot(px, py, pz, hot, hot_i, g, origin, home_step)
-            if e2 < d2:
-                g_best, qx, qy, qz, d2, region = g, rx, ry, rz, e2, rg
+        # edges (see _closer_across).
+        g_best, qx, qy, qz, d2, region = _closer_across(
+            px, py, pz, f, fd, qx, qy, qz, d2, hot, hot_i, origin, home_step
+        )
         if g_best < 0:
             _write_foot(i, px, py, pz, fd, f, hot, face_id, out_pts, out_nrm, out_dist, out_face)
             return
