@@ -355,8 +355,8 @@ def _walk_and_finish(
             bf, bx, by, bz, b2, br = f, qx, qy, qz, d2, region
             if not exact:
                 # The face records: across the sharp edges only, each
-                # bounded by its plane first (as _finish_best does). The
-                # float64 path tests all three neighbours exactly.
+                # bounded by its plane first (as query_grid's pass 5 does).
+                # The float64 path tests all three neighbours exactly.
                 fd = _hot_distance(px, py, pz, hot, hot_i, f, origin, home_step)
                 bf, bx, by, bz, b2, br = _closer_across(
                     px, py, pz, f, fd, qx, qy, qz, d2, hot, hot_i, origin, home_step
@@ -585,8 +585,8 @@ def query_grid(
         # cell codes (and those of the subcells of mixed cells), pass 2
         # prefetches the hot records they name, pass 3 answers every query
         # it can and prefetches the record of the face a walk steps to (or
-        # of the faces across the sharp edges of a subcell's face), passes
-        # 4 and 5 finish those.
+        # of the faces across the sharp edges of a subcell's face or of a
+        # list's best candidate), passes 4 and 5 finish those.
         cell = np.empty(QUERY_CHUNK, dtype=np.int64)
         sub = np.empty(QUERY_CHUNK, dtype=np.int64)
         for i in range(j0, j1):
@@ -736,30 +736,45 @@ def query_grid(
                     out_face,
                 )
             else:
-                _query_mixed(
-                    i,
-                    px,
-                    py,
-                    pz,
-                    code,
-                    mixed_ptr,
-                    mixed_faces,
-                    hot,
-                    hot_i,
-                    origin,
-                    home_step,
-                    tri,
-                    fnorm,
-                    vf_ptr,
-                    vf_idx,
-                    edge_pn,
-                    vert_pn,
-                    face_id,
-                    out_pts,
-                    out_nrm,
-                    out_dist,
-                    out_face,
+                f, qx, qy, qz, d2, fd, region = _mixed_best(
+                    px, py, pz, code, mixed_ptr, mixed_faces, hot, hot_i, origin, home_step
                 )
+                if region == REGION_INTERIOR:
+                    # A foot inside f: pass 5 looks across f's sharp edges.
+                    _sharp_prefetch(hot, hot_i, f, fd)
+                    edge_i[n_edge] = i
+                    edge_f[n_edge] = f
+                    edge_d[n_edge] = fd
+                    n_edge += 1
+                else:
+                    _walk_and_finish(
+                        i,
+                        px,
+                        py,
+                        pz,
+                        f,
+                        qx,
+                        qy,
+                        qz,
+                        d2,
+                        region,
+                        hot,
+                        hot_i,
+                        origin,
+                        home_step,
+                        tri,
+                        fnorm,
+                        False,
+                        vf_ptr,
+                        vf_idx,
+                        edge_pn,
+                        vert_pn,
+                        face_id,
+                        out_pts,
+                        out_nrm,
+                        out_dist,
+                        out_face,
+                    )
         for w in range(n_wait):
             i = wait_i[w]
             f = wait_f[w]
@@ -812,24 +827,44 @@ def query_grid(
             f = edge_f[w]
             d = edge_d[w]
             px, py, pz = points[i, 0], points[i, 1], points[i, 2]
-            _finish_best(
-                i,
+            # A foot inside f (at plane distance d): a closer face can only
+            # lie across one of f's edges (see _closer_across).
+            g, qx, qy, qz, d2, region = _closer_across(
                 px,
                 py,
                 pz,
                 f,
+                d,
                 px - d * hot[f, 0],
                 py - d * hot[f, 1],
                 pz - d * hot[f, 2],
                 d * d,
-                d,
-                REGION_INTERIOR,
+                hot,
+                hot_i,
+                origin,
+                home_step,
+            )
+            if g < 0:
+                _write_foot(i, px, py, pz, d, f, hot, face_id, out_pts, out_nrm, out_dist, out_face)
+                continue
+            _walk_and_finish(
+                i,
+                px,
+                py,
+                pz,
+                g,
+                qx,
+                qy,
+                qz,
+                d2,
+                region,
                 hot,
                 hot_i,
                 origin,
                 home_step,
                 tri,
                 fnorm,
+                False,
                 vf_ptr,
                 vf_idx,
                 edge_pn,
@@ -898,32 +933,15 @@ def _exact_from(
     )
 
 
-@njit(cache=True)
-def _query_mixed(
-    i,
-    px,
-    py,
-    pz,
-    code,
-    mixed_ptr,
-    mixed_faces,
-    hot,
-    hot_i,
-    origin,
-    home_step,
-    tri,
-    fnorm,
-    vf_ptr,
-    vf_idx,
-    edge_pn,
-    vert_pn,
-    face_id,
-    out_pts,
-    out_nrm,
-    out_dist,
-    out_face,
-):
-    """Row i of the fast path for a cell with a candidate list (code <= -2)."""
+@njit(cache=True, inline="always")
+def _mixed_best(px, py, pz, code, mixed_ptr, mixed_faces, hot, hot_i, origin, home_step):
+    """The closest of the candidates of a list cell (code <= -2).
+
+    Returns (f, qx, qy, qz, d2, fd, region): the face, its closest point and
+    squared distance, its signed plane distance (when the foot lies inside
+    it, region 0), and the region of the closest point (see
+    :func:`closest_on_triangle`).
+    """
     m = -code - 2
     k0, k1 = mixed_ptr[m], mixed_ptr[m + 1]
     # First the candidates' planes: a foot inside its triangle is that
@@ -957,7 +975,7 @@ def _query_mixed(
             if hit:
                 f, d2, fd = g, d * d, d
                 break
-    region = 0
+    region = REGION_INTERIOR
     qx = qy = qz = 0.0
     if f >= 0:
         qx = px - fd * hot[f, 0]
@@ -975,105 +993,7 @@ def _query_mixed(
                 # The plane test and the triangle test round differently and
                 # can disagree within nanometres of an edge: keep fd this face's.
                 fd = d
-    _finish_best(
-        i,
-        px,
-        py,
-        pz,
-        f,
-        qx,
-        qy,
-        qz,
-        d2,
-        fd,
-        region,
-        hot,
-        hot_i,
-        origin,
-        home_step,
-        tri,
-        fnorm,
-        vf_ptr,
-        vf_idx,
-        edge_pn,
-        vert_pn,
-        face_id,
-        out_pts,
-        out_nrm,
-        out_dist,
-        out_face,
-    )
-
-
-@njit(cache=True)
-def _finish_best(
-    i,
-    px,
-    py,
-    pz,
-    f,
-    qx,
-    qy,
-    qz,
-    d2,
-    fd,
-    region,
-    hot,
-    hot_i,
-    origin,
-    home_step,
-    tri,
-    fnorm,
-    vf_ptr,
-    vf_idx,
-    edge_pn,
-    vert_pn,
-    face_id,
-    out_pts,
-    out_nrm,
-    out_dist,
-    out_face,
-):
-    """Row i from the best candidate f (closest point q, squared distance d2,
-    region; fd its plane distance when the foot is inside it)."""
-    if region == 0:
-        # A foot inside f: a closer face can only lie across one of f's
-        # edges (see _closer_across).
-        g_best, qx, qy, qz, d2, region = _closer_across(
-            px, py, pz, f, fd, qx, qy, qz, d2, hot, hot_i, origin, home_step
-        )
-        if g_best < 0:
-            _write_foot(i, px, py, pz, fd, f, hot, face_id, out_pts, out_nrm, out_dist, out_face)
-            return
-        f = g_best
-    _walk_and_finish(
-        i,
-        px,
-        py,
-        pz,
-        f,
-        qx,
-        qy,
-        qz,
-        d2,
-        region,
-        hot,
-        hot_i,
-        origin,
-        home_step,
-        tri,
-        fnorm,
-        False,
-        vf_ptr,
-        vf_idx,
-        edge_pn,
-        vert_pn,
-        face_id,
-        out_pts,
-        out_nrm,
-        out_dist,
-        out_face,
-    )
+    return f, qx, qy, qz, d2, fd, region
 
 
 @njit(cache=True)
