@@ -736,45 +736,19 @@ def query_grid(
                     out_face,
                 )
             else:
-                f, qx, qy, qz, d2, fd, region = _mixed_best(
+                f, fd, region = _mixed_best(
                     px, py, pz, code, mixed_ptr, mixed_faces, hot, hot_i, origin, home_step
                 )
                 if region == REGION_INTERIOR:
                     # A foot inside f: pass 5 looks across f's sharp edges.
                     _sharp_prefetch(hot, hot_i, f, fd)
-                    edge_i[n_edge] = i
-                    edge_f[n_edge] = f
                     edge_d[n_edge] = fd
-                    n_edge += 1
                 else:
-                    _walk_and_finish(
-                        i,
-                        px,
-                        py,
-                        pz,
-                        f,
-                        qx,
-                        qy,
-                        qz,
-                        d2,
-                        region,
-                        hot,
-                        hot_i,
-                        origin,
-                        home_step,
-                        tri,
-                        fnorm,
-                        False,
-                        vf_ptr,
-                        vf_idx,
-                        edge_pn,
-                        vert_pn,
-                        face_id,
-                        out_pts,
-                        out_nrm,
-                        out_dist,
-                        out_face,
-                    )
+                    # On an edge or corner of f: pass 5 walks from f.
+                    edge_d[n_edge] = np.nan
+                edge_i[n_edge] = i
+                edge_f[n_edge] = f
+                n_edge += 1
         for w in range(n_wait):
             i = wait_i[w]
             f = wait_f[w]
@@ -827,32 +801,41 @@ def query_grid(
             f = edge_f[w]
             d = edge_d[w]
             px, py, pz = points[i, 0], points[i, 1], points[i, 2]
-            # A foot inside f (at plane distance d): a closer face can only
-            # lie across one of f's edges (see _closer_across).
-            g, qx, qy, qz, d2, region = _closer_across(
-                px,
-                py,
-                pz,
-                f,
-                d,
-                px - d * hot[f, 0],
-                py - d * hot[f, 1],
-                pz - d * hot[f, 2],
-                d * d,
-                hot,
-                hot_i,
-                origin,
-                home_step,
-            )
-            if g < 0:
-                _write_foot(i, px, py, pz, d, f, hot, face_id, out_pts, out_nrm, out_dist, out_face)
-                continue
+            if np.isnan(d):
+                # A list's best candidate, closest on an edge or corner.
+                qx, qy, qz, d2, region = closest_on_hot(
+                    px, py, pz, hot, hot_i, f, origin, home_step
+                )
+            else:
+                # A foot inside f (at plane distance d): a closer face can
+                # only lie across one of f's edges (see _closer_across).
+                g, qx, qy, qz, d2, region = _closer_across(
+                    px,
+                    py,
+                    pz,
+                    f,
+                    d,
+                    px - d * hot[f, 0],
+                    py - d * hot[f, 1],
+                    pz - d * hot[f, 2],
+                    d * d,
+                    hot,
+                    hot_i,
+                    origin,
+                    home_step,
+                )
+                if g < 0:
+                    _write_foot(
+                        i, px, py, pz, d, f, hot, face_id, out_pts, out_nrm, out_dist, out_face
+                    )
+                    continue
+                f = g
             _walk_and_finish(
                 i,
                 px,
                 py,
                 pz,
-                g,
+                f,
                 qx,
                 qy,
                 qz,
@@ -937,9 +920,8 @@ def _exact_from(
 def _mixed_best(px, py, pz, code, mixed_ptr, mixed_faces, hot, hot_i, origin, home_step):
     """The closest of the candidates of a list cell (code <= -2).
 
-    Returns (f, qx, qy, qz, d2, fd, region): the face, its closest point and
-    squared distance, its signed plane distance (when the foot lies inside
-    it, region 0), and the region of the closest point (see
+    Returns (f, fd, region): the face, its signed plane distance (when the
+    foot lies inside it, region 0), and the region of its closest point (see
     :func:`closest_on_triangle`).
     """
     m = -code - 2
@@ -976,24 +958,19 @@ def _mixed_best(px, py, pz, code, mixed_ptr, mixed_faces, hot, hot_i, origin, ho
                 f, d2, fd = g, d * d, d
                 break
     region = REGION_INTERIOR
-    qx = qy = qz = 0.0
-    if f >= 0:
-        qx = px - fd * hot[f, 0]
-        qy = py - fd * hot[f, 1]
-        qz = pz - fd * hot[f, 2]
     for k in range(k0, k1):
         g = int(mixed_faces[k])
         hit, d, u, v = _hot_foot(px, py, pz, hot, hot_i, g, origin, home_step)
         if hit or d * d >= d2:
             continue
-        rx, ry, rz, e2, rg = closest_on_hot(px, py, pz, hot, hot_i, g, origin, home_step)
+        _, _, _, e2, rg = closest_on_hot(px, py, pz, hot, hot_i, g, origin, home_step)
         if e2 < d2:
-            f, qx, qy, qz, d2, region = g, rx, ry, rz, e2, rg
+            f, d2, region = g, e2, rg
             if rg == REGION_INTERIOR:
                 # The plane test and the triangle test round differently and
                 # can disagree within nanometres of an edge: keep fd this face's.
                 fd = d
-    return f, qx, qy, qz, d2, fd, region
+    return f, fd, region
 
 
 @njit(cache=True)
