@@ -41,10 +41,11 @@ a cell with a candidate list the candidates' planes bound their distances
 from below, so few need the full point-to-triangle test; where no
 candidate's plane foot lies inside it (a third of such queries: the closest
 face is often closest at none of the corners), the query steps from the
-nearest by its plane across smooth edges as a one-face cell does. Such lists cost a
-query several times a single face, which is why mixed cells are split: on
-the 600 x 400 mm panel 12 % of near queries fall in mixed cells, 8 % in
-mixed subcells, whose lists are shorter (2.6 faces on average, from 3.9).
+nearest by its plane across smooth edges as a one-face cell does. Such
+lists cost a query several times a single face, which is why mixed cells
+are split: on the 600 x 400 mm panel 12 % of near queries fall in mixed
+cells, 8 % in mixed subcells, whose lists are shorter (2.6 faces on average,
+from 3.9).
 A subcell left with one face also looks across that face's sharp edges,
 unless the build proved no face there can be closer (93 % of them), so
 splitting changes no answer. Faces are numbered in a spatial order
@@ -68,7 +69,8 @@ counter model for ~0.1 % of points within 3 mm, up to 0.6 mm off). Likewise
 on the concave side of a bend meshed finer than a cell, a face closest at
 none of a cell's corners can be missed: on the 600 x 400 mm panel, 0.09 % of
 points within 3 mm, 2-3 mm off its 0.7 mm-meshed radii, get a face up to
-31 um farther than the closest (0.2 %, up to 50 um, on the 240 x 160 mm one). A finer ``spacing_mm`` makes both rarer.
+31 um farther than the closest (0.2 %, up to 50 um, on the 240 x 160 mm
+one). A finer ``spacing_mm`` makes both rarer.
 The face records hold planes and corners in float32 relative to a home point
 of the face (a block corner near it; the query's offset from it is taken in
 float64), which rounds them by about 6e-8 of their distance from that point:
