@@ -2,7 +2,8 @@
 
 Usage: python doc_subscriber.py ENDPOINT LINE N
 Prints one JSON line per InspectionResult and per FrameSet received (a summary
-of what it parsed) and exits after N results.
+of what it parsed) and exits after N results of parts whose frames it received
+(one that joins the line between a part's frames and its result counts the next).
 """
 
 import json
@@ -40,6 +41,7 @@ def main() -> int:
     cfg.insert_json5("connect/endpoints", json.dumps([endpoint]))
     cfg.insert_json5("scouting/multicast/enabled", "false")
     results = 0
+    framed = set()  # serials whose FrameSet arrived
     with zenoh.open(cfg) as session:
         sub = session.declare_subscriber(f"insp/v1/{line}/**", zenoh.handlers.FifoChannel(256))
         print(json.dumps({"kind": "ready"}), flush=True)
@@ -48,7 +50,9 @@ def main() -> int:
             key = str(sample.key_expr).split("/")
             data = sample.payload.to_bytes()
             if key[-1] == "frames":
-                print(json.dumps(parse_frameset(data)), flush=True)
+                frameset = parse_frameset(data)
+                framed.add(frameset["serial"])
+                print(json.dumps(frameset), flush=True)
             elif len(key) == 7 and key[4] == "result":
                 r = json.loads(data)
                 assert (r["part"], r["serial"]) == (key[5], key[6])
@@ -73,7 +77,7 @@ def main() -> int:
                     "schema_version",
                 )
                 print(json.dumps({"kind": "result", **{f: r[f] for f in fields}}), flush=True)
-                results += 1
+                results += r["serial"] in framed
         sub.undeclare()
     ours = sorted(m for m in sys.modules if m.split(".")[0] in ("service", "inspection"))
     print(json.dumps({"kind": "done", "our_modules": ours}), flush=True)
