@@ -194,6 +194,12 @@ _GNC_GAIN = 1e-3
 # cannot be seen; a residual this large puts a point on the loss's plateau.
 _BACK_FACE_COS = -0.5
 _FAR_MM = 1e30
+# ... and when the steps that do lower the cost under that rule are damped
+# this much as the pose settles (the trust region has shrunk to crawling: the rule's jumps make
+# the quadratic model a poor one), the fit is stuck against the rule, as a
+# part tilted far over an outline is when its overhanging points count as
+# unseen and no longer pull it back.
+_VIEW_STUCK_LAMBDA = 1.0
 _GNC_STEP = 1e-3
 # Steps moving the points by less than this (RMS, mm) are evaluated against
 # each point's last closest face rather than with a fresh query.
@@ -1000,7 +1006,8 @@ def register(
         thickness would otherwise fit half its points to its bottom. Needs
         ``loss`` tukey or welsch (a loss with a plateau for such points).
         Should no step lower the cost under that rule (points crossing onto
-        back faces jump to the plateau), the fit goes on without it.
+        back faces jump to the plateau), or only heavily damped ones when the
+        pose settles, the fit goes on without it.
     graduated : bool
         Start with a wide robust scale and narrow it as the pose settles
         (graduated non-convexity), so that points misfit by the start offset,
@@ -1297,12 +1304,13 @@ def register(
             settled = True
         if not settled:
             continue
-        if view_active and not step_ok and not tiny:
-            # No step lowers the cost with back faces ruled out: points that
-            # would cross onto one jump to the loss's plateau, which can
-            # block every step (a part far off in its plane). Go on without
-            # the rule; it only ever lowers the cost (a plateau is the most a
-            # point can cost), so the cost still never rises.
+        if view_active and ((not step_ok and not tiny) or lam > _VIEW_STUCK_LAMBDA):
+            # No step lowers the cost with back faces ruled out, or only
+            # crawling ones do: points that would cross onto one jump to the
+            # loss's plateau, which can block every step (a part far off in
+            # its plane). Go on without the rule; it only ever lowers the
+            # cost (a plateau is the most a point can cost), so the cost
+            # still never rises.
             view_active = False
             lam = 1e-4
             continue
