@@ -74,7 +74,8 @@ _NOISE_LIMIT = (
     "fandisk's nearly so): only the outline places the part along it, through points that "
     "the noise carries over the edge onto the end walls. With 0.02 mm noise that is good "
     "to 5-25 um (featuretype misses 5 um on 11 of 20 seeds, fandisk on 2), started at the "
-    "truth as from 10 deg off: a limit of the data (see the noise-limit test)"
+    "truth as from 10 deg off: a limit of the data, which the fit reports (featuretype's "
+    "is flagged degenerate; see the noise-limit test)"
 )
 _THROUGH_SLAB = (
     "a thin part tilted through its own thickness: the points below it fit its bottom "
@@ -142,13 +143,16 @@ def test_weakly_observable_meshes_reach_the_noise_limit(shared, name, scale):
     The fit must still resolve what its own normal matrix (those wall points
     included) says it can: the error stays within three times
     noise * sqrt(sum 1/lambda_i / N) of the observability eigenvalues, and the
-    rotation within 0.005 deg."""
+    rotation within 0.005 deg. Featuretype's direction is weak enough to be
+    flagged as degenerate."""
     cad, tree = shared(name, scale)
     data, _, T_true = scenario(cad, seed=3)
     reg = register(tree, data)
     rot, disp = pose_errors(reg.transform, T_true, data)
     bound = 0.02 * np.sqrt(np.sum(1.0 / reg.observability) / len(data))
     assert reg.converged
+    if name == "featuretype.STL":
+        assert reg.degenerate  # the user is told: y rests on the outline alone
     assert rot <= 0.005
     assert disp <= max(0.005, 3.0 * bound), (disp, bound)
 
