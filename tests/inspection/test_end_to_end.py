@@ -79,8 +79,33 @@ def dented(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     return trimesh.Trimesh(v, out.faces, process=False)
 
 
-@pytest.fixture(scope="module")
-def measured():
+# Where the part lies on the belt (x mm, y mm, turn deg). The first pose is a
+# typical one; the second is the worst of twelve measured (six poses, seeds 11
+# and 12), kept so that what the line still misses stays in view.
+POSES = {"typical": (40.0, -30.0, 25.0), "worst": (80.0, 150.0, -120.0)}
+_LOCAL_ERROR = (
+    "comparison points come out up to 0.076 mm off over twelve poses (0.084 even at the "
+    "true pose, 0.067 with the true rig as well): the reconstruction's local error is "
+    "correlated over the matching window (~7 mm) and is the same from seed to seed (the "
+    "projected speckle is fixed), so the 10 mm support averages only a few independent "
+    "windows of it"
+)
+KNOWN_MISSES = {
+    ("worst", "rotation"): "0.056 deg here (0.003-0.056 over twelve poses): the in-plane "
+    "turn rests on the same rounded character line and edge radii as the translation",
+    ("worst", "dent_0.3"): "-0.070 mm off: " + _LOCAL_ERROR,
+}
+
+
+def _known_miss(request: pytest.FixtureRequest, pose: str, what: str) -> None:
+    """Mark this test as a known miss of the line at ``pose`` (it may still pass)."""
+    reason = KNOWN_MISSES.get((pose, what))
+    if reason is not None:
+        request.applymarker(pytest.mark.xfail(strict=False, reason=reason))
+
+
+@pytest.fixture(scope="module", params=list(POSES))
+def measured(request):
     try:
         line_rig = Rig.default()
     except FileNotFoundError as exc:
@@ -91,14 +116,14 @@ def measured():
     for name, (x, y, _) in SITES.items():
         p, n = _surface_at(mesh, x, y)
         cps.append(deviations_mod.ComparisonPoint(name, tuple(p), tuple(n), -0.2, 0.2, RADIUS_MM))
-    T_rig_part = _pose(40.0, -30.0, 25.0)
+    T_rig_part = _pose(*POSES[request.param])
     frames = simulate(Rig.nominal(), dented(mesh), T_rig_part, seed=11)
     cloud = Reconstructor.build(line_rig)(frames)
     tree = grid.GridTree.build(cad)
     fit = alignment.align(tree, cloud.points, cad=cad, weights=cloud.weights)
     T = fit.transform
     dev = deviations_mod.deviations(tree, cloud.points @ T[:3, :3].T + T[:3, 3], cps)
-    return cad, cloud, T_rig_part, fit, dev
+    return cad, cloud, T_rig_part, fit, dev, request.param
 
 
 def _pose_errors(cad, T_cad_rig: np.ndarray, T_rig_part: np.ndarray) -> tuple[float, float]:
@@ -116,8 +141,9 @@ def test_cloud_is_dense(measured) -> None:
     assert "empty" not in cloud.report.flags
 
 
-def test_pose_rotation_recovered(measured) -> None:
-    cad, _, T_rig_part, fit, _ = measured
+def test_pose_rotation_recovered(measured, request) -> None:
+    cad, _, T_rig_part, fit, _, pose = measured
+    _known_miss(request, pose, "rotation")
     angle, _ = _pose_errors(cad, fit.transform, T_rig_part)
     assert angle <= 0.05
 
@@ -125,25 +151,29 @@ def test_pose_rotation_recovered(measured) -> None:
 @pytest.mark.xfail(
     strict=False,
     reason=(
-        "the part's corners come out 0.04-0.40 mm off over six poses at seeds 11 and 12 "
-        "(0.14 mm in this one): the in-plane pose rests on the few points on the edge radii "
-        "and the character line, whose profile the reconstruction rounds off by 0.1-0.4 mm "
-        "(its foot too high, its shoulder too low), unevenly along the part. The flash's broad "
-        "sheen doubles that on the character line, yet frames without it (or without specular "
-        "light, blur and dirt), pixel-area sampling, the true rig, a gain gradient in the "
-        "matching windows or the fine fit on every point each leave some pose 0.3 mm or more "
-        "off (~0.03 mm of it is the calibrated rig)"
+        "the part's corners come out 0.04-0.40 mm off over six poses at seeds 11 and 12 (0.14 "
+        "mm at the typical pose, 0.40 at the worst): the in-plane pose rests on the few points "
+        "on the edge radii and the character line, whose profile the reconstruction rounds off "
+        "by 0.1-0.4 mm (its foot too high, its shoulder too low), unevenly along the part. The "
+        "flash's broad sheen doubles that on the character line, yet frames without it (or "
+        "without specular light, blur and dirt), pixel-area sampling, the true rig, a gain "
+        "gradient in the matching windows or the fine fit on every point each leave some pose "
+        "0.3 mm or more off (~0.03 mm of it is the calibrated rig). The ring pairs bring the "
+        "worst to 0.26 mm; taking out the error predicted by rendering (noise-free) and "
+        "reconstructing the CAD at the fitted pose, to 0.13 mm; both together, to 0.10 mm, at "
+        "three times the time"
     ),
 )
 def test_pose_translation_recovered(measured) -> None:
-    cad, _, T_rig_part, fit, _ = measured
+    cad, _, T_rig_part, fit, _, _ = measured
     _, shift = _pose_errors(cad, fit.transform, T_rig_part)
     assert shift <= 0.1
 
 
 @pytest.mark.parametrize("name", list(SITES))
-def test_comparison_point_deviation(measured, name: str) -> None:
-    *_, dev = measured
+def test_comparison_point_deviation(measured, name: str, request) -> None:
+    *_, dev, pose = measured
+    _known_miss(request, pose, name)
     result = {c.name: c for c in dev.comparison}[name]
     truth = -SITES[name][2]  # pressed in: against the outward normal
     assert result.support >= 100
