@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from inspection.panel import PanelSpec, sheet_metal_panel
+from inspection.panel import PanelSpec, press_dents, sheet_metal_panel
 from inspection.reconstruct import Reconstructor
 from inspection.rig import Rig
 from inspection.simulate import simulate
@@ -55,28 +55,13 @@ def _surface_at(mesh: trimesh.Trimesh, x: float, y: float) -> tuple[np.ndarray, 
 
 
 def dented(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
-    """The mesh with the dents of SITES pressed in along vertex normals (refined around them)."""
-    out = mesh.copy()
-    centres = np.array([(x, y) for x, y, depth in SITES.values() if depth > 0])
-    for _ in range(2):  # 4 mm -> 1 mm edges around the dents
-        fc = out.triangles_center[:, :2]
-        near = (
-            np.min(np.linalg.norm(fc[:, None, :] - centres[None], axis=2), axis=1)
-            < DENT_OUTER_MM + 6
-        )
-        v, f = trimesh.remesh.subdivide(out.vertices, out.faces, face_index=np.nonzero(near)[0])
-        out = trimesh.Trimesh(v, f, process=False)
-    v = out.vertices.copy()
-    normals = out.vertex_normals
-    top = v[:, 2] > 5.0  # the panel's top, not its flange
-    for x, y, depth in SITES.values():
-        if depth == 0:
-            continue
-        r = np.hypot(v[:, 0] - x, v[:, 1] - y)
-        s = np.clip((r - DENT_FLAT_MM) / (DENT_OUTER_MM - DENT_FLAT_MM), 0.0, 1.0)
-        profile = 1.0 - s * s * (3.0 - 2.0 * s)
-        v -= (depth * profile * top)[:, None] * normals
-    return trimesh.Trimesh(v, out.faces, process=False)
+    """The mesh with the dents of SITES pressed in."""
+    return press_dents(
+        mesh,
+        [(x, y, depth) for x, y, depth in SITES.values()],
+        flat_mm=DENT_FLAT_MM,
+        outer_mm=DENT_OUTER_MM,
+    )
 
 
 # Where the part lies on the belt (x mm, y mm, turn deg). The first pose is a
