@@ -48,14 +48,6 @@ CORNER_GOAL_MM = 0.1
 DEVIATION_GOAL_MM = 0.05
 
 
-def _pose(x: float, y: float, deg: float) -> np.ndarray:
-    a = np.deg2rad(deg)
-    T = np.eye(4)
-    T[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
-    T[:3, 3] = (x, y, 0.0)
-    return T
-
-
 def _apply(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     return points @ T[:3, :3].T + T[:3, 3]
 
@@ -68,7 +60,7 @@ def main() -> int:
     from inspection.grid import GridTree
     from inspection.panel import PanelSpec, press_dents, sheet_metal_panel
     from inspection.reconstruct import Reconstructor
-    from inspection.rig import Rig
+    from inspection.rig import Rig, belt_pose
     from inspection.simulate import simulate
 
     seeds = [int(s) for s in os.environ.get("BENCH_E2E_SEEDS", "11,12").split(",") if s]
@@ -99,7 +91,7 @@ def main() -> int:
     rows = []
     for seed in seeds:
         for x, y, deg in POSES:
-            T_rig_part = _pose(x, y, deg)
+            T_rig_part = belt_pose(x, y, deg)
             start = time.perf_counter()
             cloud = rec(simulate(truth_rig, dented, T_rig_part, seed=seed))
             fit = align(tree, cloud.points, cad=cad, weights=cloud.weights)

@@ -47,14 +47,6 @@ def _median_time(fn: Callable[[], object], repeats: int) -> float:
     return statistics.median(times)
 
 
-def _pose(x: float, y: float, deg: float) -> np.ndarray:
-    a = np.deg2rad(deg)
-    T = np.eye(4)
-    T[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
-    T[:3, 3] = (x, y, 0.0)
-    return T
-
-
 def distances_to_mesh(mesh, points: np.ndarray, search_mm: float = 2.0) -> np.ndarray:
     """Exact distance of each point to the mesh (inf beyond ``search_mm``).
 
@@ -116,7 +108,7 @@ def _sgbm_peer(rec, frames):  # type: ignore[no-untyped-def]
 def main() -> int:
     from inspection.panel import PanelSpec, sheet_metal_panel
     from inspection.reconstruct import Reconstructor
-    from inspection.rig import Rig
+    from inspection.rig import Rig, belt_pose
     from inspection.simulate import simulate
 
     truth = Rig.nominal()
@@ -139,7 +131,7 @@ def main() -> int:
     peer_times: list[float] = []
     stage_ms: dict[str, list[float]] = {}
     for i, (x, y, deg) in enumerate(POSES):
-        T = _pose(x, y, deg)
+        T = belt_pose(x, y, deg)
         mesh = cad.to_trimesh()
         mesh.apply_transform(T)
         frames = simulate(truth, cad.to_trimesh(), T, seed=i)  # warm-up on the first pose

@@ -26,7 +26,7 @@ from .grid import Closest, GridTree, warmup
 from .panel import PanelSpec, sheet_metal_panel
 from .reconstruct import Cloud, Prior, Reconstructor, ReconstructParams, reconstruct
 from .registration import Registration, StopReason, register
-from .rig import Camera, Conveyor, Projector, Rig
+from .rig import Camera, Conveyor, Projector, Rig, belt_pose
 from .simulate import RenderOptions, Simulator, simulate, simulate_board
 
 __all__ = [
@@ -59,6 +59,7 @@ __all__ = [
     "StopReason",
     "TreeMismatch",
     "align",
+    "belt_pose",
     "calibrate",
     "deviations",
     "load_cad",

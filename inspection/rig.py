@@ -215,6 +215,24 @@ def look_at(
     return np.stack([x, y, z])
 
 
+def belt_pose(x_mm: float, y_mm: float, yaw_deg: float, z_mm: float = 0.0) -> Transform:
+    """Pose of a part on the belt: turned by ``yaw_deg`` about the rig's vertical
+    (z), then moved to (``x_mm``, ``y_mm``, ``z_mm``).
+
+    Returns
+    -------
+    T_rig_part : (4, 4) float64
+        Maps part-frame points into the rig frame; a part resting on its own
+        z = 0 plane lies on the belt for ``z_mm`` = 0.
+    """
+    a = np.deg2rad(yaw_deg)
+    c, s = np.cos(a), np.sin(a)
+    T = np.eye(4)
+    T[:2, :2] = [[c, -s], [s, c]]
+    T[:3, 3] = (x_mm, y_mm, z_mm)
+    return T
+
+
 def _rotation_ok(R: npt.NDArray[np.float64], what: str) -> None:
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0.0:
         raise InvalidInput(f"{what} must be a rotation matrix (orthonormal, det +1)")

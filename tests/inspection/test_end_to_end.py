@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 import trimesh
 
+from bench import bench_endtoend
 from inspection.panel import PanelSpec, press_dents, sheet_metal_panel
 from inspection.reconstruct import Reconstructor
-from inspection.rig import Rig
+from inspection.rig import Rig, belt_pose
 from inspection.simulate import simulate
 
 alignment = pytest.importorskip(
@@ -25,27 +26,10 @@ deviations_mod = pytest.importorskip(
 )
 grid = pytest.importorskip("inspection.grid", reason="inspection.grid is not available")
 
-# Comparison sites on the panel's top (panel frame, mm) and the dent pressed in there.
-SITES = {
-    "dent_0.3": (-60.0, 30.0, 0.3),
-    "dent_0.5": (60.0, -70.0, 0.5),
-    "dent_1.0": (125.0, 10.0, 1.0),
-    "flat_a": (-120.0, 75.0, 0.0),
-    "flat_b": (10.0, 10.0, 0.0),
-}
-RADIUS_MM = 10.0
-# Dents are flat-bottomed within DENT_FLAT_MM (so the truth over the support
-# radius is the depth itself) and blend smoothly back to the surface at DENT_OUTER_MM.
-DENT_FLAT_MM = 16.0
-DENT_OUTER_MM = 30.0
-
-
-def _pose(x: float, y: float, deg: float) -> np.ndarray:
-    a = np.deg2rad(deg)
-    T = np.eye(4)
-    T[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
-    T[:3, 3] = (x, y, 0.0)
-    return T
+# The scene of the end-to-end benchmark: comparison sites on the panel's top
+# (panel frame, mm), the dent pressed in at each (flat-bottomed out to 16 mm,
+# so that the truth over the 10 mm support radius is the depth itself).
+SITES, RADIUS_MM = bench_endtoend.SITES, bench_endtoend.RADIUS_MM
 
 
 def _surface_at(mesh: trimesh.Trimesh, x: float, y: float) -> tuple[np.ndarray, np.ndarray]:
@@ -56,12 +40,7 @@ def _surface_at(mesh: trimesh.Trimesh, x: float, y: float) -> tuple[np.ndarray, 
 
 def dented(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     """The mesh with the dents of SITES pressed in."""
-    return press_dents(
-        mesh,
-        [(x, y, depth) for x, y, depth in SITES.values()],
-        flat_mm=DENT_FLAT_MM,
-        outer_mm=DENT_OUTER_MM,
-    )
+    return press_dents(mesh, list(SITES.values()))
 
 
 # Where the part lies on the belt (x mm, y mm, turn deg). The first pose is a
@@ -101,7 +80,7 @@ def measured(request):
     for name, (x, y, _) in SITES.items():
         p, n = _surface_at(mesh, x, y)
         cps.append(deviations_mod.ComparisonPoint(name, tuple(p), tuple(n), -0.2, 0.2, RADIUS_MM))
-    T_rig_part = _pose(*POSES[request.param])
+    T_rig_part = belt_pose(*POSES[request.param])
     frames = simulate(Rig.nominal(), dented(mesh), T_rig_part, seed=11)
     cloud = Reconstructor.build(line_rig)(frames)
     tree = grid.GridTree.build(cad)

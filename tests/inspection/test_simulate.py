@@ -9,7 +9,7 @@ import trimesh
 from inspection.board import CharucoSpec, board_lying_flat
 from inspection.calibration import detect_board
 from inspection.errors import InvalidInput
-from inspection.rig import Rig
+from inspection.rig import Rig, belt_pose
 from inspection.simulate import RenderOptions, simulate, simulate_board
 
 
@@ -30,17 +30,9 @@ def panel() -> trimesh.Trimesh:
     return mesh
 
 
-def _pose(x: float, y: float, yaw_deg: float, z: float = 0.0) -> np.ndarray:
-    a = np.deg2rad(yaw_deg)
-    T = np.eye(4)
-    T[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
-    T[:3, 3] = (x, y, z)
-    return T
-
-
 @pytest.fixture(scope="module")
 def rendered(rig, panel):
-    return simulate(rig, panel, _pose(40.0, -25.0, 25.0), seed=3, return_truth=True)
+    return simulate(rig, panel, belt_pose(40.0, -25.0, 25.0), seed=3, return_truth=True)
 
 
 def test_four_uint8_frames_of_the_camera_size(rig, rendered) -> None:
@@ -52,10 +44,10 @@ def test_four_uint8_frames_of_the_camera_size(rig, rendered) -> None:
 
 def test_same_seed_same_images_other_seed_other_noise(rig, panel, rendered) -> None:
     images, _ = rendered
-    again = simulate(rig, panel, _pose(40.0, -25.0, 25.0), seed=3)
+    again = simulate(rig, panel, belt_pose(40.0, -25.0, 25.0), seed=3)
     for a, b in zip(images, again, strict=True):
         assert np.array_equal(a, b)
-    other = simulate(rig, panel, _pose(40.0, -25.0, 25.0), seed=4)
+    other = simulate(rig, panel, belt_pose(40.0, -25.0, 25.0), seed=4)
     assert not np.array_equal(images[0], other[0])
 
 
@@ -72,7 +64,7 @@ def test_truth_points_lie_on_the_pixel_rays(rig, rendered) -> None:
 
 def test_truth_points_lie_on_the_part_or_the_belt(rig, panel, rendered) -> None:
     _, truths = rendered
-    T = _pose(40.0, -25.0, 25.0)
+    T = belt_pose(40.0, -25.0, 25.0)
     for truth in truths:
         belt = truth.points[~truth.part]
         assert np.abs(belt[:, 2]).max() < 1e-4
@@ -106,7 +98,7 @@ def test_faults_saturate_and_clean_options_do_not(rig, panel, rendered) -> None:
     images, clean = simulate(
         rig,
         panel,
-        _pose(40.0, -25.0, 25.0),
+        belt_pose(40.0, -25.0, 25.0),
         seed=3,
         options=RenderOptions.clean(),
         return_truth=True,
@@ -115,7 +107,7 @@ def test_faults_saturate_and_clean_options_do_not(rig, panel, rendered) -> None:
 
 
 def test_part_lying_outside_the_view_only_shows_belt(rig, panel) -> None:
-    _, truths = simulate(rig, panel, _pose(3000.0, 0.0, 0.0), seed=0, return_truth=True)
+    _, truths = simulate(rig, panel, belt_pose(3000.0, 0.0, 0.0), seed=0, return_truth=True)
     assert not any(t.part.any() for t in truths)
 
 
@@ -207,7 +199,7 @@ def test_concurrent_calls_from_threads(rig, panel) -> None:
     crash whatever numba's threading layer, and the same images."""
     from concurrent.futures import ThreadPoolExecutor
 
-    T = _pose(0.0, 0.0, 0.0)
+    T = belt_pose(0.0, 0.0, 0.0)
     alone = simulate(rig, panel, T, seed=11)
     with ThreadPoolExecutor(max_workers=2) as pool:
         results = list(pool.map(lambda _: simulate(rig, panel, T, seed=11), range(2)))

@@ -22,6 +22,7 @@ import uvicorn
 from fastapi.testclient import TestClient
 
 from inspection.panel import PanelSpec, panel_height, sheet_metal_panel
+from inspection.rig import belt_pose
 from service.api import ResultHub, create_app
 from service.config import load_line_config
 from service.models import InspectionResult, PointResult, make_result_id, software_version
@@ -591,20 +592,12 @@ def visible_cloud(cad, n: int, seed: int) -> np.ndarray:
     return t[:, 0] + a[:, None] * (t[:, 1] - t[:, 0]) + b[:, None] * (t[:, 2] - t[:, 0])
 
 
-def rig_pose(theta_deg: float, x: float, y: float) -> np.ndarray:
-    c, s = np.cos(np.radians(theta_deg)), np.sin(np.radians(theta_deg))
-    T = np.eye(4)
-    T[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
-    T[:3, 3] = [x, y, 0.0]
-    return T
-
-
 def test_uploaded_clouds_are_measured_and_stored(client, app_parts, line):
     pytest.importorskip("inspection.deviations", reason="the deviations stage is not installed")
     _, reg = line
     part = reg.get(PART)
     store, archive = app_parts[1], app_parts[2]
-    T_rig_cad = rig_pose(37.0, 40.0, -25.0)
+    T_rig_cad = belt_pose(40.0, -25.0, 37.0)
     pts_cad = visible_cloud(part.cad, 20_000, seed=1)
     pts_rig = pts_cad @ T_rig_cad[:3, :3].T + T_rig_cad[:3, 3]
 
