@@ -225,6 +225,8 @@ def belt_pose(x_mm: float, y_mm: float, yaw_deg: float, z_mm: float = 0.0) -> Tr
         Maps part-frame points into the rig frame; a part resting on its own
         z = 0 plane lies on the belt for ``z_mm`` = 0.
     """
+    if not np.isfinite([x_mm, y_mm, yaw_deg, z_mm]).all():
+        raise InvalidInput("belt_pose needs finite x_mm, y_mm, yaw_deg and z_mm")
     a = np.deg2rad(yaw_deg)
     c, s = np.cos(a), np.sin(a)
     T = np.eye(4)

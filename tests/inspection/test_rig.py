@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from inspection.errors import InvalidInput
-from inspection.rig import Camera, Rig, rigid_align
+from inspection.rig import Camera, Rig, belt_pose, rigid_align
 
 VOLUME_CORNERS = np.array(
     [[sx * 400.0, sy * 250.0, z] for sx in (-1, 1) for sy in (-1, 1) for z in (0.0, 200.0)]
@@ -142,6 +142,16 @@ def test_rigid_align_recovers_a_transform() -> None:
     b = a @ R.T + [10.0, -5.0, 3.0]
     T = rigid_align(a, b)
     assert np.allclose(T[:3, :3], R) and np.allclose(T[:3, 3], [10.0, -5.0, 3.0])
+
+
+def test_belt_pose_turns_then_moves_and_refuses_nonsense() -> None:
+    T = belt_pose(100.0, -50.0, 90.0, z_mm=5.0)
+    # The part's +x turns to the rig's +y, and its origin lands at (100, -50, 5).
+    np.testing.assert_allclose(T[:3, :3] @ [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(T @ [10.0, 0.0, 0.0, 1.0], [100.0, -40.0, 5.0, 1.0], atol=1e-12)
+    np.testing.assert_allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-12)
+    with pytest.raises(InvalidInput, match="finite"):
+        belt_pose(float("nan"), 0.0, 0.0)
 
 
 def test_pictures_of_the_rig(rig: Rig, tmp_path) -> None:
