@@ -28,8 +28,12 @@ On the generated sheet-metal panel scaled to 300 x 200 mm, in one run:
   seen from above, scaled to ~300 mm; skipped when ../shared/data/cad or
   ``INSPECTION_SHARED_CAD`` is absent), 50,000 points, noise 0.02 mm, start
   10 degrees and 20 mm off, seeds ``BENCH_MESH_SEEDS`` (3,4,5; empty to
-  skip), with and without ``view_direction``; printed beside the bound the
-  noise sets from the fit's observability.
+  skip), with and without ``view_direction``; printed beside the spread the
+  noise leaves by the fit's own normal matrix. That figure counts the points
+  that noise carries over an outline onto a wall; where the faces turned to
+  the sensor leave a direction unconstrained (featuretype's, all parallel to
+  y), only those points place the part along it, and the true spread is
+  several times larger.
 - Global alignment: ``ALIGN_TRIALS`` seeded placements of the panel (random
   stable pose, any rotation about the vertical, up to 200 mm from the
   origin), 50,000 points; success = 0.005 degrees and 5 um after refinement
