@@ -195,10 +195,10 @@ _GNC_GAIN = 1e-3
 _BACK_FACE_COS = -0.5
 _FAR_MM = 1e30
 # ... and when the steps that do lower the cost under that rule are damped
-# this much as the pose settles (the trust region has shrunk to crawling: the rule's jumps make
-# the quadratic model a poor one), the fit is stuck against the rule, as a
-# part tilted far over an outline is when its overhanging points count as
-# unseen and no longer pull it back.
+# this much as the pose settles (the trust region has shrunk to crawling: the
+# rule's jumps make the quadratic model a poor one), the fit is stuck against
+# the rule, as a part tilted far over an outline is when its overhanging
+# points count as unseen and no longer pull it back.
 _VIEW_STUCK_LAMBDA = 1.0
 _GNC_STEP = 1e-3
 # Steps moving the points by less than this (RMS, mm) are evaluated against
