@@ -48,6 +48,19 @@ CORNER_GOAL_MM = 0.1
 DEVIATION_GOAL_MM = 0.05
 
 
+def comparison_points(mesh):  # type: ignore[no-untyped-def]
+    """The comparison points of SITES on the (undented) mesh's top, tolerance +-0.2 mm."""
+    from inspection.deviations import ComparisonPoint
+
+    out = []
+    for name, (x, y, _) in SITES.items():
+        loc, _, tri = mesh.ray.intersects_location([[x, y, 500.0]], [[0.0, 0.0, -1.0]])
+        k = int(np.argmax(loc[:, 2]))
+        normal = mesh.face_normals[tri[k]]
+        out.append(ComparisonPoint(name, tuple(loc[k]), tuple(normal), -0.2, 0.2, RADIUS_MM))
+    return out
+
+
 def _apply(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     return points @ T[:3, :3].T + T[:3, 3]
 
@@ -56,7 +69,7 @@ def main() -> int:
     import trimesh
 
     from inspection.alignment import align
-    from inspection.deviations import ComparisonPoint, deviations
+    from inspection.deviations import deviations
     from inspection.grid import GridTree
     from inspection.panel import PanelSpec, press_dents, sheet_metal_panel
     from inspection.reconstruct import Reconstructor
@@ -70,12 +83,7 @@ def main() -> int:
     tree = GridTree.build(cad)
     rec = Reconstructor.build(Rig.default())
     truth_rig = Rig.nominal()
-    points = []
-    for name, (x, y, _) in SITES.items():
-        loc, _, tri = mesh.ray.intersects_location([[x, y, 500.0]], [[0.0, 0.0, -1.0]])
-        k = int(np.argmax(loc[:, 2]))
-        n = mesh.face_normals[tri[k]]
-        points.append(ComparisonPoint(name, tuple(loc[k]), tuple(n), -0.2, 0.2, RADIUS_MM))
+    points = comparison_points(mesh)
     corners = trimesh.bounds.corners(cad.bounds)
 
     def site_error(T_cad_rig: np.ndarray, cloud_points: np.ndarray) -> tuple[float, str]:

@@ -13,29 +13,18 @@ import pytest
 import trimesh
 
 from bench import bench_endtoend
+from inspection.alignment import align
+from inspection.deviations import deviations
+from inspection.grid import GridTree
 from inspection.panel import PanelSpec, press_dents, sheet_metal_panel
 from inspection.reconstruct import Reconstructor
 from inspection.rig import Rig, belt_pose
 from inspection.simulate import simulate
 
-alignment = pytest.importorskip(
-    "inspection.alignment", reason="inspection.alignment is not available"
-)
-deviations_mod = pytest.importorskip(
-    "inspection.deviations", reason="inspection.deviations is not available"
-)
-grid = pytest.importorskip("inspection.grid", reason="inspection.grid is not available")
-
 # The scene of the end-to-end benchmark: comparison sites on the panel's top
 # (panel frame, mm), the dent pressed in at each (flat-bottomed out to 16 mm,
 # so that the truth over the 10 mm support radius is the depth itself).
-SITES, RADIUS_MM = bench_endtoend.SITES, bench_endtoend.RADIUS_MM
-
-
-def _surface_at(mesh: trimesh.Trimesh, x: float, y: float) -> tuple[np.ndarray, np.ndarray]:
-    loc, _, tri = mesh.ray.intersects_location([[x, y, 500.0]], [[0.0, 0.0, -1.0]])
-    k = int(np.argmax(loc[:, 2]))
-    return loc[k], mesh.face_normals[tri[k]]
+SITES = bench_endtoend.SITES
 
 
 def dented(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
@@ -76,17 +65,14 @@ def measured(request):
         pytest.skip(f"no calibrated rig: {exc}")
     cad = sheet_metal_panel(PanelSpec().scaled(400.0, 260.0))
     mesh = cad.to_trimesh()
-    cps = []
-    for name, (x, y, _) in SITES.items():
-        p, n = _surface_at(mesh, x, y)
-        cps.append(deviations_mod.ComparisonPoint(name, tuple(p), tuple(n), -0.2, 0.2, RADIUS_MM))
+    cps = bench_endtoend.comparison_points(mesh)
     T_rig_part = belt_pose(*POSES[request.param])
     frames = simulate(Rig.nominal(), dented(mesh), T_rig_part, seed=11)
     cloud = Reconstructor.build(line_rig)(frames)
-    tree = grid.GridTree.build(cad)
-    fit = alignment.align(tree, cloud.points, cad=cad, weights=cloud.weights)
+    tree = GridTree.build(cad)
+    fit = align(tree, cloud.points, cad=cad, weights=cloud.weights)
     T = fit.transform
-    dev = deviations_mod.deviations(tree, cloud.points @ T[:3, :3].T + T[:3, 3], cps)
+    dev = deviations(tree, cloud.points @ T[:3, :3].T + T[:3, 3], cps)
     return cad, cloud, T_rig_part, fit, dev, request.param
 
 
