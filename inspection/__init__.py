@@ -24,7 +24,7 @@ from .errors import (
 )
 from .grid import Closest, GridTree, warmup
 from .panel import PanelSpec, sheet_metal_panel
-from .reconstruct import Cloud, Prior, Reconstructor, ReconstructParams, reconstruct
+from .reconstruct import Cloud, Guide, Prior, Reconstructor, ReconstructParams, reconstruct
 from .registration import Registration, StopReason, register
 from .rig import Camera, Conveyor, Projector, Rig, belt_pose
 from .simulate import RenderOptions, Simulator, simulate, simulate_board
@@ -43,6 +43,7 @@ __all__ = [
     "Conveyor",
     "Deviations",
     "GridTree",
+    "Guide",
     "InspectionError",
     "InsufficientOverlap",
     "InvalidInput",

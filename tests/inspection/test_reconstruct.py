@@ -7,12 +7,14 @@ import pytest
 import trimesh
 
 from inspection.errors import InvalidInput
+from inspection.grid import GridTree
 from inspection.panel import PanelSpec, sheet_metal_panel
 from inspection.reconstruct import (
     FLAG_EMPTY,
     FLAG_SATURATED,
     FLAG_TOO_DARK,
     Cloud,
+    Guide,
     Prior,
     Reconstructor,
     ReconstructParams,
@@ -20,7 +22,7 @@ from inspection.reconstruct import (
     reconstruct,
     write_deviation_ply,
 )
-from inspection.rig import Rig
+from inspection.rig import Rig, belt_pose
 from inspection.simulate import simulate
 
 PLATE_TOP_MM = 40.0
@@ -222,6 +224,94 @@ def test_prior_from_cad() -> None:
         Prior(z_max_mm=-1.0)
 
 
+# -- CAD-guided matching ------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def panel_scene(rig: Rig, reconstructor: Reconstructor):  # type: ignore[no-untyped-def]
+    """The demo panel across the belt: its CAD, tree, pose, frames and unguided cloud."""
+    cad = sheet_metal_panel(PanelSpec().scaled(400.0, 260.0))
+    T = belt_pose(-50.0, -150.0, 160.0)
+    frames = simulate(rig, cad, T, seed=4)
+    return cad, GridTree.build(cad), T, frames, reconstructor(frames)
+
+
+def _surface_errors(tree: GridTree, T: np.ndarray, cloud: Cloud) -> tuple[np.ndarray, np.ndarray]:
+    """Signed distances of the points within 1 mm of the posed CAD, and which lie on bends
+    (normal over 15 degrees from the panel's up: emboss, character line, edge radii)."""
+    P = (cloud.points - T[:3, 3]) @ T[:3, :3]
+    q = tree.query(P)
+    r = np.einsum("ij,ij->i", P - q.points, q.normals)
+    near = np.abs(r) < 1.0
+    bends = q.normals[:, 2] < np.cos(np.radians(15.0))
+    return r[near], bends[near]
+
+
+def _rms(r: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(r**2)))
+
+
+def test_guide_follows_the_bends(reconstructor: Reconstructor, panel_scene) -> None:
+    cad, tree, T, frames, plain = panel_scene
+    guided = reconstructor(frames, guide=Guide.from_cad(cad, T))
+    r0, b0 = _surface_errors(tree, T, plain)
+    r1, b1 = _surface_errors(tree, T, guided)
+    assert b0.sum() > 3000 and b1.sum() > 3000
+    # Windows warped by the measured (smoothed) field leave the bends ~0.3 mm
+    # off; warped by the CAD's field, about half that.
+    assert _rms(r1[b1]) < 0.7 * _rms(r0[b0])
+    assert _rms(r1[~b1]) <= _rms(r0[~b0])
+    assert abs(np.median(r1[~b1])) < 0.01
+    assert len(guided) > 0.98 * len(plain)
+    assert {"guide0", "guide1"} <= set(guided.report.timings_ms)
+
+
+def test_guide_off_the_part_does_no_harm(reconstructor: Reconstructor, panel_scene) -> None:
+    cad, tree, T, frames, plain = panel_scene
+    off = T.copy()
+    off[2, 3] += 10.0  # 5 px of disparity: beyond guide_tolerance_px nearly everywhere
+    cloud = reconstructor(frames, guide=Guide.from_cad(cad, off))
+    r0, b0 = _surface_errors(tree, T, plain)
+    r1, b1 = _surface_errors(tree, T, cloud)
+    assert _rms(r1[b1]) < 1.05 * _rms(r0[b0])
+    assert _rms(r1[~b1]) < 1.05 * _rms(r0[~b0])
+    assert abs(len(cloud) - len(plain)) < 0.02 * len(plain)
+
+
+def test_guide_keeps_a_dent(rig: Rig, reconstructor: Reconstructor) -> None:
+    # The guide is the undented plate: only the windows' shape comes from it,
+    # the dent's depth is still measured.
+    frames = simulate(rig, plate_mesh(PLATE_TOP_MM, DENT_DEPTH_MM), np.eye(4), seed=5)
+    pts = reconstructor(frames, guide=Guide.from_cad(plate_mesh(PLATE_TOP_MM), np.eye(4))).points
+    r = np.hypot(pts[:, 0] - DENT_AT[0], pts[:, 1] - DENT_AT[1])
+    depth = np.median(pts[(r > 40.0) & (r < 60.0), 2]) - np.median(pts[r < 2.0, 2])
+    assert depth == pytest.approx(DENT_DEPTH_MM, abs=0.15)
+
+
+def test_bad_guides(rig: Rig, reconstructor: Reconstructor, plate_frames) -> None:
+    plate = plate_mesh(PLATE_TOP_MM)
+    skew = np.eye(4)
+    skew[0, 1] = 0.1
+    flipped = np.diag([1.0, 1.0, -1.0, 1.0])
+    for cad, T, message in (
+        (object(), np.eye(4), "vertices and faces"),
+        (trimesh.Trimesh(plate.vertices[:2], np.zeros((0, 3), int)), np.eye(4), "vertices"),
+        (trimesh.Trimesh(plate.vertices, plate.faces + len(plate.vertices), process=False),
+         np.eye(4), "faces"),
+        (plate, np.eye(3), "4, 4"),
+        (plate, np.full((4, 4), np.nan), "4, 4"),
+        (plate, skew, "rigid"),
+        (plate, flipped, "rigid"),
+    ):  # fmt: skip
+        with pytest.raises(InvalidInput, match=message):
+            Guide.from_cad(cad, T)
+    with pytest.raises(InvalidInput, match="Guide"):
+        reconstructor(plate_frames, guide=plate)
+    symmetric = Reconstructor.build(rig, ReconstructParams(symmetric=True))
+    with pytest.raises(InvalidInput, match="symmetric"):
+        symmetric(plate_frames, guide=Guide.from_cad(plate, np.eye(4)))
+
+
 # -- bad frames ---------------------------------------------------------------
 
 
@@ -303,6 +393,7 @@ def test_bad_params() -> None:
         {"threads": 0},
         {"warp_slope": float("nan")},
         {"score_full": 0.5},
+        {"guide_tolerance_px": -1.0},
     ):
         with pytest.raises(InvalidInput):
             ReconstructParams(**bad)
