@@ -3,7 +3,11 @@
 The worker and replay call the same :meth:`Pipeline.run`, which is what lets
 a replay reproduce a recorded result exactly. The stages are plain callables
 collected in :class:`Stages`: :func:`flash_stages`, the four-camera flash rig
-(``inspection.simulate`` / ``reconstruct`` / ``align`` / ``deviations``). The
+(``inspection.simulate`` / ``reconstruct`` / ``align`` / ``deviations``).
+With a ``guide`` stage the frames are reconstructed twice: the first cloud
+is aligned, then the matching runs again with the part's CAD at that pose
+shaping its windows (``inspection.Guide``), and that cloud is fitted from the
+first pose and measured. The
 parts are the :class:`~service.parts.LoadedPart` objects of the station's
 :class:`~service.parts.PartRegistry`: the worker and the REST API measure
 with the same tree, alignment model and spec.
@@ -26,7 +30,7 @@ import trimesh
 
 from inspection.errors import InspectionError
 
-from .inspect import CloudFrame, Trigger, inspect_cloud
+from .inspect import CloudFrame, Trigger, inspect_cloud, subsample
 from .models import (
     InspectionResult,
     Status,
@@ -73,6 +77,11 @@ class Stages:
     calibrations : callable() -> list of dict
         One per camera, for the recorder (``name``, ``width``, ``height``,
         ``K``, ``D``, ``R``, ``P``).
+    guide : callable(rig, frames, part, T_rig_part) -> cloud, optional
+        Reconstructs the frames again with the part's CAD at ``T_rig_part``
+        guiding the matching (given with ``refit``; None: one pass).
+    refit : callable(part, points_rig, T_cad_rig) -> registration, optional
+        Fits the guided cloud, starting from the first pass's pose.
     """
 
     name: str
@@ -83,6 +92,12 @@ class Stages:
     deviations: Callable[[LoadedPart, np.ndarray], Any]
     render: Callable[[Any, trimesh.Trimesh, np.ndarray, int], list[np.ndarray]]
     calibrations: Callable[[], list[dict[str, Any]]] = list
+    guide: Callable[[Any, list[np.ndarray], LoadedPart, np.ndarray], Any] | None = None
+    refit: Callable[[LoadedPart, np.ndarray, np.ndarray], Any] | None = None
+
+    def __post_init__(self) -> None:
+        if (self.guide is None) != (self.refit is None):
+            raise ValueError("Stages: give both guide and refit, or neither")
 
 
 @dataclass(frozen=True, eq=False)
@@ -109,8 +124,9 @@ def flash_stages(rig_calibration: str | Path | None = None) -> Stages:
     """
     from inspection.alignment import align as inspection_align
     from inspection.deviations import deviations as inspection_deviations
-    from inspection.reconstruct import Reconstructor
+    from inspection.reconstruct import Guide, Reconstructor
     from inspection.reconstruct import reconstruct as inspection_reconstruct
+    from inspection.registration import register as inspection_register
     from inspection.rig import Rig
     from inspection.simulate import simulate
 
@@ -130,6 +146,19 @@ def flash_stages(rig_calibration: str | Path | None = None) -> Stages:
             model=part.alignment_model,
             cad=part.cad,
             **measure._registration_kwargs(part),
+        )
+
+    def guide(r: FlashRig, frames: list[np.ndarray], part: LoadedPart, T: np.ndarray) -> Any:
+        return inspection_reconstruct(
+            r.calibrated,
+            frames,
+            reconstructor=r.reconstructor,
+            guide=Guide.from_cad(part.cad, T),
+        )
+
+    def refit(part: LoadedPart, points: np.ndarray, T_cad_rig: np.ndarray) -> Any:
+        return inspection_register(
+            part.tree, points, init=T_cad_rig, **measure._registration_kwargs(part)
         )
 
     def deviations(part: LoadedPart, points_cad: np.ndarray) -> Any:
@@ -164,6 +193,8 @@ def flash_stages(rig_calibration: str | Path | None = None) -> Stages:
         deviations=deviations,
         render=render,
         calibrations=calibrations,
+        guide=guide,
+        refit=refit,
     )
 
 
@@ -250,6 +281,39 @@ class Pipeline:
             InspectionResult(status=Status.error, reason=reason, timings_ms=timings, **base)
         )
 
+    def _guided(
+        self, part: LoadedPart, images: list[np.ndarray], points: np.ndarray
+    ) -> tuple[np.ndarray, Callable[[LoadedPart, np.ndarray], Any]] | None:
+        """The CAD-guided second pass: the guided cloud and the fit that starts from the
+        first pass's pose, or None (one pass) when the first alignment failed, is
+        ambiguous or is not trusted; the usual fit then reports why."""
+        assert self.stages.guide is not None and self.stages.refit is not None
+        settings = part.spec.registration
+        try:
+            first = self.stages.align(part, subsample(points, settings.max_points))
+        except InspectionError as exc:
+            log.debug("no guided pass: the first alignment failed: %s", exc)
+            return None
+        T = np.asarray(first.transform, dtype=np.float64)
+        trusted = (
+            np.isfinite(T).all()
+            and not getattr(first, "ambiguous", False)
+            and first.inlier_fraction >= settings.min_inlier_fraction
+            and first.rms_mm <= settings.max_rms_mm
+        )
+        if not trusted:
+            log.debug("no guided pass: the first alignment is not trusted")
+            return None
+        guided = _finite_points(self.stages.guide(self.stages.rig, images, part, np.linalg.inv(T)))
+        if len(guided) == 0:
+            return None
+        refit = self.stages.refit
+
+        def fit(p: LoadedPart, pts: np.ndarray) -> Any:
+            return refit(p, pts, T)
+
+        return guided, fit
+
     def _run(
         self, fs: FrameSet, base: dict[str, Any], timings: dict[str, float], t0: float
     ) -> Outcome:
@@ -287,6 +351,13 @@ class Pipeline:
             points = points[finite]
         if len(points) == 0:
             return self._error(base, "empty cloud: no surface seen in the frames", timings, t0)
+        fit = self.stages.align
+        if self.stages.guide is not None:
+            t = time.perf_counter()
+            guided = self._guided(part, fs.images, points)
+            timings["guide"] = (time.perf_counter() - t) * 1e3
+            if guided is not None:
+                points, fit = guided
         # From here on the REST API's steps: align, deviations, verdict.
         trigger = Trigger(
             id=base["id"],
@@ -303,12 +374,19 @@ class Pipeline:
             trigger,
             frame=CloudFrame.rig,
             timings_ms=timings,
-            fit=self.stages.align,
+            fit=fit,
             measure=self.stages.deviations,
         )
         result = measured.result
         T = None if result.transform is None else np.asarray(result.transform, dtype=np.float64)
         return Outcome(result, points_rig=points, distances=measured.distances, T_cad_rig=T)
+
+
+def _finite_points(cloud: Any) -> np.ndarray:
+    points = np.asarray(cloud.points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        return np.zeros((0, 3))
+    return points[np.isfinite(points).all(axis=1)]
 
 
 def missed_result(

@@ -116,7 +116,7 @@ def test_good_framesets_are_measured_with_the_flash_rig(flash):
         err = np.asarray(r.transform) @ fs.truth.T_rig_part
         np.testing.assert_allclose(err[:3, :3], np.eye(3), atol=2e-3)
         np.testing.assert_allclose(err[:3, 3], 0.0, atol=1.0)
-        assert set(r.timings_ms) >= {"reconstruct", "align", "deviations", "total"}
+        assert set(r.timings_ms) >= {"reconstruct", "guide", "align", "deviations", "total"}
         assert r.cad_hash == part.cad.hash and r.tree_hash == part.tree_hash
         assert r.calibration_id == stages.calibration_id and r.software_version
     dented = [r for r, fs in zip(got.results, framesets, strict=True) if fs.truth.defect]
@@ -194,6 +194,68 @@ def test_nan_and_empty_clouds_are_errors(framesets, points, quick_part):
     w, got = make_worker(pipeline(quick_part, bad))
     w.handle(job(framesets[0]))
     assert got.results[0].status is Status.error and "empty cloud" in got.results[0].reason
+
+
+def _guided_stages(first: SimpleNamespace, calls: list) -> Stages:
+    """QUICK with a first fit ``first``, a guided pass whose cloud lies 1 mm higher, and a
+    refit that says which pose it started from; ``calls`` records what the two were given."""
+    base = QUICK.reconstruct(None, None).points
+    T_refit = np.eye(4)
+    T_refit[2, 3] = -1.0
+
+    def guide(rig, frames, part, T_rig_part):
+        calls.append(("guide", T_rig_part))
+        return SimpleNamespace(points=base + [0.0, 0.0, 1.0])
+
+    def refit(part, points, init):
+        calls.append(("refit", init, points))
+        return SimpleNamespace(transform=T_refit, rms_mm=0.0, inlier_fraction=1.0)
+
+    return dataclasses.replace(QUICK, align=lambda part, pts: first, guide=guide, refit=refit)
+
+
+def test_guided_pass_reconstructs_again_at_the_first_pose(framesets, quick_part):
+    T_first = np.eye(4)
+    T_first[:3, 3] = (5.0, -3.0, 2.0)
+    calls: list = []
+    first = SimpleNamespace(transform=T_first, rms_mm=0.0, inlier_fraction=1.0)
+    outcome = pipeline(quick_part, _guided_stages(first, calls)).run(framesets[0])
+    r = outcome.result
+    assert r.status is not Status.error, r.reason
+    (g, T_rig_part), (f, init, points) = calls
+    assert (g, f) == ("guide", "refit")
+    np.testing.assert_allclose(T_rig_part, np.linalg.inv(T_first))
+    np.testing.assert_array_equal(init, T_first)
+    # The guided cloud is the one fitted, measured and kept.
+    np.testing.assert_array_equal(points[:, 2], 48.0)
+    np.testing.assert_array_equal(outcome.points_rig[:, 2], 48.0)
+    assert r.transform[2][3] == -1.0
+    assert r.timings_ms["guide"] >= 0.0
+
+
+@pytest.mark.parametrize(
+    "first",
+    [
+        SimpleNamespace(transform=np.eye(4), rms_mm=0.0, inlier_fraction=1.0, ambiguous=True),
+        SimpleNamespace(transform=np.eye(4), rms_mm=0.0, inlier_fraction=0.01),
+        SimpleNamespace(transform=np.full((4, 4), np.nan), rms_mm=0.0, inlier_fraction=1.0),
+    ],
+    ids=["ambiguous", "few-inliers", "nan"],
+)
+def test_no_guided_pass_from_an_untrusted_first_fit(framesets, quick_part, first):
+    calls: list = []
+    r = pipeline(quick_part, _guided_stages(first, calls)).run(framesets[0]).result
+    assert calls == []
+    # The one-pass fit reports what is wrong with it, as without a guide.
+    if getattr(first, "ambiguous", False):
+        assert "ambiguous" in r.reason
+    else:
+        assert r.status is Status.error
+
+
+def test_guide_comes_with_refit() -> None:
+    with pytest.raises(ValueError, match="guide and refit"):
+        dataclasses.replace(QUICK, guide=lambda *a: None)
 
 
 def test_a_crashing_stage_or_sink_does_not_stop_the_worker(framesets, quick_part):
