@@ -266,6 +266,30 @@ def test_guide_follows_the_bends(reconstructor: Reconstructor, panel_scene) -> N
     assert {"guide0", "guide1"} <= set(guided.report.timings_ms)
 
 
+def test_guided_from_a_kept_matching_is_the_same_cloud(
+    rig: Rig, reconstructor: Reconstructor, panel_scene
+) -> None:
+    cad, _, T, frames, plain = panel_scene
+    guide = Guide.from_cad(cad, T)
+    first = reconstructor(frames, keep_matching=True)
+    assert plain.matching is None and first.matching is not None
+    np.testing.assert_array_equal(first.points, plain.points)
+    again = reconstructor.guided(first, guide)
+    once = reconstructor(frames, guide=guide)
+    np.testing.assert_array_equal(again.points, once.points)
+    np.testing.assert_array_equal(again.weights, once.weights)
+    assert again.report.pairs == once.report.pairs
+    assert again.matching is not None
+    # Only the warped passes ran again.
+    assert not any(k.startswith(("sgbm", "rectify", "refine")) for k in again.report.timings_ms)
+    with pytest.raises(InvalidInput, match="keep_matching"):
+        reconstructor.guided(plain, guide)
+    with pytest.raises(InvalidInput, match="keep_matching"):
+        Reconstructor.build(rig).guided(first, guide)
+    with pytest.raises(InvalidInput, match="Guide"):
+        reconstructor.guided(first, None)  # type: ignore[arg-type]
+
+
 def test_guide_off_the_part_does_no_harm(reconstructor: Reconstructor, panel_scene) -> None:
     cad, tree, T, frames, plain = panel_scene
     off = T.copy()
@@ -394,6 +418,7 @@ def test_bad_params() -> None:
         {"warp_slope": float("nan")},
         {"score_full": 0.5},
         {"guide_tolerance_px": -1.0},
+        {"guide_passes": 0},
     ):
         with pytest.raises(InvalidInput):
             ReconstructParams(**bad)
