@@ -8,9 +8,10 @@ clock): it includes rendering the frames (the simulated exposure), sending
 them, reconstruction, alignment and deviations.
 
 0. Stage times: ``simulate`` timed in this process before the line starts
-   (the same call the ingest makes); ``reconstruct``, ``align`` and
-   ``deviations`` from the ``timings_ms`` of the results at 0.5 Hz, i.e.
-   inside the running line, medians and p90. Beside them the CPU time of
+   (the same call the ingest makes); ``reconstruct``, ``guide`` (the first
+   alignment and the CAD-guided second reconstruction), ``align`` (the fit
+   of the guided cloud) and ``deviations`` from the ``timings_ms`` of the
+   results at 0.5 Hz, i.e. inside the running line, medians and p90. Beside them the CPU time of
    each stage (this process's, all threads), measured here one part at a
    time before the line starts: wall times on a shared machine wander with
    the load, CPU times much less.
@@ -197,7 +198,10 @@ def simulate_ms(n: int = 5) -> list[float]:
 
 
 def stage_cpu_ms(config: Path, data_dir: Path, n: int) -> dict[str, list[float]]:
-    """CPU time (ms, this process) of reconstruct, align and deviations on ``n`` parts.
+    """CPU time (ms, this process) of each stage on ``n`` parts.
+
+    With the CAD-guided second pass: its reconstruction and the fit from the
+    first pose are timed apart from the first pass's.
 
     The line's own pieces, one part at a time: the station as the worker loads
     it (warmed up), the ingest's simulated rig, and the pipeline's stages
@@ -212,17 +216,29 @@ def stage_cpu_ms(config: Path, data_dir: Path, n: int) -> dict[str, list[float]]
     out: dict[str, list[float]] = {"reconstruct": [], "align": [], "deviations": []}
     try:
         rig, stages = station.simulated_rig(), station.stages
+        if stages.guide is not None:
+            out |= {"guided": [], "refit": []}
         for seq in range(n):
             fs = rig.capture(seq, 0)
             part = station.parts[fs.part]
             t = time.process_time()
-            points = np.asarray(stages.reconstruct(stages.rig, fs.images).points)
+            first = stages.reconstruct(stages.rig, fs.images)
+            points = np.asarray(first.points)
             out["reconstruct"].append((time.process_time() - t) * 1e3)
             points = points[np.isfinite(points).all(axis=1)]
             fit = measure.subsample(points, part.spec.registration.max_points)
             t = time.process_time()
             T = np.asarray(stages.align(part, fit).transform)
             out["align"].append((time.process_time() - t) * 1e3)
+            if stages.guide is not None and stages.refit is not None:
+                t = time.process_time()
+                cloud = stages.guide(stages.rig, first, part, np.linalg.inv(T))
+                points = np.asarray(cloud.points)
+                out["guided"].append((time.process_time() - t) * 1e3)
+                fit = measure.subsample(points, part.spec.registration.max_points)
+                t = time.process_time()
+                T = np.asarray(stages.refit(part, fit, T).transform)
+                out["refit"].append((time.process_time() - t) * 1e3)
             cad_points = points @ T[:3, :3].T + T[:3, 3]
             t = time.process_time()
             stages.deviations(part, cad_points)
@@ -273,7 +289,7 @@ def _measure(
     p50, p99 = base.pct(50), base.pct(99)
     print(f"  stage times, ms: {'p50':>8} {'p90':>8} {'max':>8}", flush=True)
     print(_stage_line("simulate", sim) + "  (alone, before the line)", flush=True)
-    for name in ("reconstruct", "align", "deviations", "total"):
+    for name in ("reconstruct", "guide", "align", "deviations", "total"):
         print(_stage_line(name, base.stages_ms.get(name, [])), flush=True)
     if cpu:
         print(f"  stage CPU, ms:   {'p50':>8} {'p90':>8} {'max':>8}   (alone, before the line)")

@@ -97,7 +97,7 @@ class InspectionResult(_Model):
     ``transform`` is T_cad_rig, which maps rig-frame points into the CAD frame,
     as a nested 4x4 list, rows first; ``null`` when no fit was made.
     ``timings_ms`` holds one entry per pipeline stage that ran (e.g.
-    ``reconstruct``, ``align``, ``deviations``, ``total``).
+    ``reconstruct``, ``guide``, ``align``, ``deviations``, ``total``).
     """
 
     schema_version: int = SCHEMA_VERSION

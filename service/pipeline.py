@@ -77,9 +77,10 @@ class Stages:
     calibrations : callable() -> list of dict
         One per camera, for the recorder (``name``, ``width``, ``height``,
         ``K``, ``D``, ``R``, ``P``).
-    guide : callable(rig, frames, part, T_rig_part) -> cloud, optional
-        Reconstructs the frames again with the part's CAD at ``T_rig_part``
-        guiding the matching (given with ``refit``; None: one pass).
+    guide : callable(rig, cloud, part, T_rig_part) -> cloud, optional
+        Matches the frames of ``cloud`` (what ``reconstruct`` returned) again
+        with the part's CAD at ``T_rig_part`` guiding the matching (given with
+        ``refit``; None: one pass).
     refit : callable(part, points_rig, T_cad_rig) -> registration, optional
         Fits the guided cloud, starting from the first pass's pose.
     """
@@ -92,7 +93,7 @@ class Stages:
     deviations: Callable[[LoadedPart, np.ndarray], Any]
     render: Callable[[Any, trimesh.Trimesh, np.ndarray, int], list[np.ndarray]]
     calibrations: Callable[[], list[dict[str, Any]]] = list
-    guide: Callable[[Any, list[np.ndarray], LoadedPart, np.ndarray], Any] | None = None
+    guide: Callable[[Any, Any, LoadedPart, np.ndarray], Any] | None = None
     refit: Callable[[LoadedPart, np.ndarray, np.ndarray], Any] | None = None
 
     def __post_init__(self) -> None:
@@ -137,7 +138,10 @@ def flash_stages(rig_calibration: str | Path | None = None) -> Stages:
     rig = FlashRig(Rig.nominal(), calibrated, Reconstructor.build(calibrated))
 
     def reconstruct(r: FlashRig, frames: list[np.ndarray]) -> Any:
-        return inspection_reconstruct(r.calibrated, frames, reconstructor=r.reconstructor)
+        # The matching is kept for the guided pass, which starts from it.
+        return inspection_reconstruct(
+            r.calibrated, frames, reconstructor=r.reconstructor, keep_matching=True
+        )
 
     def align(part: LoadedPart, points: np.ndarray) -> Any:
         return inspection_align(
@@ -148,13 +152,8 @@ def flash_stages(rig_calibration: str | Path | None = None) -> Stages:
             **measure._registration_kwargs(part),
         )
 
-    def guide(r: FlashRig, frames: list[np.ndarray], part: LoadedPart, T: np.ndarray) -> Any:
-        return inspection_reconstruct(
-            r.calibrated,
-            frames,
-            reconstructor=r.reconstructor,
-            guide=Guide.from_cad(part.cad, T),
-        )
+    def guide(r: FlashRig, cloud: Any, part: LoadedPart, T: np.ndarray) -> Any:
+        return r.reconstructor.guided(cloud, Guide.from_cad(part.cad, T))
 
     def refit(part: LoadedPart, points: np.ndarray, T_cad_rig: np.ndarray) -> Any:
         return inspection_register(
@@ -282,7 +281,7 @@ class Pipeline:
         )
 
     def _guided(
-        self, part: LoadedPart, images: list[np.ndarray], points: np.ndarray
+        self, part: LoadedPart, cloud: Any, points: np.ndarray
     ) -> tuple[np.ndarray, Callable[[LoadedPart, np.ndarray], Any]] | None:
         """The CAD-guided second pass: the guided cloud and the fit that starts from the
         first pass's pose, or None (one pass) when the first alignment failed, is
@@ -304,7 +303,7 @@ class Pipeline:
         if not trusted:
             log.debug("no guided pass: the first alignment is not trusted")
             return None
-        guided = _finite_points(self.stages.guide(self.stages.rig, images, part, np.linalg.inv(T)))
+        guided = _finite_points(self.stages.guide(self.stages.rig, cloud, part, np.linalg.inv(T)))
         if len(guided) == 0:
             return None
         refit = self.stages.refit
@@ -354,7 +353,7 @@ class Pipeline:
         fit = self.stages.align
         if self.stages.guide is not None:
             t = time.perf_counter()
-            guided = self._guided(part, fs.images, points)
+            guided = self._guided(part, cloud, points)
             timings["guide"] = (time.perf_counter() - t) * 1e3
             if guided is not None:
                 points, fit = guided

@@ -203,7 +203,7 @@ def _guided_stages(first: SimpleNamespace, calls: list) -> Stages:
     T_refit = np.eye(4)
     T_refit[2, 3] = -1.0
 
-    def guide(rig, frames, part, T_rig_part):
+    def guide(rig, cloud, part, T_rig_part):
         calls.append(("guide", T_rig_part))
         return SimpleNamespace(points=base + [0.0, 0.0, 1.0])
 
