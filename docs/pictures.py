@@ -3,7 +3,8 @@
 The rig layout and one trigger's frames come from :mod:`inspection.pictures`;
 the deviation map is one simulated part with a 1 mm dent, measured the way the
 line measures it (simulate with the nominal rig, reconstruct with the
-calibrated one, align, deviations) and drawn the way the API draws it.
+calibrated one, align, match again guided by the CAD at that pose, fit,
+deviations) and drawn the way the API draws it.
 """
 
 from __future__ import annotations
@@ -41,9 +42,12 @@ def deviation_map(path: Path) -> None:
     T_rig_part[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
     T_rig_part[:3, 3] = (40.0, -20.0, 0.0)
     frames = inspection.simulate(inspection.Rig.nominal(), dented, T_rig_part, seed=1)
-    cloud = inspection.reconstruct(inspection.Rig.default(), frames)
+    rec = inspection.Reconstructor.build(inspection.Rig.default())
+    cloud = rec(frames, keep_matching=True)
     tree = inspection.GridTree.build(cad)
     fit = inspection.align(tree, cloud.points, cad=cad)
+    cloud = rec.guided(cloud, inspection.Guide.from_cad(cad, np.linalg.inv(fit.transform)))
+    fit = inspection.register(tree, cloud.points, init=fit.transform)
     points_cad = cloud.points @ fit.transform[:3, :3].T + fit.transform[:3, 3]
     dev = inspection.deviations(tree, points_cad, [])
     png = render_top_view(
