@@ -71,7 +71,7 @@ def _apply(T: np.ndarray, points: np.ndarray) -> np.ndarray:
 def main() -> int:
     import trimesh
 
-    from inspection.alignment import align
+    from inspection.alignment import align, alignment_model
     from inspection.deviations import deviations
     from inspection.grid import GridTree
     from inspection.panel import PanelSpec, press_dents, sheet_metal_panel
@@ -86,6 +86,7 @@ def main() -> int:
     mesh = cad.to_trimesh()
     dented = press_dents(mesh, list(SITES.values()))
     tree = GridTree.build(cad)
+    model = alignment_model(cad)  # once per part, as the line does
     rec = Reconstructor.build(Rig.default())
     truth_rig = Rig.nominal()
     points = comparison_points(mesh)
@@ -114,7 +115,7 @@ def main() -> int:
             frames = simulate(truth_rig, dented, T_rig_part, seed=seed)
             start = time.perf_counter()
             cloud = rec(frames, keep_matching=guided)
-            fit = align(tree, cloud.points, cad=cad, weights=cloud.weights)
+            fit = align(tree, cloud.points, model=model, cad=cad, weights=cloud.weights)
             first = fit.transform @ T_rig_part
             if guided:
                 cloud = rec.guided(cloud, Guide.from_cad(cad, np.linalg.inv(fit.transform)))

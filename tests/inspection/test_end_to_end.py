@@ -15,7 +15,7 @@ import pytest
 import trimesh
 
 from bench import bench_endtoend
-from inspection.alignment import align
+from inspection.alignment import align, alignment_model
 from inspection.deviations import deviations
 from inspection.grid import GridTree
 from inspection.panel import PanelSpec, press_dents, sheet_metal_panel
@@ -75,7 +75,7 @@ def measured(request):
     rec = Reconstructor.build(line_rig)
     cloud = rec(frames, keep_matching=True)
     tree = GridTree.build(cad)
-    fit = align(tree, cloud.points, cad=cad, weights=cloud.weights)
+    fit = align(tree, cloud.points, model=alignment_model(cad), cad=cad, weights=cloud.weights)
     cloud = rec.guided(cloud, Guide.from_cad(cad, np.linalg.inv(fit.transform)))
     fit = register(tree, cloud.points, init=fit.transform, weights=cloud.weights)
     T = fit.transform
