@@ -80,8 +80,9 @@ import numpy.typing as npt
 
 from . import _stereo
 from ._raster import rasterize
-from .arrays import Points, Scalars
+from .arrays import Points, Scalars, mesh_arrays
 from .errors import InvalidInput
+from .registration import validate_transform
 from .rig import VOLUME_MM, Rig
 
 log = logging.getLogger(__name__)
@@ -325,22 +326,10 @@ class Guide:
             Maps part-frame points into the rig frame: the inverse of a
             registration's ``transform`` (T_cad_rig).
         """
-        try:
-            v = np.asarray(cad.vertices, dtype=np.float64)
-            f = np.asarray(cad.faces, dtype=np.int64)
-        except (AttributeError, TypeError, ValueError) as exc:
-            raise InvalidInput(f"guide needs a mesh with vertices and faces: {exc}") from exc
-        if v.ndim != 2 or v.shape[1] != 3 or len(v) < 3 or not np.isfinite(v).all():
-            raise InvalidInput("guide mesh needs (V, 3) finite vertices")
-        if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0 or f.min() < 0 or f.max() >= len(v):
-            raise InvalidInput("guide mesh needs (F, 3) faces indexing its vertices")
-        T = np.asarray(T_rig_part, dtype=np.float64)
-        if T.shape != (4, 4) or not np.isfinite(T).all():
-            raise InvalidInput("T_rig_part must be a finite (4, 4) transform")
+        v, f = mesh_arrays(cad)
+        T = validate_transform(T_rig_part, name="T_rig_part")
         R = T[:3, :3]
-        if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
-            raise InvalidInput("T_rig_part is not a rigid transform")
-        return cls(v @ R.T + T[:3, 3], np.ascontiguousarray(f))
+        return cls(v @ R.T + T[:3, 3], f)
 
 
 @dataclass(frozen=True)
@@ -950,9 +939,12 @@ def _match_pair(
         return _finish_pair(pair, state, p, timings, k, guide)
     timings[f"refine{k}"] = (time.perf_counter() - t) * 1e3
     report = PairReport(pair.name, coarse=n_coarse, foreground=n_fg, disparity_range=(d_min, d_max))
-    return _triangulate_pair(
+    t = time.perf_counter()
+    out = _triangulate_pair(
         pair, x_left, rows, d_ref, score, step, d_init, fg.shape, lo, hi, report, d_coarse, p
     )
+    timings[f"triangulate{k}"] = (time.perf_counter() - t) * 1e3
+    return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -1012,6 +1004,7 @@ def _finish_pair(
             shape,
         )
     timings[f"warp{k}"] = (time.perf_counter() - t) * 1e3
+    t = time.perf_counter()
     x_left = (st.px + st.x0).astype(np.float64)
     rows = st.py + st.y0
     out = _triangulate_pair(
@@ -1029,7 +1022,7 @@ def _finish_pair(
         st.coarse,
         p,
     )
-    timings[f"triangulate{k}"] = (time.perf_counter() - t) * 1e3 - timings[f"warp{k}"]
+    timings[f"triangulate{k}"] = (time.perf_counter() - t) * 1e3
     out.state = st
     return out
 
@@ -1121,12 +1114,11 @@ def _refine_warped(
     in crop coordinates); returns new ``d_ref``, ``score``, ``step``.
     """
     ks = (p.warp_smooth, p.warp_smooth)
-    on_guide = None
-    guide_mask = None
+    # The guide's field (0 off the part), its weight mask, and where it is on the part.
+    guided = None
     if guide is not None:
-        on_guide = np.isfinite(guide)
-        guide_mask = on_guide.astype(np.float32)
-        guide = np.where(on_guide, guide, 0.0).astype(np.float32)
+        on_part = np.isfinite(guide)
+        guided = (np.where(on_part, guide, 0.0).astype(np.float32), on_part.astype(np.float32))
     passes = p.warp_passes if guide is None else p.guide_passes
     for _ in range(passes):
         ok = (
@@ -1143,13 +1135,14 @@ def _refine_warped(
         smooth = np.where(known, num / np.maximum(den, 1.0), 0.0).astype(np.float32)
         sel = ok & _bends(smooth, mask, px, py, p)
         d_ref, score, step = d_ref.copy(), score.copy(), step.copy()
-        if guide is not None and on_guide is not None and guide_mask is not None:
+        if guided is not None:
+            g_field, g_mask = guided
             follow = (
                 ok
-                & on_guide[py, px]
-                & (np.abs(guide[py, px] - smooth[py, px]) <= p.guide_tolerance_px)
+                & (g_mask[py, px] > 0.0)
+                & (np.abs(g_field[py, px] - smooth[py, px]) <= p.guide_tolerance_px)
             )
-            _warp(left_n, right_n, wl, wr, guide, guide_mask, px, py, follow, d_ref, score, step, p)
+            _warp(left_n, right_n, wl, wr, g_field, g_mask, px, py, follow, d_ref, score, step, p)
             sel &= ~follow
         _warp(left_n, right_n, wl, wr, smooth, mask, px, py, sel, d_ref, score, step, p)
     return d_ref, score, step

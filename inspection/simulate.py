@@ -43,7 +43,7 @@ import numpy as np
 import numpy.typing as npt
 
 from . import _raster
-from .arrays import Image, Transform
+from .arrays import Image, Transform, mesh_arrays
 from .board import CharucoSpec
 from .errors import InvalidInput
 from .rig import Camera, Rig
@@ -269,7 +269,7 @@ class Simulator:
         opts = options if options is not None else RenderOptions()
         if not isinstance(opts, RenderOptions):
             raise InvalidInput("options must be a RenderOptions")
-        vertices, faces = _mesh_arrays(mesh)
+        vertices, faces = mesh_arrays(mesh)
         T = _check_transform(T_rig_part, "T_rig_part")
         seed = _check_seed(seed)
         streams = np.random.SeedSequence(seed).spawn(1 + len(self._cams))
@@ -622,23 +622,6 @@ def _check_transform(T: Any, what: str) -> Transform:
             f"{what} must be a rigid transform (rotation, translation, last row 0 0 0 1)"
         )
     return arr
-
-
-def _mesh_arrays(mesh: Any) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.int64]]:
-    try:
-        vertices = np.asarray(mesh.vertices, dtype=np.float64)
-        faces = np.asarray(mesh.faces, dtype=np.int64)
-    except AttributeError as exc:
-        raise InvalidInput(f"mesh must have vertices and faces, got {type(mesh).__name__}") from exc
-    if vertices.ndim != 2 or vertices.shape[1] != 3 or len(vertices) < 3:
-        raise InvalidInput(f"mesh vertices must have shape (V >= 3, 3), got {vertices.shape}")
-    if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
-        raise InvalidInput(f"mesh faces must have shape (F >= 1, 3), got {faces.shape}")
-    if not np.all(np.isfinite(vertices)):
-        raise InvalidInput("mesh vertices must be finite")
-    if faces.min() < 0 or faces.max() >= len(vertices):
-        raise InvalidInput("mesh faces index vertices that do not exist")
-    return vertices, np.ascontiguousarray(faces)
 
 
 def _rasterize_view(V, faces, R, t, kvec, ox, oy, shape):

@@ -323,7 +323,7 @@ def test_bad_guides(rig: Rig, reconstructor: Reconstructor, plate_frames) -> Non
         (trimesh.Trimesh(plate.vertices, plate.faces + len(plate.vertices), process=False),
          np.eye(4), "faces"),
         (plate, np.eye(3), "4, 4"),
-        (plate, np.full((4, 4), np.nan), "4, 4"),
+        (plate, np.full((4, 4), np.nan), "non-finite"),
         (plate, skew, "rigid"),
         (plate, flipped, "rigid"),
     ):  # fmt: skip
