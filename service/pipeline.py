@@ -4,10 +4,11 @@ The worker and replay call the same :meth:`Pipeline.run`, which is what lets
 a replay reproduce a recorded result exactly. The stages are plain callables
 collected in :class:`Stages`: :func:`flash_stages`, the four-camera flash rig
 (``inspection.simulate`` / ``reconstruct`` / ``align`` / ``deviations``).
-With a ``guide`` stage the frames are reconstructed twice: the first cloud
-is aligned, then the matching runs again with the part's CAD at that pose
-shaping its windows (``inspection.Guide``), and that cloud is fitted from the
-first pose and measured. The
+With a ``guide`` stage the frames are matched twice: the first cloud is
+aligned, then the fine matching runs again (from the first pass's coarse
+matching) with the part's CAD at that pose shaping its windows
+(``inspection.Guide``), and that cloud is fitted from the first pose and
+measured. The
 parts are the :class:`~service.parts.LoadedPart` objects of the station's
 :class:`~service.parts.PartRegistry`: the worker and the REST API measure
 with the same tree, alignment model and spec.
