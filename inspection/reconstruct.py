@@ -859,6 +859,8 @@ def _match_pair(
     todo = fg[roi] & ~sat_l[roi]
     py, px = np.nonzero(todo)
     d_init = d_coarse[roi][py, px]
+    report = PairReport(pair.name, coarse=n_coarse, foreground=n_fg, disparity_range=(d_min, d_max))
+    frame = _PairFrame(fg.shape, lo, hi, report, d_coarse)
     if p.symmetric:
         # Points on the cyclopean view's grid: c = x_left - d / 2 (full-image
         # columns), every stride-th column; the coarse disparity of each comes
@@ -930,21 +932,26 @@ def _match_pair(
             x0,
             y0,
             roi,
-            fg.shape,
-            lo,
-            hi,
-            PairReport(pair.name, coarse=n_coarse, foreground=n_fg, disparity_range=(d_min, d_max)),
-            d_coarse,
+            frame,
         )
         return _finish_pair(pair, state, p, timings, k, guide)
     timings[f"refine{k}"] = (time.perf_counter() - t) * 1e3
-    report = PairReport(pair.name, coarse=n_coarse, foreground=n_fg, disparity_range=(d_min, d_max))
     t = time.perf_counter()
-    out = _triangulate_pair(
-        pair, x_left, rows, d_ref, score, step, d_init, fg.shape, lo, hi, report, d_coarse, p
-    )
+    out = _triangulate_pair(pair, x_left, rows, d_ref, score, step, d_init, frame, p)
     timings[f"triangulate{k}"] = (time.perf_counter() - t) * 1e3
     return out
+
+
+@dataclass(frozen=True, eq=False)
+class _PairFrame:
+    """What one pair's triangulation needs besides its matches: the rectified image
+    size, the volume searched, the report so far and the coarse (SGBM) disparities."""
+
+    shape: tuple[int, ...]
+    lo: npt.NDArray[np.float64]
+    hi: npt.NDArray[np.float64]
+    report: PairReport
+    coarse: npt.NDArray[np.float32]
 
 
 @dataclass(frozen=True, eq=False)
@@ -966,11 +973,7 @@ class _PairState:
     x0: int
     y0: int
     roi: tuple[slice, slice]
-    shape: tuple[int, ...]  # full rectified image (H, W)
-    lo: npt.NDArray[np.float64]
-    hi: npt.NDArray[np.float64]
-    report: PairReport
-    coarse: npt.NDArray[np.float32]
+    frame: _PairFrame
 
 
 def _finish_pair(
@@ -1015,11 +1018,7 @@ def _finish_pair(
         score,
         step,
         st.d_init,
-        st.shape,
-        st.lo,
-        st.hi,
-        st.report,
-        st.coarse,
+        st.frame,
         p,
     )
     timings[f"triangulate{k}"] = (time.perf_counter() - t) * 1e3
@@ -1035,21 +1034,18 @@ def _triangulate_pair(
     score: npt.NDArray[np.float32],
     step: npt.NDArray[np.float32],
     d_init: npt.NDArray[np.float32],
-    shape: tuple[int, ...],
-    lo: npt.NDArray[np.float64],
-    hi: npt.NDArray[np.float64],
-    report: PairReport,
-    coarse: npt.NDArray[np.float32],
+    frame: _PairFrame,
     p: ReconstructParams,
 ) -> _PairResult:
     """Accepted matches of one pair as rig-frame points, and its disparity map."""
+    lo, hi = frame.lo, frame.hi
     good = (
         np.isfinite(d_ref)
         & (score >= p.min_score)
         & (np.abs(d_ref - d_init) <= p.max_shift_px)
         & (np.abs(step) < p.converged_px)
     )
-    h_img, w_img = shape
+    w_img = frame.shape[1]
     xg = x_left[good]
     yg = rows[good].astype(np.float64)
     d = d_ref[good].astype(np.float64)
@@ -1060,11 +1056,11 @@ def _triangulate_pair(
     pts = pts[inside]
     score = score[good][inside]
     # The disparity map of the left view, for the other pair's consistency check.
-    full = np.full(shape, np.nan, np.float32)
+    full = np.full(frame.shape, np.nan, np.float32)
     full[yi[inside], xi[inside]] = d[inside]
     _fill_gaps(full, p.stride)
-    rep = replace(report, refined=int(good.sum()), in_volume=len(pts))
-    return _PairResult(rep, pts, score, full, coarse)
+    rep = replace(frame.report, refined=int(good.sum()), in_volume=len(pts))
+    return _PairResult(rep, pts, score, full, frame.coarse)
 
 
 def _rectify(
