@@ -249,6 +249,13 @@ class StationSection(_Strict):
         description="Calibrated rig (TOML), relative to the line file; None: Rig.default().",
     )
     parts_dir: str = Field(default="parts", description="Part specs, relative to the line file.")
+    guided_matching: bool = Field(
+        default=True,
+        description=(
+            "Match every trigger a second time with the part's CAD at the first fit's pose "
+            "shaping the matching windows: ~0.15 s more per part, the pose's error about halved."
+        ),
+    )
     parts: list[Name] = Field(default_factory=lambda: ["demo-panel"], min_length=1)
     queue_size: int = Field(
         default=4, ge=1, le=1000, description="Frame sets waiting for the worker."

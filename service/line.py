@@ -170,8 +170,13 @@ class Station:
         }
 
     def rig_metadata(self) -> dict[str, str]:
-        """The stages, calibration id and the calibrated rig itself (TOML)."""
-        meta = {"stages": self.stages.name, "calibration_id": self.stages.calibration_id}
+        """The stages (and whether they match a second time, guided by the CAD), the
+        calibration id and the calibrated rig itself (TOML)."""
+        meta = {
+            "stages": self.stages.name,
+            "guided": "true" if self.stages.guide is not None else "false",
+            "calibration_id": self.stages.calibration_id,
+        }
         calibrated = getattr(self.stages.rig, "calibrated", None)
         if calibrated is not None and hasattr(calibrated, "to_toml"):
             meta["calibration_toml"] = calibrated.to_toml()
@@ -193,7 +198,7 @@ class Station:
 
 def stages_for(cfg: LineConfig) -> Stages:
     """The line's measuring stages: the four-camera flash rig, calibrated as configured."""
-    return flash_stages(cfg.rig_calibration_path())
+    return flash_stages(cfg.rig_calibration_path(), guided=cfg.station.guided_matching)
 
 
 def bus_settings(cfg: LineConfig, mode: str | None = None) -> bus.BusSettings:

@@ -112,7 +112,7 @@ class FlashRig:
     reconstructor: Any
 
 
-def flash_stages(rig_calibration: str | Path | None = None) -> Stages:
+def flash_stages(rig_calibration: str | Path | None = None, *, guided: bool = True) -> Stages:
     """The line's stages: ``inspection.simulate`` with ``Rig.nominal()`` renders,
     ``inspection.reconstruct`` with the calibrated rig measures, ``inspection.align``
     fits the cloud to the part's preloaded :class:`~inspection.grid.GridTree` and
@@ -123,6 +123,8 @@ def flash_stages(rig_calibration: str | Path | None = None) -> Stages:
     rig_calibration : path, optional
         Calibrated rig (TOML, written by ``inspection calibrate``); absent or
         missing file: ``Rig.default()``.
+    guided : bool
+        With the CAD-guided second matching pass (``guide`` and ``refit``).
     """
     from inspection.alignment import align as inspection_align
     from inspection.deviations import deviations as inspection_deviations
@@ -141,7 +143,7 @@ def flash_stages(rig_calibration: str | Path | None = None) -> Stages:
     def reconstruct(r: FlashRig, frames: list[np.ndarray]) -> Any:
         # The matching is kept for the guided pass, which starts from it.
         return inspection_reconstruct(
-            r.calibrated, frames, reconstructor=r.reconstructor, keep_matching=True
+            r.calibrated, frames, reconstructor=r.reconstructor, keep_matching=guided
         )
 
     def align(part: LoadedPart, points: np.ndarray) -> Any:
@@ -193,8 +195,8 @@ def flash_stages(rig_calibration: str | Path | None = None) -> Stages:
         deviations=deviations,
         render=render,
         calibrations=calibrations,
-        guide=guide,
-        refit=refit,
+        guide=guide if guided else None,
+        refit=refit if guided else None,
     )
 
 

@@ -128,14 +128,16 @@ def recorded_stages(metadata: dict[str, dict[str, str]]) -> Stages:
     rig = metadata.get("rig", {})
     if rig.get("stages", "flash") != "flash":
         raise ReplayError(f"recorded with the {rig['stages']!r} stages, which no longer exist")
+    # Recordings from before the guided pass existed say nothing: they were one pass.
+    guided = rig.get("guided", "false") == "true"
     toml = rig.get("calibration_toml")
     if not toml:
-        return flash_stages(None)
+        return flash_stages(None, guided=guided)
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "rig.toml"
         path.write_text(toml)
         try:
-            stages = flash_stages(path)
+            stages = flash_stages(path, guided=guided)
         except Exception as exc:
             raise ReplayError(f"the recorded rig calibration does not load: {exc}") from exc
     want = rig.get("calibration_id")

@@ -62,6 +62,7 @@ def test_defaults_equal_an_empty_file(tmp_path):
         ("[simulator]\nyaw_range_deg = 270\n", "simulator.yaw_range_deg"),
         ("[simulator]\nposition_range_x_mm = -1\n", "simulator.position_range_x_mm"),
         ("[station]\nrig = 'depth'\n", "station.rig"),
+        ("[station]\nguided_matching = 'sometimes'\n", "station.guided_matching"),
         ("[bogus]\n", "bogus"),
         ("[storage]\nmcap_rotate_mb = nan\n", "storage.mcap_rotate_mb"),
     ],

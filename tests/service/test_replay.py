@@ -18,7 +18,7 @@ from service.line import Station
 from service.models import Status
 from service.protocol import Keys, decode_frameset, encode_frameset
 from service.recorder import Recorder, read_recording
-from service.replay import ReplayError, replay
+from service.replay import ReplayError, recorded_stages, replay
 from service.worker import Job, JobQueue, Worker
 
 
@@ -104,6 +104,17 @@ def test_replay_refuses_a_changed_cad(tmp_path, recording):
         w.finish()
     with pytest.raises(ReplayError, match="CAD changed"):
         replay([fake], parts_dir=PARTS_DIR, trees_dir=tmp_path)
+
+
+def test_replay_matches_as_the_recording_did(recording):
+    meta, _ = read_recording(recording)
+    assert meta["rig"]["guided"] == "true"  # the line's default
+    assert recorded_stages(meta).guide is not None
+    one_pass = {"rig": {**meta["rig"], "guided": "false"}}
+    assert recorded_stages(one_pass).guide is None
+    # A recording from before the guided pass existed was measured in one pass.
+    older = {"rig": {k: v for k, v in meta["rig"].items() if k != "guided"}}
+    assert recorded_stages(older).guide is None
 
 
 def test_publish_replays_frames_onto_zenoh(recording):

@@ -13,11 +13,12 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from linekit import LINE, PART, PARTS_DIR, STATION, client, demo, free_port, peer, rig
+from linekit import LINE, PART, PARTS_DIR, ROOT, STATION, client, demo, free_port, peer, rig
 
 from inspection.panel import sheet_metal_panel
 from service import bus
-from service.config import load_part_spec
+from service.config import load_line_config, load_part_spec
+from service.line import stages_for
 from service.models import Status
 from service.parts import LoadedPart
 from service.pipeline import Pipeline, Stages
@@ -251,6 +252,14 @@ def test_no_guided_pass_from_an_untrusted_first_fit(framesets, quick_part, first
         assert "ambiguous" in r.reason
     else:
         assert r.status is Status.error
+
+
+def test_guided_matching_follows_the_station_setting() -> None:
+    line = ROOT / "configs" / "line.toml"
+    assert stages_for(load_line_config(line)).guide is not None
+    off = load_line_config(line, overrides={("station", "guided_matching"): False})
+    stages = stages_for(off)
+    assert stages.guide is None and stages.refit is None
 
 
 def test_guide_comes_with_refit() -> None:
