@@ -46,8 +46,8 @@ coarse matching faster and less ambiguous.
 
 **CAD-guided matching.** The warped windows above take their shape from the
 measured field, which is itself smoothed where the surface bends: on the
-panel's emboss walls and character line the fitted surface stays up to
-0.2 mm off, and those are the points that place the part in its plane. Once
+panel's emboss walls and character line the surface comes out ~0.3 mm RMS
+off, and those are the points that place the part in its plane. Once
 the part is aligned, a :class:`Guide` (its CAD at the fitted pose) gives the
 shape exactly: each pair's disparity field is rendered from the CAD (the
 simulator's z-buffer, in the rectified view) and the windows are warped by
@@ -420,8 +420,8 @@ class Cloud:
     rig_id : str
         Calibration id of the rig used.
     matching : object or None
-        What the matching found (``keep_matching=True``; ~10 MB per pair),
-        for :meth:`Reconstructor.guided`; None otherwise.
+        What the matching found (``keep_matching=True``; ~35 MB per pair of
+        1280 x 1024 frames), for :meth:`Reconstructor.guided`; None otherwise.
     """
 
     points: Points
