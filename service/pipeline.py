@@ -307,7 +307,7 @@ class Pipeline:
             log.debug("no guided pass: the first alignment is not trusted")
             return None
         guided = _finite_points(self.stages.guide(self.stages.rig, cloud, part, np.linalg.inv(T)))
-        if len(guided) == 0:
+        if guided is None or len(guided) == 0:
             return None
         refit = self.stages.refit
 
@@ -342,15 +342,11 @@ class Pipeline:
         t = time.perf_counter()
         cloud = self.stages.reconstruct(self.stages.rig, fs.images)
         timings["reconstruct"] = (time.perf_counter() - t) * 1e3
-        points = np.asarray(cloud.points, dtype=np.float64)
-        if points.ndim != 2 or points.shape[1] != 3:
+        points = _finite_points(cloud)
+        if points is None:
             return self._error(
-                base, f"reconstruction gave points of shape {points.shape}", timings, t0
+                base, f"reconstruction gave points of shape {np.shape(cloud.points)}", timings, t0
             )
-        finite = np.isfinite(points).all(axis=1)
-        if not finite.all():
-            log.debug("dropping %d non-finite points", int((~finite).sum()))
-            points = points[finite]
         if len(points) == 0:
             return self._error(base, "empty cloud: no surface seen in the frames", timings, t0)
         fit = self.stages.align
@@ -384,11 +380,16 @@ class Pipeline:
         return Outcome(result, points_rig=points, distances=measured.distances, T_cad_rig=T)
 
 
-def _finite_points(cloud: Any) -> np.ndarray:
+def _finite_points(cloud: Any) -> np.ndarray | None:
+    """The cloud's finite points (N, 3), or None when its points are not (N, 3)."""
     points = np.asarray(cloud.points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
-        return np.zeros((0, 3))
-    return points[np.isfinite(points).all(axis=1)]
+        return None
+    finite = np.isfinite(points).all(axis=1)
+    if not finite.all():
+        log.debug("dropping %d non-finite points", int((~finite).sum()))
+        points = points[finite]
+    return points
 
 
 def missed_result(
