@@ -197,6 +197,16 @@ def test_nan_and_empty_clouds_are_errors(framesets, points, quick_part):
     assert got.results[0].status is Status.error and "empty cloud" in got.results[0].reason
 
 
+def test_a_cloud_of_the_wrong_shape_is_an_error(framesets, quick_part):
+    bad = dataclasses.replace(
+        QUICK, reconstruct=lambda rig, frames: SimpleNamespace(points=np.zeros((500, 2)))
+    )
+    w, got = make_worker(pipeline(quick_part, bad))
+    w.handle(job(framesets[0]))
+    assert got.results[0].status is Status.error
+    assert "points of shape (500, 2)" in got.results[0].reason
+
+
 def _guided_stages(first: SimpleNamespace, calls: list) -> Stages:
     """QUICK with a first fit ``first``, a guided pass whose cloud lies 1 mm higher, and a
     refit that says which pose it started from; ``calls`` records what the two were given."""
