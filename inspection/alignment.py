@@ -681,6 +681,8 @@ def align(
             # the best: two refined rivals are enough to judge ambiguity.
             break
         tried += 1
+        # The search over the turn is this function's: its refinements run
+        # without register's own scan of an unconstrained rotation.
         try:
             reg = register(
                 tree if k in by_axes else model.surface,
@@ -697,6 +699,7 @@ def align(
                 subset_tolerance_factor=10.0,
                 seed=seed,
                 view_direction=view,
+                escape_deg=None,
             )
         except InsufficientOverlap:
             continue
@@ -736,6 +739,7 @@ def align(
                 max_distance_mm=max(model.size_mm, 1.0),
                 seed=seed,
                 view_direction=view,
+                escape_deg=None,
             )
         except InsufficientOverlap:
             continue

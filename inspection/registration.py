@@ -70,6 +70,24 @@ where Gauss-Newton converges linearly), the rest of the geometric series
 of steps (Aitken's extrapolation) and longer steps are tried, each kept
 only if it lowers the cost.
 
+Escape along a free rotation: a local fit cannot tell where a rotation that
+its points do not constrain should end. A disc whose turn rests on a ring
+of holes, started further off than the holes are wide, ends where it
+happens to stop (flagged degenerate); a part with a toothed rim ends a few
+teeth off, constrained there, with a large share of its points off the CAD.
+When the final fit is flagged degenerate and its least constrained rotation
+(with the translation free to follow it) is weak, or when it leaves more
+than 10 % of its points misfit, that rotation is scanned over
+``escape_deg`` either way in steps that move the points by ~2 mm: each
+angle is scored by the truncated distances of 4096 points to the CAD (one
+query each), and the fit is run again, with everything else as given, from
+up to three of the scan's local minima that score 10 % better than the fit
+or more. A fit that leaves the points' truncated cost (three robust scales
+of the first fit) 10 % lower or more replaces the first. A constrained fit
+of a clean cloud pays nothing; a scan costs ~10 ms, a new fit what a fit
+costs. The scan is about one axis: a free translation (a plate sliding in
+its plane) is left to the flag.
+
 The cost only ever falls within an iteration (a step is accepted only if it
 lowers the cost). Across iterations it falls too while the subset stays the
 same: the scale ``sigma`` never grows from one iteration to the next, and
@@ -204,6 +222,24 @@ _GNC_STEP = 1e-3
 # Steps moving the points by less than this (RMS, mm) are evaluated against
 # each point's last closest face rather than with a fresh query.
 _FIXED_FACE_STEP_MM = 0.02
+# Escape along an unconstrained rotation (see the module notes): a rotation
+# whose marginal eigenvalue (translation free) is below this, relative to the
+# normal matrix's largest, is scanned ...
+_ESCAPE_REL_EIG = 1e-2
+# ... as is the least constrained rotation of a fit that leaves more than
+# this fraction of its points misfit (beyond three robust scales) ...
+_ESCAPE_MISFIT = 0.1
+# ... on this many points, scored by their mean squared distance to the CAD
+# truncated at this (mm; or 20 robust scales, if more), in steps that move
+# the points by about this much at their RMS radius (at most 2 degrees) ...
+_ESCAPE_POINTS = 4096
+_ESCAPE_TRUNCATION_MM = 2.0
+# ... and up to this many of the scan's local minima that score this
+# fraction of the fit's score or less are fitted again; one replaces the fit
+# when it leaves this fraction of its truncated cost (three robust scales of
+# the first fit) or less.
+_ESCAPE_STARTS = 3
+_ESCAPE_GAIN = 0.9
 
 
 class _FullPass:
@@ -913,6 +949,81 @@ def _uncertainty(H: np.ndarray, sigma: float, v: np.ndarray) -> float:
     return sigma * float(np.sqrt(tr / vs))
 
 
+def _escape(
+    tree: ClosestPointQuery,
+    P: Points,
+    fit: Registration,
+    H: np.ndarray,
+    center: np.ndarray,
+    L: float,
+    span_rad: float,
+    refit: Any,
+    misfitting: bool,
+) -> Registration:
+    """Scan the rotation ``fit`` leaves unconstrained, and fit again from the
+    most promising angles; the fit that leaves clearly the fewest points
+    misfit is returned (``fit`` itself when none does better).
+
+    ``H`` is the final normal matrix for the twist ``(omega L, t)`` about
+    ``center`` (CAD frame); ``P`` the scan's points (data frame)."""
+    # The rotation that costs least once the translation follows it: the
+    # Schur complement of the translation block.
+    S = H[:3, :3] - H[:3, 3:] @ np.linalg.pinv(H[3:, 3:]) @ H[3:, :3]
+    eig, vec = np.linalg.eigh(0.5 * (S + S.T))
+    if not misfitting and eig[0] >= _ESCAPE_REL_EIG * max(float(np.linalg.eigvalsh(H)[-1]), 1e-300):
+        return fit
+    axis = vec[:, 0]
+    trunc = max(_ESCAPE_TRUNCATION_MM, 20.0 * fit.scale_mm)
+    step = min(trunc / L, np.radians(2.0))
+    k = int(np.ceil(span_rad / step))
+    angles = np.linspace(-span_rad, span_rad, 2 * k + 1)
+    zero = np.zeros(3)
+    starts = [_compose(fit.transform, axis * a, zero, center) for a in angles]
+    score = np.empty(len(angles))
+    for i, T_ in enumerate(starts):
+        X = _transform(T_[:3, :3].copy(), T_[:3, 3].copy(), P)
+        d = _query(tree, X)[2]
+        score[i] = np.mean(np.minimum(d * d, trunc * trunc))
+    # Local minima of the scan that place clearly more of the points on the
+    # CAD than the fit does (the fit's neighbours are its own minimum).
+    here = k
+    minima = (score[1:-1] <= score[:-2]) & (score[1:-1] <= score[2:])
+    better = [
+        i + 1
+        for i in np.argsort(score[1:-1], kind="stable")
+        if minima[i] and abs(i + 1 - here) > 1 and score[i + 1] < _ESCAPE_GAIN * score[here]
+    ][:_ESCAPE_STARTS]
+    if not better:
+        return fit
+
+    tau2 = (_INLIER_SIGMAS * fit.scale_mm) ** 2
+
+    def misfit(reg: Registration) -> float:
+        r = reg.residuals
+        return float(np.mean(np.minimum(r * r, tau2)))
+
+    first = misfit(fit)
+    best, best_cost = fit, _ESCAPE_GAIN * first
+    for i in better:
+        try:
+            other = refit(starts[i])
+        except InsufficientOverlap:
+            continue
+        cost = misfit(other)
+        log.debug(
+            "escape: %.1f deg about %s, misfit %.4g against the first fit's %.4g",
+            np.degrees(angles[i]),
+            np.round(axis, 3),
+            cost,
+            first,
+        )
+        if cost < best_cost:
+            best, best_cost = other, cost
+            if not other.degenerate:
+                break
+    return best
+
+
 def register(
     tree: ClosestPointQuery,
     points: Points,
@@ -937,6 +1048,7 @@ def register(
     graduated: bool = True,
     uncertainty_mm: float | None = 2.5e-3,
     view_direction: Vectors | None = None,
+    escape_deg: float | None = 30.0,
 ) -> Registration:
     """Fit measured points to the CAD with robust point-to-surface ICP.
 
@@ -1014,6 +1126,13 @@ def register(
         such as those overhanging the part's outline, pull the part into
         place before the scale narrows to the noise. Without it the scale is
         the residuals' MAD from the start.
+    escape_deg : float or None
+        When the fit ends with a rotation its points do not constrain (a
+        disc whose turn rests on a ring of holes, started further off than
+        the holes are wide), rotations about that axis within this many
+        degrees are scanned, and the most promising are fitted again; a fit
+        that leaves clearly fewer points misfit replaces the first one (see
+        the module notes). None: never.
 
     Returns
     -------
@@ -1028,8 +1147,12 @@ def register(
         Fewer than ``min_points`` points near the CAD at the start, or fewer
         than ``min_points`` inliers at the end.
     """
+    # Every argument, for the fits from other starts that an escape runs.
+    arguments = dict(locals())
     if not hasattr(tree, "query"):
         raise InvalidInput("tree must answer closest-point queries (have a .query(points) method)")
+    if escape_deg is not None and not (np.isfinite(escape_deg) and 0 < escape_deg <= 180):
+        raise InvalidInput(f"escape_deg must be in (0, 180] or None, got {escape_deg!r}")
     if residual not in ("distance", "plane"):
         raise InvalidInput(f"residual must be 'distance' or 'plane', got {residual!r}")
     if loss not in LOSSES:
@@ -1401,7 +1524,7 @@ def register(
         extended,
         m,
     )
-    return Registration(
+    result = Registration(
         transform=T,
         iterations=iterations,
         converged=converged,
@@ -1417,4 +1540,15 @@ def register(
         full_pass=_FullPass(
             evaluate_rest, r.copy(), V.copy(), perm, max_distance_mm, float(sigma), loss_id, c
         ),
+    )
+    misfit = 1.0 - n_inl / max(int(np.sum(v > 0)), 1)
+    if escape_deg is None or not (len(degenerate) or misfit > _ESCAPE_MISFIT):
+        return result
+
+    def refit(T_start: Transform) -> Registration:
+        return register(**{**arguments, "init": T_start, "escape_deg": None})
+
+    scan = P[: min(cap, _ESCAPE_POINTS)][V[: min(cap, _ESCAPE_POINTS)] > 0]
+    return _escape(
+        tree, scan, result, H, center, L, np.radians(escape_deg), refit, misfit > _ESCAPE_MISFIT
     )

@@ -91,3 +91,53 @@ def pose_errors(T_est: np.ndarray, T_true: np.ndarray, points: np.ndarray) -> tu
 
 def apply(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     return points @ T[:3, :3].T + T[:3, 3]
+
+
+def holed_disc(
+    radius: float = 150.0,
+    thickness: float = 8.0,
+    holes: tuple[tuple[float, float, float], ...] = (),
+    *,
+    spacing: float = 6.0,
+) -> CadModel:
+    """A flat disc (z from 0 to ``thickness``) with round through-holes, each
+    given as (distance from the axis, angle in degrees, radius), all mm.
+    Seen from above, only the holes' rims fix its turn about the axis."""
+    from scipy.spatial import Delaunay
+
+    def ring(cx: float, cy: float, r: float) -> np.ndarray:
+        k = max(24, int(np.ceil(2.0 * np.pi * r / (0.5 * spacing))))
+        a = np.arange(k) * (2.0 * np.pi / k)
+        return np.column_stack([cx + r * np.cos(a), cy + r * np.sin(a)])
+
+    centres = [(d * np.cos(np.radians(a)), d * np.sin(a * np.pi / 180.0), r) for d, a, r in holes]
+    g = np.arange(-radius, radius + spacing, spacing)
+    gx, gy = np.meshgrid(g, g)
+    inner = np.column_stack([gx.ravel(), gy.ravel()])
+    keep = np.hypot(inner[:, 0], inner[:, 1]) < radius - 0.5 * spacing
+    for cx, cy, r in centres:
+        keep &= np.hypot(inner[:, 0] - cx, inner[:, 1] - cy) > r + 0.5 * spacing
+    xy = np.concatenate([ring(0.0, 0.0, radius), *[ring(*c) for c in centres], inner[keep]])
+    tri = Delaunay(xy).simplices
+    mid = xy[tri].mean(axis=1)
+    solid = np.hypot(mid[:, 0], mid[:, 1]) < radius
+    for cx, cy, r in centres:
+        solid &= np.hypot(mid[:, 0] - cx, mid[:, 1] - cy) > r
+    tri = tri[solid]
+    # Counter-clockwise seen from above: the top faces look up.
+    e1, e2 = xy[tri[:, 1]] - xy[tri[:, 0]], xy[tri[:, 2]] - xy[tri[:, 0]]
+    cw = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0] < 0
+    tri[cw] = tri[cw][:, ::-1]
+    n = len(xy)
+    vertices = np.concatenate(
+        [np.column_stack([xy, np.full(n, thickness)]), np.column_stack([xy, np.zeros(n)])]
+    )
+    # Walls along the edges that only one triangle has (the outline, the holes).
+    edges = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])
+    key = np.sort(edges, axis=1)
+    _, inverse, count = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    border = edges[count[inverse.ravel()] == 1]
+    a, b = border[:, 0], border[:, 1]
+    walls = np.concatenate([np.column_stack([b, a, a + n]), np.column_stack([b, a + n, b + n])])
+    faces = np.concatenate([tri, tri[:, ::-1] + n, walls])
+    return CadModel.from_arrays(vertices, faces, name="holed disc")

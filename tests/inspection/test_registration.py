@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
-from _fitcases import add_blobs, apply, measure, perturbation, pose_errors
+from _fitcases import add_blobs, apply, holed_disc, measure, perturbation, pose_errors
+from scipy.spatial.transform import Rotation
 
 from inspection.cad import CadModel, load_cad
 from inspection.errors import InsufficientOverlap, InvalidInput
@@ -102,6 +103,10 @@ SHARED_CASES = [
         "counter.unitsmm.STL", 3, None, marks=pytest.mark.xfail(reason="3.9 deg: " + _THROUGH_SLAB)
     ),
     pytest.param("counter.unitsmm.STL", 3, "up"),
+    # Seen from above, the disc's turn rests on its ring of holes alone: from
+    # these starts it was left free, 12 and 18 deg off, until the escape.
+    pytest.param("counter.unitsmm.STL", 0, "up"),
+    pytest.param("counter.unitsmm.STL", 14, "up"),
     pytest.param("counter.unitsmm.STL", 4, None),
     pytest.param("counter.unitsmm.STL", 4, "up"),
     pytest.param("counter.unitsmm.STL", 6, "up"),
@@ -155,6 +160,76 @@ def test_weakly_observable_meshes_reach_the_noise_limit(shared, name, scale):
         assert reg.degenerate  # the user is told: y rests on the outline alone
     assert rot <= 0.005
     assert disp <= max(0.005, 3.0 * bound), (disp, bound)
+
+
+# ------------------------------------------- escape along a free rotation
+# Ten holes 36 deg apart on a 120 mm circle, and one more that breaks the
+# symmetry: seen from above, only their rims fix the disc's turn.
+DISC_HOLES = tuple((120.0, float(a), 8.0) for a in range(0, 360, 36)) + ((80.0, 18.0, 5.0),)
+
+
+@pytest.fixture(scope="module")
+def discs():
+    out = {}
+    for name, holes in (("holed", DISC_HOLES), ("plain", ())):
+        cad = holed_disc(holes=holes)
+        out[name] = (cad, GridTree.build(cad))
+    return out
+
+
+def _turned(deg: float) -> np.ndarray:
+    """A start turned about the disc's axis and shifted: T_cad_data."""
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec([0.0, 0.0, np.radians(deg)]).as_matrix()
+    T[:3, 3] = (3.0, -4.0, 1.0)
+    return T
+
+
+@pytest.mark.parametrize("deg", [20.0, -25.0])
+def test_a_turn_out_of_the_holes_reach_is_found_by_the_escape(discs, deg):
+    """Turned further than its holes are wide, the disc's turn is free where
+    the fit ends (no hole meets a hole): without the escape the fit stays
+    there and says so; with it, the scan about that axis finds the turn at
+    which the holes meet, and the fit from there lands on the truth."""
+    cad, tree = discs["holed"]
+    data, _ = measure(cad, np.eye(4), 50_000, seed=1)
+    up = (0.0, 0.0, 1.0)
+    stuck = register(tree, data, init=_turned(deg), view_direction=up, escape_deg=None)
+    rot, _ = pose_errors(stuck.transform, np.eye(4), data)
+    assert rot > 10.0 and stuck.degenerate
+    reg = register(tree, data, init=_turned(deg), view_direction=up)
+    rot, disp = pose_errors(reg.transform, np.eye(4), data)
+    # Only the holes' rims hold the turn (their walls face away from the
+    # sensor): good to a few hundredths of a degree with 0.02 mm noise.
+    assert rot <= 0.05 and disp <= 0.1, (rot, disp)
+    assert reg.inlier_fraction > stuck.inlier_fraction + 0.02
+
+
+def test_on_a_plain_disc_the_escape_keeps_what_the_points_fix(discs):
+    """A plain disc fits equally well at every turn. From a start that fits
+    it already, the scan finds nothing better and the fit comes back
+    unchanged; from one turned and shifted, the fit has the height and the
+    tilt right, and is flagged degenerate (seen from above, only the rim's
+    points hold the disc in its plane, and nothing holds its turn)."""
+    cad, tree = discs["plain"]
+    data, _ = measure(cad, np.eye(4), 20_000, seed=2)
+    up = (0.0, 0.0, 1.0)
+    reg = register(tree, data, view_direction=up)
+    plain = register(tree, data, view_direction=up, escape_deg=None)
+    np.testing.assert_array_equal(reg.transform, plain.transform)
+    for T in (reg, register(tree, data, init=_turned(20.0), view_direction=up)):
+        assert T.degenerate
+        normal = T.transform[:3, :3] @ np.array([0.0, 0.0, 1.0])
+        assert np.degrees(np.arccos(min(normal[2], 1.0))) <= 0.005
+        assert abs(apply(T.transform, data)[:, 2].mean() - data[:, 2].mean()) <= 0.005
+
+
+@pytest.mark.parametrize("bad", [0.0, -5.0, 181.0, float("nan")])
+def test_escape_span_is_checked(discs, bad):
+    cad, tree = discs["plain"]
+    data, _ = measure(cad, np.eye(4), 2000, seed=2)
+    with pytest.raises(InvalidInput, match="escape_deg"):
+        register(tree, data, escape_deg=bad)
 
 
 # --------------------------------------------------------------- robustness
