@@ -329,12 +329,13 @@ def sample_facing(
     *,
     seed: int = 0,
     min_cos: float = DEFAULT_MIN_COS,
+    views: Vectors | None = None,
 ) -> tuple[Points, np.ndarray]:
     """Sample the side of a part that faces a sensor looking down.
 
     Points are spread uniformly over the area of the faces whose normal,
-    turned into the view frame, points up by more than ``min_cos``
-    (occlusion is ignored).
+    turned into the view frame, points up (or towards one of ``views``) by
+    more than ``min_cos`` (occlusion is ignored).
 
     Parameters
     ----------
@@ -347,6 +348,10 @@ def sample_facing(
         Number of points.
     seed : int
     min_cos : float
+    views : (K, 3) float64, optional
+        Directions from the part towards each of K sensors (the cameras of a
+        rig), view frame; a face is sampled when it faces any of them. Up
+        (+z) when omitted.
 
     Returns
     -------
@@ -357,11 +362,20 @@ def sample_facing(
     Raises
     ------
     InvalidInput
-        No face faces the sensor.
+        No face faces the sensor, or bad ``views``.
     """
     R = np.asarray(T_view_cad, dtype=np.float64)[:3, :3]
-    up = face_normals @ R[2]
-    sel = np.flatnonzero(up > min_cos)
+    if views is None:
+        towards = np.array([[0.0, 0.0, 1.0]])
+    else:
+        towards = np.asarray(views, dtype=np.float64).reshape(-1, 3)
+        norm = np.linalg.norm(towards, axis=1, keepdims=True)
+        if not len(towards) or not np.isfinite(towards).all() or (norm < 1e-12).any():
+            raise InvalidInput("views must be finite, non-zero 3-vectors")
+        towards = towards / norm
+    # Each face's largest cosine to a sensor, its normal turned into the view frame.
+    facing = (face_normals @ R.T @ towards.T).max(axis=1)
+    sel = np.flatnonzero(facing > min_cos)
     if len(sel) == 0:
         raise InvalidInput("no face of the part faces the sensor in this pose")
     pts, f = _sample_faces(vertices, faces, sel, n, np.random.default_rng(seed))

@@ -1,7 +1,8 @@
 """Synthetic measured clouds for the registration, alignment and deviation tests.
 
 A "measurement" here is the side of a part that faces a sensor above it
-(faces turned towards +z; no renderer), with Gaussian noise, optionally with
+(faces turned towards +z, or towards one of the rig's four cameras; no
+renderer), with Gaussian noise, optionally with
 reflection blobs: clusters of points pushed 1-5 mm off the surface.
 """
 
@@ -13,6 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from inspection.alignment import DEFAULT_MIN_COS, sample_facing
 from inspection.cad import CadModel
+from inspection.rig import Rig
 
 
 def perturbation(rng: np.random.Generator, deg: float, mm: float, center: np.ndarray) -> np.ndarray:
@@ -37,16 +39,34 @@ def measure(
     noise_mm: float = 0.02,
     seed: int = 0,
     min_cos: float = DEFAULT_MIN_COS,
+    views: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Points on the sensor-facing side (faces whose normal's cosine to +z of
-    the data frame exceeds ``min_cos``), in the data frame, and their
-    data-frame normals."""
+    the data frame, or to one of ``views``, exceeds ``min_cos``), in the data
+    frame, and their data-frame normals."""
     rng = np.random.default_rng(seed + 1000)
     pts, face = sample_facing(
-        cad.vertices, cad.faces, cad.face_normals, T_data_cad, n, seed=seed, min_cos=min_cos
+        cad.vertices,
+        cad.faces,
+        cad.face_normals,
+        T_data_cad,
+        n,
+        seed=seed,
+        min_cos=min_cos,
+        views=views,
     )
     normals = cad.face_normals[face] @ T_data_cad[:3, :3].T
     return pts + rng.normal(scale=noise_mm, size=pts.shape), normals
+
+
+def rig_views() -> np.ndarray:
+    """Directions from the middle of the measurement volume towards each
+    camera of the line's rig as built (4, 3): the sensor of the line."""
+    rig = Rig.nominal()
+    middle = np.array([0.0, 0.0, 100.0])
+    centres = np.array([-cam.R.T @ cam.t for cam in rig.cameras])
+    d = centres - middle
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
 def add_blobs(

@@ -122,6 +122,34 @@ def test_sample_facing_only_samples_faces_turned_up():
     assert np.all(box.face_normals[face][:, 2] < -0.99)
 
 
+def test_sample_facing_with_views_samples_what_each_sensor_faces():
+    """Two sensors leaning 20 deg towards +x and -y see the top and the two
+    walls turned to them, in proportion to their areas; the others not."""
+    box = CadModel.from_mesh(trimesh.creation.box((100.0, 50.0, 20.0)), name="box")
+    s, c = np.sin(np.radians(20.0)), np.cos(np.radians(20.0))
+    views = np.array([[s, 0.0, c], [0.0, -2.0 * s, 2.0 * c]])  # any length
+    pts, face = sample_facing(
+        box.vertices, box.faces, box.face_normals, np.eye(4), 20_000, seed=1, views=views
+    )
+    normals = box.face_normals[face]
+    seen = {
+        tuple(n): float(np.mean(np.all(np.isclose(normals, n), axis=1)))
+        for n in ((0, 0, 1), (1, 0, 0), (0, -1, 0))
+    }
+    assert sum(seen.values()) == pytest.approx(1.0)
+    areas = np.array([100.0 * 50.0, 50.0 * 20.0, 100.0 * 20.0])
+    np.testing.assert_allclose(list(seen.values()), areas / areas.sum(), atol=0.01)
+    # A wall turned away from both is not seen, whatever its size.
+    assert not np.any(normals[:, 0] < -0.5) and not np.any(normals[:, 1] > 0.5)
+
+
+@pytest.mark.parametrize("views", [np.zeros((1, 3)), np.full((2, 3), np.nan), np.zeros((0, 3))])
+def test_sample_facing_refuses_bad_views(views):
+    box = CadModel.from_mesh(trimesh.creation.box((10.0, 10.0, 10.0)), name="box")
+    with pytest.raises(InvalidInput, match="views"):
+        sample_facing(box.vertices, box.faces, box.face_normals, np.eye(4), 10, views=views)
+
+
 def test_bad_input_raises(panel):
     with pytest.raises(InvalidInput):
         align(panel[1], np.full((100, 3), np.nan), model=panel[2])
