@@ -119,7 +119,10 @@ def main() -> int:
             first = fit.transform @ T_rig_part
             if guided:
                 cloud = rec.guided(cloud, Guide.from_cad(cad, np.linalg.inv(fit.transform)))
-                fit = register(tree, cloud.points, init=fit.transform, weights=cloud.weights)
+                # As the line does: from align's pose, without the escape scan.
+                fit = register(
+                    tree, cloud.points, init=fit.transform, weights=cloud.weights, escape_deg=None
+                )
             seconds = time.perf_counter() - start
             angle, shift = pose_error(fit.transform @ T_rig_part)
             _, shift_first = pose_error(first)

@@ -47,7 +47,7 @@ def deviation_map(path: Path) -> None:
     tree = inspection.GridTree.build(cad)
     fit = inspection.align(tree, cloud.points, cad=cad)
     cloud = rec.guided(cloud, inspection.Guide.from_cad(cad, np.linalg.inv(fit.transform)))
-    fit = inspection.register(tree, cloud.points, init=fit.transform)
+    fit = inspection.register(tree, cloud.points, init=fit.transform, escape_deg=None)
     points_cad = cloud.points @ fit.transform[:3, :3].T + fit.transform[:3, 3]
     dev = inspection.deviations(tree, points_cad, [])
     png = render_top_view(

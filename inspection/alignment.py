@@ -563,7 +563,8 @@ def align(
         that a thin part modelled as a solid is not fitted half onto its
         underside. Needs ``loss`` tukey or welsch.
     **register_kwargs
-        Passed on to the final :func:`register`.
+        Passed on to the final :func:`register` (which, having this search
+        behind it, runs without its ``escape_deg`` scan unless given one).
 
     Returns
     -------
@@ -770,6 +771,8 @@ def align(
         ranked = scored[:1]
     best = ranked[0]
     ambiguous = len(ranked) > 1 and ranked[1].score <= ambiguity_ratio * best.score
+    # The turn was searched here: the final fit scans no further unless asked.
+    register_kwargs.setdefault("escape_deg", None)
     fine = register(
         tree,
         P,

@@ -84,9 +84,11 @@ query each), and the fit is run again, with everything else as given, from
 up to three of the scan's local minima that score 10 % better than the fit
 or more. A fit that leaves the points' truncated cost (three robust scales
 of the first fit) 10 % lower or more replaces the first. A constrained fit
-of a clean cloud pays nothing; a scan costs ~10 ms, a new fit what a fit
-costs. The scan is about one axis: a free translation (a plate sliding in
-its plane) is left to the flag.
+of a clean cloud pays nothing; a scan costs 10-100 ms (points turned off
+the surface by more than the tree's band take its exact path), a new fit
+what a fit costs. ``align`` searches the turn itself, and its final fit
+runs without the scan. The scan is about one axis: a free translation (a
+plate sliding in its plane) is left to the flag.
 
 The cost only ever falls within an iteration (a step is accepted only if it
 lowers the cost). Across iterations it falls too while the subset stays the
@@ -1548,6 +1550,7 @@ def register(
     def refit(T_start: Transform) -> Registration:
         return register(**{**arguments, "init": T_start, "escape_deg": None})
 
+    # Every point, not only those that fit here: those would fit here best.
     scan = P[: min(cap, _ESCAPE_POINTS)][V[: min(cap, _ESCAPE_POINTS)] > 0]
     return _escape(
         tree, scan, result, H, center, L, np.radians(escape_deg), refit, misfit > _ESCAPE_MISFIT

@@ -159,8 +159,13 @@ def flash_stages(rig_calibration: str | Path | None = None, *, guided: bool = Tr
         return r.reconstructor.guided(cloud, Guide.from_cad(part.cad, T))
 
     def refit(part: LoadedPart, points: np.ndarray, T_cad_rig: np.ndarray) -> Any:
+        # From align's pose: the turn is searched already, no escape scan.
         return inspection_register(
-            part.tree, points, init=T_cad_rig, **measure._registration_kwargs(part)
+            part.tree,
+            points,
+            init=T_cad_rig,
+            escape_deg=None,
+            **measure._registration_kwargs(part),
         )
 
     def deviations(part: LoadedPart, points_cad: np.ndarray) -> Any:

@@ -77,7 +77,7 @@ def measured(request):
     tree = GridTree.build(cad)
     fit = align(tree, cloud.points, model=alignment_model(cad), cad=cad, weights=cloud.weights)
     cloud = rec.guided(cloud, Guide.from_cad(cad, np.linalg.inv(fit.transform)))
-    fit = register(tree, cloud.points, init=fit.transform, weights=cloud.weights)
+    fit = register(tree, cloud.points, init=fit.transform, weights=cloud.weights, escape_deg=None)
     T = fit.transform
     dev = deviations(tree, cloud.points @ T[:3, :3].T + T[:3, 3], cps)
     return cad, cloud, T_rig_part, fit, dev, request.param
