@@ -1006,6 +1006,7 @@ def _escape(
 
     first = misfit(fit)
     best, best_cost = fit, _ESCAPE_GAIN * first
+    turned = 0.0
     for i in better:
         try:
             other = refit(starts[i])
@@ -1021,8 +1022,17 @@ def _escape(
         )
         if cost < best_cost:
             best, best_cost = other, cost
+            turned = float(np.degrees(angles[i]))
             if not other.degenerate:
                 break
+    if best is not fit:
+        log.info(
+            "register: the fit turned %.1f deg about %s fits better (misfit %.4g, was %.4g)",
+            turned,
+            np.round(axis, 3),
+            best_cost,
+            first,
+        )
     return best
 
 

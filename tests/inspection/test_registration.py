@@ -206,7 +206,7 @@ def _turned(deg: float) -> np.ndarray:
 
 
 @pytest.mark.parametrize("deg", [20.0, -25.0])
-def test_a_turn_out_of_the_holes_reach_is_found_by_the_escape(discs, deg):
+def test_a_turn_out_of_the_holes_reach_is_found_by_the_escape(discs, deg, caplog):
     """Turned further than its holes are wide, the disc's turn is free where
     the fit ends (no hole meets a hole): without the escape the fit stays
     there and says so; with it, the scan about that axis finds the turn at
@@ -217,7 +217,9 @@ def test_a_turn_out_of_the_holes_reach_is_found_by_the_escape(discs, deg):
     stuck = register(tree, data, init=_turned(deg), view_direction=up, escape_deg=None)
     rot, _ = pose_errors(stuck.transform, np.eye(4), data)
     assert rot > 10.0 and stuck.degenerate
-    reg = register(tree, data, init=_turned(deg), view_direction=up)
+    with caplog.at_level("INFO", logger="inspection.registration"):
+        reg = register(tree, data, init=_turned(deg), view_direction=up)
+    assert "fits better" in caplog.text  # the operator is told
     rot, disp = pose_errors(reg.transform, np.eye(4), data)
     # Only the holes' rims hold the turn (their walls face away from the
     # sensor): good to a few hundredths of a degree with 0.02 mm noise.
