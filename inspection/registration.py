@@ -108,6 +108,7 @@ from __future__ import annotations
 
 import enum
 import logging
+import numbers
 import threading
 import weakref
 from dataclasses import dataclass, field
@@ -1163,8 +1164,12 @@ def register(
     arguments = dict(locals())
     if not hasattr(tree, "query"):
         raise InvalidInput("tree must answer closest-point queries (have a .query(points) method)")
-    if escape_deg is not None and not (np.isfinite(escape_deg) and 0 < escape_deg <= 180):
-        raise InvalidInput(f"escape_deg must be in (0, 180] or None, got {escape_deg!r}")
+    if escape_deg is not None and not (
+        isinstance(escape_deg, numbers.Real)
+        and not isinstance(escape_deg, (bool, np.bool_))
+        and 0 < escape_deg <= 180
+    ):
+        raise InvalidInput(f"escape_deg must be a number in (0, 180] or None, got {escape_deg!r}")
     if residual not in ("distance", "plane"):
         raise InvalidInput(f"residual must be 'distance' or 'plane', got {residual!r}")
     if loss not in LOSSES:

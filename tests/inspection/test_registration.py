@@ -246,7 +246,7 @@ def test_on_a_plain_disc_the_escape_keeps_what_the_points_fix(discs):
         assert abs(apply(T.transform, data)[:, 2].mean() - data[:, 2].mean()) <= 0.005
 
 
-@pytest.mark.parametrize("bad", [0.0, -5.0, 181.0, float("nan")])
+@pytest.mark.parametrize("bad", [0.0, -5.0, 181.0, float("nan"), "30", True])
 def test_escape_span_is_checked(discs, bad):
     cad, tree = discs["plain"]
     data, _ = measure(cad, np.eye(4), 2000, seed=2)
