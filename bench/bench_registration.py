@@ -89,7 +89,7 @@ def _rig_views() -> np.ndarray:
     """Directions from the middle of the volume to the four cameras of the rig as built."""
     from inspection.rig import Rig
 
-    centres = np.array([-cam.R.T @ cam.t for cam in Rig.nominal().cameras])
+    centres = np.array([cam.centre for cam in Rig.nominal().cameras])
     d = centres - np.array([0.0, 0.0, 100.0])
     return d / np.linalg.norm(d, axis=1, keepdims=True)
 

@@ -64,7 +64,7 @@ def rig_views() -> np.ndarray:
     camera of the line's rig as built (4, 3): the sensor of the line."""
     rig = Rig.nominal()
     middle = np.array([0.0, 0.0, 100.0])
-    centres = np.array([-cam.R.T @ cam.t for cam in rig.cameras])
+    centres = np.array([cam.centre for cam in rig.cameras])
     d = centres - middle
     return d / np.linalg.norm(d, axis=1, keepdims=True)
 
