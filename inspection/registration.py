@@ -973,7 +973,9 @@ def _escape(
     # Schur complement of the translation block.
     S = H[:3, :3] - H[:3, 3:] @ np.linalg.pinv(H[3:, 3:]) @ H[3:, :3]
     eig, vec = np.linalg.eigh(0.5 * (S + S.T))
-    if not misfitting and eig[0] >= _ESCAPE_REL_EIG * max(float(np.linalg.eigvalsh(H)[-1]), 1e-300):
+    # fit.observability: the eigenvalues of H, ascending.
+    largest = max(float(fit.observability[-1]), 1e-300)
+    if not misfitting and eig[0] >= _ESCAPE_REL_EIG * largest:
         return fit
     axis = vec[:, 0]
     trunc = max(_ESCAPE_TRUNCATION_MM, 20.0 * fit.scale_mm)
@@ -1558,8 +1560,10 @@ def register(
             evaluate_rest, r.copy(), V.copy(), perm, max_distance_mm, float(sigma), loss_id, c
         ),
     )
+    if escape_deg is None:
+        return result
     misfit = 1.0 - n_inl / max(int(np.sum(v > 0)), 1)
-    if escape_deg is None or not (len(degenerate) or misfit > _ESCAPE_MISFIT):
+    if not (len(degenerate) or misfit > _ESCAPE_MISFIT):
         return result
 
     def refit(T_start: Transform) -> Registration:
