@@ -118,6 +118,7 @@ import numba
 import numpy as np
 
 from ._faces import face_planes
+from ._linalg import cholesky_solve
 from .arrays import Points, Scalars, Transform, Vectors
 from .errors import InsufficientOverlap, InvalidInput
 
@@ -536,40 +537,6 @@ def _partial_shuffle(n: int, k: int, seed: np.uint64) -> np.ndarray:
 
 
 @numba.njit(cache=True)
-def _cholesky_solve(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, bool]:
-    """Solve ``A x = b`` for a small symmetric positive definite ``A``
-    (Cholesky, fixed order); ``ok`` False when ``A`` is not positive definite."""
-    n = A.shape[0]
-    Lc = np.zeros((n, n))
-    for j in range(n):
-        s = A[j, j]
-        for k in range(j):
-            s -= Lc[j, k] * Lc[j, k]
-        if not s > 0.0:
-            return np.zeros(n), False
-        d = np.sqrt(s)
-        Lc[j, j] = d
-        for i in range(j + 1, n):
-            s = A[i, j]
-            for k in range(j):
-                s -= Lc[i, k] * Lc[j, k]
-            Lc[i, j] = s / d
-    y = np.empty(n)
-    for i in range(n):
-        s = b[i]
-        for k in range(i):
-            s -= Lc[i, k] * y[k]
-        y[i] = s / Lc[i, i]
-    x = np.empty(n)
-    for i in range(n - 1, -1, -1):
-        s = y[i]
-        for k in range(i + 1, n):
-            s -= Lc[k, i] * x[k]
-        x[i] = s / Lc[i, i]
-    return x, True
-
-
-@numba.njit(cache=True)
 def _lm_step(H: np.ndarray, g: np.ndarray, lam: float) -> tuple[np.ndarray, float, bool]:
     """The damped step ``(H + lam D) delta = -g`` and its predicted reduction
     ``-(g . delta + delta . H delta / 2)``. ``D`` is Marquardt's scaling
@@ -583,7 +550,7 @@ def _lm_step(H: np.ndarray, g: np.ndarray, lam: float) -> tuple[np.ndarray, floa
     A = H.copy()
     for i in range(n):
         A[i, i] += lam * (H[i, i] + eps)
-    delta, ok = _cholesky_solve(A, -g)
+    delta, ok = cholesky_solve(A, -g)
     if not ok:
         return delta, 0.0, False
     pred = 0.0
@@ -603,7 +570,7 @@ def _trace_inverse(H: np.ndarray) -> float:
     for j in range(n):
         e = np.zeros(n)
         e[j] = 1.0
-        x, ok = _cholesky_solve(H, e)
+        x, ok = cholesky_solve(H, e)
         if not ok:
             return 0.0
         tr += x[j]
