@@ -39,6 +39,7 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
+from ._linalg import cholesky_solve
 from .rig import Camera
 
 F32 = npt.NDArray[np.float32]
@@ -265,6 +266,18 @@ def _gauss_newton_step(a11, a12, a13, a22, a23, a33, b1, b2, b3):  # pragma: no 
     return True, dd, dg, do
 
 
+@njit(cache=True, nogil=True, fastmath=True, inline="always")
+def _ncc(s1, st, sw, stt, sww, stw):  # pragma: no cover
+    """Normalised cross-correlation of a window's samples t and r from their weighted
+    sums: of the weights, t, r, t^2, r^2 and t r."""
+    mt = st / s1
+    mw = sw / s1
+    ctw = stw / s1 - mt * mw
+    ctt = stt / s1 - mt * mt
+    cww = sww / s1 - mw * mw
+    return ctw / math.sqrt(max(ctt * cww, 1e-12))
+
+
 @njit(cache=True, nogil=True, inline="always")
 def _store(i, ok, d, score, step, out_d, out_score, out_step):  # pragma: no cover
     """Row i of a window fit's outputs: its disparity, score and last step, or
@@ -379,12 +392,7 @@ def refine_pixels(
                 ok = False
                 break
             # Weighted normalised cross-correlation at the current shift.
-            mt = st / s1
-            mw = sw / s1
-            ctw = stw / s1 - mt * mw
-            ctt = stt / s1 - mt * mt
-            cww = sww / s1 - mw * mw
-            score = ctw / math.sqrt(max(ctt * cww, 1e-12))
+            score = _ncc(s1, st, sw, stt, sww, stw)
             # Gauss-Newton for (Δ, g, o) with residual e = t - g r - o and
             # d(g r)/dΔ = -g dr/dx (the image moves left when d grows).
             # Normal matrix A = J^T J, J = [-g gv, rv, 1]; rhs b = J^T e.
@@ -573,6 +581,48 @@ def refine_cyclopean(
         _store(i, ok, d, score, step, out_d, out_score, out_step)
 
 
+@njit(cache=True, nogil=True, fastmath=True, inline="always")
+def _warped_sample(rrow, wrrow, xr, wr_cols):  # pragma: no cover
+    """Right-image row ``rrow`` at column ``xr``: Catmull-Rom value, its
+    derivative, and the sample's weight (the right weights ``wrrow`` of the two
+    nearest pixels). Branch-free: a column off the row is clamped to a valid
+    one and weighted 0, rather than skipped."""
+    xf = math.floor(xr)
+    a = xr - xf
+    xb0 = int(xf)
+    xb = min(max(xb0, 1), wr_cols - 3)
+    inside = 1.0 if xb == xb0 else 0.0
+    a2 = a * a
+    a3 = a2 * a
+    r0 = rrow[xb - 1]
+    r1 = rrow[xb]
+    r2 = rrow[xb + 1]
+    r3 = rrow[xb + 2]
+    rv = (
+        (-0.5 * a3 + a2 - 0.5 * a) * r0
+        + (1.5 * a3 - 2.5 * a2 + 1.0) * r1
+        + (-1.5 * a3 + 2.0 * a2 + 0.5 * a) * r2
+        + (0.5 * a3 - 0.5 * a2) * r3
+    )
+    gv = (
+        (-1.5 * a2 + 2.0 * a - 0.5) * r0
+        + (4.5 * a2 - 5.0 * a) * r1
+        + (-4.5 * a2 + 4.0 * a + 0.5) * r2
+        + (1.5 * a2 - a) * r3
+    )
+    return rv, gv, inside * wrrow[xb] * wrrow[xb + 1]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _warp_centre(shape, mask, x, y, radius):  # pragma: no cover
+    """Whether a warped window at (x, y) fits in the crop and is centred on the
+    field, and the field's value there (0 when not)."""
+    H, W = shape.shape
+    if not (y - radius >= 0 and y + radius < H and x - radius >= 0 and x + radius < W):
+        return False, 0.0
+    return mask[y, x] > 0.0, float(shape[y, x])
+
+
 @njit(cache=True, nogil=True, fastmath=True)
 def refine_warped(
     left, right, wl, wr, shape, mask, px, py, d0, radius, iterations, out_d, out_score, out_step
@@ -596,7 +646,6 @@ def refine_warped(
         1 where ``shape`` is known, 0 elsewhere.
     Others as :func:`refine_pixels`.
     """
-    H, W = left.shape
     wr_cols = right.shape[1]
     n = px.shape[0]
     nw = (2 * radius + 1) ** 2
@@ -608,11 +657,7 @@ def refine_warped(
         o = 0.0
         score = -1.0
         step = 99.0
-        ok = y - radius >= 0 and y + radius < H and x - radius >= 0 and x + radius < W
-        s0 = 0.0
-        if ok:
-            s0 = shape[y, x]
-            ok = mask[y, x] > 0.0
+        ok, s0 = _warp_centre(shape, mask, x, y, radius)
         for _ in range(iterations):
             if not ok:
                 break
@@ -635,33 +680,9 @@ def refine_warped(
                 rrow = right[yy]
                 wrrow = wr[yy]
                 for u in range(2 * radius + 1):
-                    # Branch-free: samples off the field or off the image get
-                    # weight 0 (clamped to a valid column) rather than a skip.
                     xr = (x - radius + u) - d - (srow[u] - s0)
-                    xf = math.floor(xr)
-                    a = xr - xf
-                    xb0 = int(xf)
-                    xb = min(max(xb0, 1), wr_cols - 3)
-                    m = mrow[u] * (1.0 if xb == xb0 else 0.0)
-                    a2 = a * a
-                    a3 = a2 * a
-                    r0 = rrow[xb - 1]
-                    r1 = rrow[xb]
-                    r2 = rrow[xb + 1]
-                    r3 = rrow[xb + 2]
-                    rv = (
-                        (-0.5 * a3 + a2 - 0.5 * a) * r0
-                        + (1.5 * a3 - 2.5 * a2 + 1.0) * r1
-                        + (-1.5 * a3 + 2.0 * a2 + 0.5 * a) * r2
-                        + (0.5 * a3 - 0.5 * a2) * r3
-                    )
-                    gv = (
-                        (-1.5 * a2 + 2.0 * a - 0.5) * r0
-                        + (4.5 * a2 - 5.0 * a) * r1
-                        + (-4.5 * a2 + 4.0 * a + 0.5) * r2
-                        + (1.5 * a2 - a) * r3
-                    )
-                    wt = m * wlrow[u] * wrrow[xb] * wrrow[xb + 1]
+                    rv, gv, wrt = _warped_sample(rrow, wrrow, xr, wr_cols)
+                    wt = mrow[u] * wlrow[u] * wrt
                     t = lrow[u]
                     s1 += wt
                     sw += wt * rv
@@ -676,12 +697,7 @@ def refine_warped(
             if s1 < 0.5 * nw:
                 ok = False
                 break
-            mt = st / s1
-            mw = sw / s1
-            ctw = stw / s1 - mt * mw
-            ctt = stt / s1 - mt * mt
-            cww = sww / s1 - mw * mw
-            score = ctw / math.sqrt(max(ctt * cww, 1e-12))
+            score = _ncc(s1, st, sw, stt, sww, stw)
             a11 = g * g * sgg
             a12 = -g * sgw
             a13 = -g * sg
@@ -697,6 +713,157 @@ def refine_warped(
             d += dd
             g += dg
             o += do
+            step = dd
+            if abs(dd) < 0.002:
+                break
+        _store(i, ok, d, score, step, out_d, out_score, out_step)
+
+
+# Regressors of :func:`refine_warped_shaded` (the quadratic monomials of two
+# surface coordinates), and its unknowns (disparity, gain, offset and their
+# coefficients): constants, so that the compiler unrolls the accumulation of
+# the normal equations.
+SHADE_TERMS = 5
+_SHADED_UNKNOWNS = 3 + SHADE_TERMS
+
+
+@njit(cache=True, nogil=True, fastmath=True, inline="always")
+def _monomials(u, v, out):  # pragma: no cover
+    """The regressors of :func:`refine_warped_shaded` at surface coordinates (u, v)."""
+    out[0] = u
+    out[1] = v
+    out[2] = u * u
+    out[3] = u * v
+    out[4] = v * v
+
+
+@njit(cache=True, nogil=True, fastmath=True)
+def refine_warped_shaded(
+    left,
+    right,
+    wl,
+    wr,
+    shape,
+    mask,
+    su,
+    sv,
+    ridge,
+    px,
+    py,
+    d0,
+    radius,
+    iterations,
+    out_d,
+    out_score,
+    out_step,
+):  # pragma: no cover
+    """:func:`refine_warped` with light that varies with the surface across the window.
+
+    The model is ``L ≈ g R(x') + o + sum_k c_k (q_k - q_k(centre))``: besides
+    the gain and offset, an additive term linear in ``SHADE_TERMS``
+    regressors, the quadratic monomials ``u, v, u^2, u v, v^2`` of two
+    coordinates of the surface known at every pixel (such as its slopes),
+    whose coefficients ``c`` are fitted with the disparity: light that is a
+    smooth function of the surface's orientation.
+    Gauss-Newton on all the unknowns, normal equations solved by Cholesky;
+    ``ridge`` times the window's weight is added to the coefficients'
+    diagonal, which keeps a regressor that does not vary in the window from
+    making the system singular.
+
+    Parameters
+    ----------
+    su, sv : (H, W) float32
+        The surface coordinates ``u`` and ``v`` at every left-crop pixel.
+    ridge : float
+    Others as :func:`refine_warped`.
+    """
+    wr_cols = right.shape[1]
+    n = px.shape[0]
+    nw = (2 * radius + 1) ** 2
+    A = np.empty((_SHADED_UNKNOWNS, _SHADED_UNKNOWNS))
+    b = np.empty(_SHADED_UNKNOWNS)
+    J = np.empty(_SHADED_UNKNOWNS)
+    c = np.empty(SHADE_TERMS)
+    q0 = np.empty(SHADE_TERMS)
+    q = np.empty(SHADE_TERMS)
+    for i in range(n):
+        x = px[i]
+        y = py[i]
+        d = float(d0[i])
+        g = 1.0
+        o = 0.0
+        c[:] = 0.0
+        score = -1.0
+        step = 99.0
+        ok, s0 = _warp_centre(shape, mask, x, y, radius)
+        if ok:
+            _monomials(su[y, x], sv[y, x], q0)
+        for _ in range(iterations):
+            if not ok:
+                break
+            A[:, :] = 0.0
+            b[:] = 0.0
+            s1 = 0.0
+            sw = 0.0
+            sww = 0.0
+            st = 0.0
+            stt = 0.0
+            stw = 0.0
+            for v in range(-radius, radius + 1):
+                yy = y + v
+                lrow = left[yy, x - radius : x + radius + 1]
+                wlrow = wl[yy, x - radius : x + radius + 1]
+                srow = shape[yy, x - radius : x + radius + 1]
+                mrow = mask[yy, x - radius : x + radius + 1]
+                urow = su[yy, x - radius : x + radius + 1]
+                vrow = sv[yy, x - radius : x + radius + 1]
+                rrow = right[yy]
+                wrrow = wr[yy]
+                for u in range(2 * radius + 1):
+                    xr = (x - radius + u) - d - (srow[u] - s0)
+                    rv, gv, wrt = _warped_sample(rrow, wrrow, xr, wr_cols)
+                    wt = mrow[u] * wlrow[u] * wrt
+                    if wt == 0.0:
+                        continue
+                    t = lrow[u]
+                    e = t - g * rv - o
+                    J[0] = -g * gv
+                    J[1] = rv
+                    J[2] = 1.0
+                    _monomials(urow[u], vrow[u], q)
+                    for k in range(SHADE_TERMS):
+                        qk = q[k] - q0[k]
+                        J[3 + k] = qk
+                        e -= c[k] * qk
+                    for r in range(_SHADED_UNKNOWNS):
+                        wj = wt * J[r]
+                        b[r] += wj * e
+                        for m in range(r, _SHADED_UNKNOWNS):
+                            A[r, m] += wj * J[m]
+                    s1 += wt
+                    sw += wt * rv
+                    sww += wt * rv * rv
+                    st += wt * t
+                    stt += wt * t * t
+                    stw += wt * t * rv
+            if s1 < 0.5 * nw:
+                ok = False
+                break
+            score = _ncc(s1, st, sw, stt, sww, stw)
+            for r in range(_SHADED_UNKNOWNS):
+                for m in range(r):
+                    A[r, m] = A[m, r]
+            for k in range(SHADE_TERMS):
+                A[3 + k, 3 + k] += ridge * s1
+            sol, ok = cholesky_solve(A, b)
+            if not ok:
+                break
+            dd = min(max(sol[0], -1.0), 1.0)
+            d += dd
+            g += sol[1]
+            o += sol[2]
+            for k in range(SHADE_TERMS):
+                c[k] += sol[3 + k]
             step = dd
             if abs(dd) < 0.002:
                 break
