@@ -1260,7 +1260,7 @@ def _shading(
     for g in (a, b):
         hi = cv2.dilate(np.where(on_part, g, np.float32(-1e30)), k)
         lo = cv2.erode(np.where(on_part, g, np.float32(1e30)), k)
-        bent |= (hi - lo > p.shading_bend) & (hi >= lo)
+        bent |= hi - lo > p.shading_bend
     scale = np.float32(_SHADING_SCALE)
     return scale * a, scale * b, bent
 
@@ -1270,20 +1270,16 @@ def _slope(
 ) -> npt.NDArray[np.float32]:
     """Derivative of ``field_`` along ``axis``: the mean of the differences to
     both neighbours that are on the part (one-sided at its outline, 0 alone)."""
-    f = np.where(on_part, field_, np.float32(0.0))
-    diff = np.diff(f, axis=axis)
-    both = np.logical_and(
-        np.take(on_part, np.arange(1, on_part.shape[axis]), axis=axis),
-        np.take(on_part, np.arange(on_part.shape[axis] - 1), axis=axis),
-    )
-    diff = np.where(both, diff, 0.0)
-    pad_lo = [(0, 0), (0, 0)]
-    pad_hi = [(0, 0), (0, 0)]
-    pad_lo[axis] = (1, 0)
-    pad_hi[axis] = (0, 1)
-    total = np.pad(diff, pad_lo) + np.pad(diff, pad_hi)
-    count = np.pad(both, pad_lo).astype(np.int8) + np.pad(both, pad_hi)
-    return np.asarray(total / np.maximum(count, 1), dtype=np.float32)
+    f = np.moveaxis(np.where(on_part, field_, np.float32(0.0)), axis, -1)
+    on = np.moveaxis(on_part, axis, -1)
+    both = on[..., 1:] & on[..., :-1]
+    diff = np.where(both, f[..., 1:] - f[..., :-1], np.float32(0.0))
+    total = np.zeros_like(f)
+    count = np.zeros(f.shape, np.int8)
+    for side in (np.s_[..., 1:], np.s_[..., :-1]):
+        total[side] += diff
+        count[side] += both
+    return np.ascontiguousarray(np.moveaxis(total / np.maximum(count, 1), -1, axis), np.float32)
 
 
 def _guide_disparity(pair: _stereo.RectifiedPair, guide: Guide) -> npt.NDArray[np.float32]:
