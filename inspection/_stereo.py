@@ -616,7 +616,7 @@ def _warped_sample(rrow, wrrow, xr, wr_cols):  # pragma: no cover
 @njit(cache=True, nogil=True, inline="always")
 def _warp_centre(shape, mask, x, y, radius):  # pragma: no cover
     """Whether a warped window at (x, y) fits in the crop and is centred on the
-    field, and the field's value there (0 when not)."""
+    field, and the field's value there (0 off the crop)."""
     H, W = shape.shape
     if not (y - radius >= 0 and y + radius < H and x - radius >= 0 and x + radius < W):
         return False, 0.0
