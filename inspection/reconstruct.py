@@ -13,7 +13,8 @@ The algorithm, per stereo pair of :attr:`Rig.stereo_pairs` (cam0-cam1, cam2-cam3
    the conveyor background is dropped here, before the expensive steps.
 4. **Sub-pixel refinement** at full resolution: a Gauss-Newton (Lucas-Kanade)
    fit of each pixel's window with gain and offset, on locally normalised
-   images, with Catmull-Rom interpolation and with saturated pixels (the
+   images, with cubic B-spline interpolation (the least pixel locking; see
+   :mod:`inspection._stereo`) and with saturated pixels (the
    flash's mirror reflections) given no weight. Pixels whose windows do not
    correlate (score below ``min_score``), move too far, or do not converge
    are dropped. Every ``stride``-th column is refined (windows overlap, so
@@ -886,7 +887,8 @@ def _match_pair(
     # The right image is needed where the region's disparities send it.
     rx0 = max(int(math.floor(x0 - d_max)) - pad, 0)
     rx1 = min(int(math.ceil(x1 - d_min)) + pad, w_img)
-    right_n = _stereo.local_normalise(right[y0:y1, rx0:rx1], p.norm_window)
+    # The kernels sample the right crop between pixels: its spline coefficients.
+    right_n = _stereo.spline_rows(_stereo.local_normalise(right[y0:y1, rx0:rx1], p.norm_window))
     wl = (~sat_l[roi]).astype(np.float32)
     wr = (~sat_r[y0:y1, rx0:rx1]).astype(np.float32)
     todo = fg[roi] & ~sat_l[roi]
@@ -908,7 +910,7 @@ def _match_pair(
         score = np.empty(n, np.float32)
         step = np.empty(n, np.float32)
         _stereo.refine_cyclopean(
-            left_n,
+            _stereo.spline_rows(left_n),  # sampled between pixels too
             right_n,
             wl,
             wr,
@@ -993,7 +995,7 @@ class _PairState:
     what the warped passes, with or without a guide, start from."""
 
     left_n: npt.NDArray[np.float32]
-    right_n: npt.NDArray[np.float32]
+    right_n: npt.NDArray[np.float32]  # row B-spline coefficients (_stereo.spline_rows)
     wl: npt.NDArray[np.float32]
     wr: npt.NDArray[np.float32]
     px: npt.NDArray[np.intp]

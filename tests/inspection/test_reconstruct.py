@@ -341,6 +341,7 @@ def _bend_errors(sheen_left: float, sheen_right: float, seed: int) -> tuple[floa
     """RMS disparity error across the bend of :func:`_bend_pair`, px: windows warped by
     the true field, fitted with a gain and offset, and with the light as well."""
     left, right, shape, su, px, py, truth = _bend_pair(sheen_left, sheen_right, seed)
+    right = _stereo.spline_rows(right)
     ones = np.ones_like(shape)
     start = (truth + 0.3).astype(np.float32)
     errors = []
