@@ -228,7 +228,7 @@ def render_calibration_views(
     seed: int = 0,
     board: CharucoSpec | None = None,
     reference: Transform | None = None,
-    supersample: int = 3,
+    supersample: int = 5,
 ) -> tuple[list[list[Image]], list[Transform]]:
     """Render the board in :func:`calibration_poses` with the simulator.
 
