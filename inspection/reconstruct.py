@@ -74,10 +74,11 @@ function of the normal), with their coefficients fitted with the disparity
 (:func:`_stereo.refine_warped_shaded`). The slopes come from the CAD, not
 from the images, so they cannot mimic the speckle. On the demo panel the
 points on bends come out a quarter closer to the surface, and over twelve poses
-the fitted pose is within 0.026 deg (was 0.064) and moves the part's corners
-by at most 0.15 mm (was 0.46; median 0.09, 0.15 after the first pass alone;
-``make bench BENCH=endtoend``); the flat regions' windows are fitted as
-before. About one window in six is on a bend; they cost ~0.1 s per frame set.
+the fitted pose is within 0.027 deg and moves the part's corners by at most
+0.20 mm (median 0.07, 0.15 after the first pass alone; ``make bench
+BENCH=endtoend``); without the light's fit the worst pose was 0.064 deg and
+0.46 mm off. The flat regions' windows are fitted as before. About one
+window in six is on a bend; they cost ~0.1 s per frame set.
 """
 
 from __future__ import annotations

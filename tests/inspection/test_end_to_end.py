@@ -84,20 +84,21 @@ def test_pose_rotation_recovered(measured) -> None:
     assert angle <= 0.05
 
 
-@pytest.mark.xfail(
-    strict=False,
-    reason=(
-        "the part's corners come out 0.04-0.15 mm off over six poses at seeds 11 and 12 "
-        "(median 0.09; 0.11 mm at the typical pose, 0.13 at the worst). The in-plane pose "
-        "rests on the few points on the emboss walls, the character line and the edge radii, "
-        "and a turn of 0.025 deg alone moves the corners by 0.1 mm: the fitted turn is "
-        "0.004-0.026 deg off. Windows warped by the CAD's field, which also fit the flash's "
-        "sheen where they span a bend, took the worst pose from 0.46 to 0.13 mm; measured "
-        "with the rig as built instead of the calibrated one, the median is 0.06 mm"
-    ),
+_CORNERS = (
+    "the part's corners come out 0.02-0.20 mm off over six poses at seeds 11 and 12 "
+    "(median 0.07; 0.14 mm at this pose). The in-plane pose rests on the few points on "
+    "the emboss walls, the character line and the edge radii, and a turn of 0.025 deg "
+    "alone moves the corners by 0.1 mm: the fitted turn is 0.003-0.027 deg off. Windows "
+    "warped by the CAD's field, which also fit the flash's sheen where they span a bend, "
+    "took this pose from 0.46 to 0.14 mm; measured with the rig as built instead of the "
+    "calibrated one, the figures are the same"
 )
-def test_pose_translation_recovered(measured) -> None:
-    cad, _, T_rig_part, fit, _, _ = measured
+
+
+def test_pose_translation_recovered(measured, request) -> None:
+    cad, _, T_rig_part, fit, _, pose = measured
+    if pose == "worst":
+        request.applymarker(pytest.mark.xfail(strict=False, reason=_CORNERS))
     _, shift = _pose_errors(cad, fit.transform, T_rig_part)
     assert shift <= 0.1
 
