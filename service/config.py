@@ -253,8 +253,8 @@ class StationSection(_Strict):
         default=True,
         description=(
             "Match every trigger a second time with the part's CAD at the first fit's pose "
-            "shaping the matching windows: ~0.3 s more per part; on the demo panel the part's "
-            "corners come out 0.07 mm off (median) instead of 0.15."
+            "shaping the matching windows, and the ring pairs too: ~0.7 s more per part; on "
+            "the demo panel the part's corners come out 0.07 mm off (median) instead of 0.15."
         ),
     )
     parts: list[Name] = Field(default_factory=lambda: ["demo-panel"], min_length=1)

@@ -85,13 +85,12 @@ def test_pose_rotation_recovered(measured) -> None:
 
 
 _CORNERS = (
-    "the part's corners come out 0.02-0.20 mm off over six poses at seeds 11 and 12 "
-    "(median 0.07; 0.14 mm at this pose). The in-plane pose rests on the few points on "
+    "the part's corners come out 0.04-0.14 mm off over six poses at seeds 11 and 12 "
+    "(median 0.07; 0.10 mm at this pose). The in-plane pose rests on the few points on "
     "the emboss walls, the character line and the edge radii, and a turn of 0.025 deg "
-    "alone moves the corners by 0.1 mm: the fitted turn is 0.003-0.027 deg off. Windows "
+    "alone moves the corners by 0.1 mm: the fitted turn is 0.004-0.021 deg off. Windows "
     "warped by the CAD's field, which also fit the flash's sheen where they span a bend, "
-    "took this pose from 0.46 to 0.14 mm; measured with the rig as built instead of the "
-    "calibrated one, the figures are the same"
+    "and the ring pairs matched in that pass took this pose from 0.46 to 0.10 mm"
 )
 
 

@@ -282,14 +282,61 @@ def test_guided_from_a_kept_matching_is_the_same_cloud(
     np.testing.assert_array_equal(again.weights, once.weights)
     assert again.report.pairs == once.report.pairs
     assert again.matching is not None
-    # Only the warped passes ran again.
-    assert not any(k.startswith(("sgbm", "rectify", "refine")) for k in again.report.timings_ms)
+    # The stereo pairs ran only their warped passes again; the ring pairs are
+    # matched in this pass alone, from the guide (no coarse search).
+    ran = set(again.report.timings_ms)
+    n = len(reconstructor.pairs)
+    assert not any(k.startswith(("sgbm", "rectify")) for k in ran)
+    assert not {f"refine{k}" for k in range(n)} & ran
+    assert {f"refine{k}" for k in range(n, n + len(reconstructor.guide_pairs))} <= ran
     with pytest.raises(InvalidInput, match="keep_matching"):
         reconstructor.guided(plain, guide)
     with pytest.raises(InvalidInput, match="keep_matching"):
         Reconstructor.build(rig).guided(first, guide)
     with pytest.raises(InvalidInput, match="Guide"):
         reconstructor.guided(first, None)  # type: ignore[arg-type]
+
+
+def test_ring_pairs_join_the_guided_pass(
+    rig: Rig, reconstructor: Reconstructor, panel_scene
+) -> None:
+    # The ring pairs (baselines along y) are matched only with a guide, started
+    # from its disparities: their points are as close to the surface as the
+    # stereo pairs', and with twice the pairs more of them are confirmed.
+    cad, tree, T, frames, plain = panel_scene
+    assert len(reconstructor.guide_pairs) == len(rig.ring_pairs) == 2
+    assert set(np.unique(plain.pair)) == {0, 1} and len(plain.report.pairs) == 2
+    guided = reconstructor(frames, guide=Guide.from_cad(cad, T))
+    assert set(np.unique(guided.pair)) == {0, 1, 2, 3}
+    assert [r.pair for r in guided.report.pairs[2:]] == [p.name for p in reconstructor.guide_pairs]
+    alone = Reconstructor.build(rig, ReconstructParams(guided_ring_pairs=False))
+    two = alone(frames, guide=Guide.from_cad(cad, T))
+    assert set(np.unique(two.pair)) == {0, 1}
+    r2, _ = _surface_errors(tree, T, two)
+    for k in (2, 3):
+        sel = guided.pair == k
+        ring = Cloud(guided.points[sel], guided.weights[sel], guided.pair[sel], guided.report)
+        r, _ = _surface_errors(tree, T, ring)
+        assert len(r) > 0.4 * len(r2)  # about as many as each stereo pair
+        assert _rms(r) < 1.1 * _rms(r2)
+    confirmed = sum(p.confirmed for p in guided.report.pairs[:2])
+    assert confirmed > sum(p.confirmed for p in two.report.pairs)
+
+
+def test_a_ring_pair_with_an_unusable_frame_is_skipped(
+    reconstructor: Reconstructor, panel_scene
+) -> None:
+    cad, _, T, frames, _ = panel_scene
+    dark = [f.copy() for f in frames]
+    dark[2][:] = 0
+    cloud = reconstructor(dark, guide=Guide.from_cad(cad, T))
+    pairs = reconstructor.pairs + reconstructor.guide_pairs
+    assert len(cloud.report.pairs) == 4
+    for k, (pair, rep) in enumerate(zip(pairs, cloud.report.pairs, strict=True)):
+        uses_dark = 2 in (pair.left, pair.right)
+        assert bool(rep.skipped) == uses_dark
+        assert (cloud.pair == k).any() != uses_dark
+    assert "pair_skipped" in cloud.report.flags
 
 
 def test_guide_off_the_part_does_no_harm(reconstructor: Reconstructor, panel_scene) -> None:
