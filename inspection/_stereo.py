@@ -601,9 +601,9 @@ def refine_cyclopean(
 @njit(cache=True, nogil=True, fastmath=True, inline="always")
 def _warped_sample(rrow, wrrow, xr, wr_cols):  # pragma: no cover
     """Right-image row ``rrow`` (B-spline coefficients) at column ``xr``: the
-    spline's value, its derivative, and the sample's weight (the right weights ``wrrow`` of the two
-    nearest pixels). Branch-free: a column off the row is clamped to a valid
-    one and weighted 0, rather than skipped."""
+    spline's value, its derivative, and the sample's weight (the right weights
+    ``wrrow`` of the two nearest pixels). Branch-free: a column off the row is
+    clamped to a valid one and weighted 0, rather than skipped."""
     xf = math.floor(xr)
     a = xr - xf
     xb0 = int(xf)

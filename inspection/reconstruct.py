@@ -907,7 +907,7 @@ def _guided_pair(
     state = _PairState(
         left_n, right_n, wl, wr, px, py, d_init, d_sq, score, step, shift, x0, y0, roi, frame
     )
-    return _finish_pair(pair, state, p, timings, k, guide)
+    return _finish_pair(pair, state, p, timings, k, guide, g)
 
 
 def _per_pair(
@@ -1131,12 +1131,17 @@ def _finish_pair(
     timings: dict[str, float],
     k: int,
     guide: Guide | None,
+    guide_field: npt.NDArray[np.float32] | None = None,
 ) -> _PairResult:
-    """The warped passes (guided or not) and the triangulation of one pair."""
+    """The warped passes (guided or not) and the triangulation of one pair
+    (``guide_field``: the guide's disparities, :func:`_guide_disparity`, when
+    already drawn)."""
     t = time.perf_counter()
     shape = None
     if guide is not None:
-        shape = _guide_disparity(pair, guide)[st.roi] + np.float32(st.shift)
+        if guide_field is None:
+            guide_field = _guide_disparity(pair, guide)
+        shape = guide_field[st.roi] + np.float32(st.shift)
         timings[f"guide{k}"] = (time.perf_counter() - t) * 1e3
     d_ref, score, step = st.d_square, st.score, st.step
     if p.warp_passes or shape is not None:
