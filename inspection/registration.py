@@ -78,15 +78,18 @@ teeth off, constrained there, with a large share of its points off the CAD.
 When the final fit is flagged degenerate and its least constrained rotation
 (with the translation free to follow it) is weak, or when it leaves more
 than 10 % of its points misfit, that rotation is scanned over
-``escape_deg`` either way in steps that move the points by ~2 mm: each
-angle is scored by the truncated distances of 4096 points to the CAD (one
-query each), and the fit is run again, with everything else as given, from
-up to three of the scan's local minima that score 10 % better than the fit
-or more. A fit that leaves the points' truncated cost (three robust scales
-of the first fit) 10 % lower or more replaces the first. A constrained fit
-of a clean cloud pays nothing; a scan costs 10-100 ms (points turned off
-the surface by more than the tree's band take its exact path), a new fit
-what a fit costs. ``align`` searches the turn itself, and its final fit
+``escape_deg`` either way in steps that move the points by ~2 mm, twice:
+about the centroid (a disc turns about its centre), and with the shift that
+follows the turn to first order (a plate standing on the belt that settled
+turned in its own plane about a corner, 1.7 deg off, comes back only so).
+Each angle is scored by the truncated distances of 4096 points to the CAD
+(one query each), and the fit is run again, with everything else as given,
+from up to three of the scans' local minima that score 10 % better than the
+fit or more. A fit that leaves the points' truncated cost (three robust
+scales of the first fit) 10 % lower or more replaces the first. A
+constrained fit of a clean cloud pays nothing; the scans cost 20-200 ms
+(points turned off the surface by more than the tree's band take its exact
+path), a new fit what a fit costs. ``align`` searches the turn itself, and its final fit
 runs without the scan. The scan is about one axis: a free translation (a
 plate sliding in its plane) is left to the flag.
 
@@ -949,22 +952,30 @@ def _escape(
     step = min(trunc / L, np.radians(2.0))
     k = int(np.ceil(span_rad / step))
     angles = np.linspace(-span_rad, span_rad, 2 * k + 1)
-    zero = np.zeros(3)
-    starts = [_compose(fit.transform, axis * a, zero, center) for a in angles]
-    score = np.empty(len(angles))
-    for i, T_ in enumerate(starts):
-        X = _transform(T_[:3, :3].copy(), T_[:3, 3].copy(), P)
-        d = _query(tree, X)[2]
-        score[i] = np.mean(np.minimum(d * d, trunc * trunc))
-    # Local minima of the scan that place clearly more of the points on the
-    # CAD than the fit does (the fit's neighbours are its own minimum).
-    here = k
-    minima = (score[1:-1] <= score[:-2]) & (score[1:-1] <= score[2:])
-    better = [
-        i + 1
-        for i in np.argsort(score[1:-1], kind="stable")
-        if minima[i] and abs(i + 1 - here) > 1 and score[i + 1] < _ESCAPE_GAIN * score[here]
-    ][:_ESCAPE_STARTS]
+    # Two lines are scanned: the turn about the centroid, and the turn with the
+    # shift that follows it to first order (the least-cost shift per radian by
+    # the Schur complement). A disc turns about its centre: the first. A plate
+    # that settled turned in its own plane about one of its corners comes
+    # back only along the second.
+    follow = -np.linalg.pinv(H[3:, 3:]) @ H[3:, :3] @ (axis * L)
+    found: list[tuple[float, int, Transform, float]] = []
+    for line, shift in enumerate((np.zeros(3), follow)):
+        starts = [_compose(fit.transform, axis * a, shift * a, center) for a in angles]
+        score = np.empty(len(angles))
+        for i, T_ in enumerate(starts):
+            X = _transform(T_[:3, :3].copy(), T_[:3, 3].copy(), P)
+            d = _query(tree, X)[2]
+            score[i] = np.mean(np.minimum(d * d, trunc * trunc))
+        # Local minima of the scan that place clearly more of the points on the
+        # CAD than the fit does (the fit's neighbours are its own minimum).
+        here = k
+        minima = (score[1:-1] <= score[:-2]) & (score[1:-1] <= score[2:])
+        found += [
+            (float(score[i + 1]), line, starts[i + 1], float(angles[i + 1]))
+            for i in range(len(minima))
+            if minima[i] and abs(i + 1 - here) > 1 and score[i + 1] < _ESCAPE_GAIN * score[here]
+        ]
+    better = sorted(found, key=lambda f: (f[0], f[1], f[3]))[:_ESCAPE_STARTS]
     if not better:
         return fit
 
@@ -977,22 +988,22 @@ def _escape(
     first = misfit(fit)
     best, best_cost = fit, _ESCAPE_GAIN * first
     turned = 0.0
-    for i in better:
+    for _, _, T_start, angle in better:
         try:
-            other = refit(starts[i])
+            other = refit(T_start)
         except InsufficientOverlap:
             continue
         cost = misfit(other)
         log.debug(
             "escape: %.1f deg about %s, misfit %.4g against the first fit's %.4g",
-            np.degrees(angles[i]),
+            np.degrees(angle),
             np.round(axis, 3),
             cost,
             first,
         )
         if cost < best_cost:
             best, best_cost = other, cost
-            turned = float(np.degrees(angles[i]))
+            turned = float(np.degrees(angle))
             if not other.degenerate:
                 break
     if best is not fit:

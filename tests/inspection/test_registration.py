@@ -227,6 +227,25 @@ def test_a_turn_out_of_the_holes_reach_is_found_by_the_escape(discs, deg, caplog
     assert reg.inlier_fraction > stuck.inlier_fraction + 0.02
 
 
+@pytest.mark.parametrize("deg", [3.0, -3.0])
+def test_a_plate_turned_in_its_plane_about_a_corner_is_found_by_the_escape(shared, deg):
+    """The tray, a 3.2 mm plate standing on its edge, seen by the rig, started
+    turned in its own plane about one of its corners: the fit settles there
+    (the outline's points lie on the plate's own faces), its turn left free.
+    Turned about the centroid the outline lands millimetres off; the scan of
+    the turn with the shift that follows it finds the plate again."""
+    cad, tree = shared("1002_tray_bottom.STL", SHARED_SCALE["1002_tray_bottom.STL"])
+    data, _ = measure(cad, np.eye(4), 50_000, seed=0, views=rig_views())
+    init = np.eye(4)  # the corner at the CAD's origin stays where it is
+    init[:3, :3] = Rotation.from_rotvec([0.0, np.radians(deg), 0.0]).as_matrix()
+    up = (0.0, 0.0, 1.0)
+    stuck = register(tree, data, init=init, view_direction=up, escape_deg=None)
+    assert pose_errors(stuck.transform, np.eye(4), data)[0] > 2.0
+    reg = register(tree, data, init=init, view_direction=up)
+    rot, disp = pose_errors(reg.transform, np.eye(4), data)
+    assert rot <= 0.005 and disp <= 0.005, (rot, disp)
+
+
 def test_on_a_plain_disc_the_escape_keeps_what_the_points_fix(discs):
     """A plain disc fits equally well at every turn. From a start that fits
     it already, the scan finds nothing better and the fit comes back
