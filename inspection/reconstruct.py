@@ -882,12 +882,11 @@ def _guided_pair(
     sat_r = right >= _SATURATION_DN - 0.5
     g = _guide_disparity(pair, guide)
     seen = np.isfinite(g)
-    report = PairReport(pair.name, foreground=int(seen.sum()))
-    frame = _PairFrame(g.shape, rec.volume_lo, rec.volume_hi, report, None)
     if not seen.any():
-        return _PairResult(report, np.zeros((0, 3)), np.zeros(0, np.float32))
+        return _PairResult(PairReport(pair.name), np.zeros((0, 3)), np.zeros(0, np.float32))
     d_min, d_max = float(g[seen].min()), float(g[seen].max())
-    frame = replace(frame, report=replace(report, disparity_range=(d_min, d_max)))
+    report = PairReport(pair.name, foreground=int(seen.sum()), disparity_range=(d_min, d_max))
+    frame = _PairFrame(g.shape, rec.volume_lo, rec.volume_hi, report, None)
     roi, x0, y0, rx0, left_n, right_n, wl, wr = _crops(
         left, right, sat_l, sat_r, seen, d_min, d_max, p
     )
