@@ -46,9 +46,13 @@ fit is arranged to query few points, few times:
   part with 0.02 mm noise), and a step below a quarter of that statistical
   uncertainty ends a stage (stopping on a fixed absolute step size instead
   either wastes queries or, on a subset with a looser tolerance, stops
-  several um short). A part whose pose the subset does not pin down to
-  ``uncertainty_mm`` (a plate whose in-plane position rests on a few edges)
-  continues on every point.
+  several um short). Before the last stage, a step that lowers the cost by
+  less than the subset's noise can tell apart (1 % of sigma^2 / n) ends it
+  too: where a subset leaves a direction loose (512 points hold a handful
+  of a panel's bend points), damped steps would otherwise crawl along it
+  for every iteration left and end far off. A part whose pose the subset
+  does not pin down to ``uncertainty_mm`` (a plate whose in-plane position
+  rests on a few edges) continues on every point.
 - Past the coarse stage, a step that moves the points by less than 0.02 mm
   is evaluated against each point's last closest face (its plane, while
   the foot point stays inside the triangle) instead of a fresh query; only
@@ -215,6 +219,12 @@ _GNC_FACTOR = 4.0
 # ... once a step lowers the cost by less than this fraction, or moves the
 # points by less than this fraction of the scale.
 _GNC_GAIN = 1e-3
+# On a subset smaller than the last, a step that lowers the cost by less than
+# this fraction of sigma^2 / (the subset's total weight) has settled: what
+# the noise of that many points can tell apart is ~sigma^2 / n per
+# parameter, so such steps only wander along a direction the subset leaves
+# loose, and the next, larger subset decides it.
+_SUBSET_GAIN = 1e-2
 # With a view direction: faces turned further than this (cosine) from it
 # cannot be seen; a residual this large puts a point on the loss's plateau.
 _BACK_FACE_COS = -0.5
@@ -1421,6 +1431,13 @@ def register(
             # Sliding along a weakly constrained direction converges
             # linearly: short steps do not mean the pose has settled at this
             # scale, a cost that no longer falls does.
+            settled = True
+        if (
+            gnc == 0.0
+            and m < cap
+            and step_ok
+            and e0 - e1 < _SUBSET_GAIN * sigma * sigma / max(float(v.sum()), 1.0)
+        ):
             settled = True
         if not settled:
             continue
