@@ -629,6 +629,48 @@ def _warp_centre(shape, mask, x, y, radius):  # pragma: no cover
     return mask[y, x] > 0.0, float(shape[y, x])
 
 
+@njit(cache=True, nogil=True)
+def depth_in_view(
+    points, centre, R, f_px, cx, cy, fb, offset_px, disparity, z_out, z_other
+):  # pragma: no cover
+    """Each rig-frame point's depth along a rectified view's axis (``z_out``) and the
+    depth of the surface that view's ``disparity`` map measures on the same ray
+    (``z_other``; NaN where not measured there): the map is interpolated
+    bilinearly where its four neighbours are measured, else taken from the
+    nearest pixel. ``R``, ``centre``: the view's rotation rig -> rectified and
+    optical centre."""
+    h, w = disparity.shape
+    for i in range(points.shape[0]):
+        a = points[i, 0] - centre[0]
+        b = points[i, 1] - centre[1]
+        c = points[i, 2] - centre[2]
+        z = R[2, 0] * a + R[2, 1] * b + R[2, 2] * c
+        z_out[i] = z
+        z_other[i] = np.nan
+        if not z > 0.0:
+            continue
+        x = f_px * (R[0, 0] * a + R[0, 1] * b + R[0, 2] * c) / z + cx
+        y = f_px * (R[1, 0] * a + R[1, 1] * b + R[1, 2] * c) / z + cy
+        xf = math.floor(x)
+        yf = math.floor(y)
+        if not (xf >= 0 and xf < w - 1 and yf >= 0 and yf < h - 1):
+            continue
+        xi = int(xf)
+        yi = int(yf)
+        fx = x - xf
+        fy = y - yf
+        d = (
+            disparity[yi, xi] * (1.0 - fx) * (1.0 - fy)
+            + disparity[yi, xi + 1] * fx * (1.0 - fy)
+            + disparity[yi + 1, xi] * (1.0 - fx) * fy
+            + disparity[yi + 1, xi + 1] * fx * fy
+        )
+        if not math.isfinite(d):
+            d = disparity[yi + int(round(fy)), xi + int(round(fx))]
+        if math.isfinite(d):
+            z_other[i] = fb / (d - offset_px)
+
+
 @njit(cache=True, nogil=True, fastmath=True)
 def refine_warped(
     left, right, wl, wr, shape, mask, px, py, d0, radius, iterations, out_d, out_score, out_step

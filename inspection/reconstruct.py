@@ -1466,11 +1466,12 @@ def _fuse(
     the two pairs' matching errors are independent, so this halves their
     variance where both see the part.
     """
-    pts_out, w_out, which_out, reports = [], [], [], []
-    for k, res in enumerate(results):
+    pairs = rec.pairs + rec.guide_pairs
+
+    def one(k: int) -> tuple[Points, Scalars, PairReport] | PairReport:
+        res = results[k]
         if len(res.points) == 0:
-            reports.append(res.report)
-            continue
+            return res.report
         quality = np.clip(
             (res.score.astype(np.float64) - p.min_score) / (p.score_full - p.min_score), 0.0, 1.0
         )
@@ -1481,7 +1482,7 @@ def _fuse(
         for j, other in enumerate(results):
             if j == k:
                 continue
-            pair = (rec.pairs + rec.guide_pairs)[j]
+            pair = pairs[j]
             if other.coarse is not None:
                 # Free space seen by the other pair's coarse matching, belt included:
                 # a point well in front of what the other pair sees there would
@@ -1508,24 +1509,36 @@ def _fuse(
         factor[confirmed] = 1.0
         drop &= ~confirmed
         keep = ~drop
-        pts_out.append(fused[keep])
-        w_out.append((quality * factor)[keep])
-        which_out.append(np.full(int(keep.sum()), k, np.int8))
         r = res.report
-        reports.append(
-            PairReport(
-                r.pair,
-                r.coarse,
-                r.foreground,
-                r.refined,
-                r.in_volume,
-                int(confirmed.sum()),
-                int((~confirmed & keep).sum()),
-                int(drop.sum()),
-                r.disparity_range,
-                r.skipped,
-            )
+        report = PairReport(
+            r.pair,
+            r.coarse,
+            r.foreground,
+            r.refined,
+            r.in_volume,
+            int(confirmed.sum()),
+            int((~confirmed & keep).sum()),
+            int(drop.sum()),
+            r.disparity_range,
+            r.skipped,
         )
+        return fused[keep], (quality * factor)[keep], report
+
+    # Each pair's points are checked against the others' maps independently.
+    if p.threads > 1 and len(results) > 1:
+        done = list(_executor(p.threads).map(one, range(len(results))))
+    else:
+        done = [one(k) for k in range(len(results))]
+    pts_out, w_out, which_out, reports = [], [], [], []
+    for k, out in enumerate(done):
+        if isinstance(out, PairReport):
+            reports.append(out)
+            continue
+        pts, w, report = out
+        pts_out.append(pts)
+        w_out.append(w)
+        which_out.append(np.full(len(pts), k, np.int8))
+        reports.append(report)
     if not pts_out:
         return np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int8), reports
     return np.concatenate(pts_out), np.concatenate(w_out), np.concatenate(which_out), reports
@@ -1546,24 +1559,21 @@ def _depth_in_other(
     z_other : (N,) float64, mm
         Depth of the other pair's surface through the same pixel (NaN: not measured there).
     """
-    x, y, z = pair.project(points)
-    h, w = disparity.shape
-    x0 = np.floor(x).astype(np.int64)
-    y0 = np.floor(y).astype(np.int64)
-    inside = (x0 >= 0) & (x0 < w - 1) & (y0 >= 0) & (y0 < h - 1) & (z > 0)
-    d = np.full(len(points), np.nan)
-    xi, yi = x0[inside], y0[inside]
-    fx, fy = x[inside] - xi, y[inside] - yi
-    q00 = disparity[yi, xi]
-    q01 = disparity[yi, xi + 1]
-    q10 = disparity[yi + 1, xi]
-    q11 = disparity[yi + 1, xi + 1]
-    bil = q00 * (1 - fx) * (1 - fy) + q01 * fx * (1 - fy) + q10 * (1 - fx) * fy + q11 * fx * fy
-    near = disparity[yi + np.rint(fy).astype(np.int64), xi + np.rint(fx).astype(np.int64)]
-    d[inside] = np.where(np.isfinite(bil), bil, near)
-    z_other = np.full(len(points), np.nan)
-    seen = np.isfinite(d)
-    z_other[seen] = pair.fb / (d[seen] - pair.offset_px)
+    n = len(points)
+    z, z_other = np.empty(n), np.empty(n)
+    _stereo.depth_in_view(
+        np.ascontiguousarray(points, dtype=np.float64),
+        pair.centre_left,
+        pair.R_rect_rig,
+        pair.f_px,
+        pair.cx_left,
+        pair.cy,
+        pair.fb,
+        pair.offset_px,
+        disparity,
+        z,
+        z_other,
+    )
     return z, z_other
 
 
