@@ -7,9 +7,9 @@ collected in :class:`Stages`: :func:`flash_stages`, the four-camera flash rig
 With a ``guide`` stage the frames are matched twice: the first cloud is
 aligned, then the fine matching runs again (from the first pass's coarse
 matching) with the part's CAD at that pose shaping its windows
-(``inspection.Guide``), and that cloud is fitted from the first pose and
-measured. The
-parts are the :class:`~service.parts.LoadedPart` objects of the station's
+(``inspection.Guide``); the windows on bends are matched once more with the
+CAD where that cloud puts it, and the cloud is fitted from the first pose and
+measured. The parts are the :class:`~service.parts.LoadedPart` objects of the station's
 :class:`~service.parts.PartRegistry`: the worker and the REST API measure
 with the same tree, alignment model and spec.
 
@@ -81,7 +81,9 @@ class Stages:
     guide : callable(rig, cloud, part, T_rig_part) -> cloud, optional
         Matches the frames of ``cloud`` (what ``reconstruct`` returned) again
         with the part's CAD at ``T_rig_part`` guiding the matching (given with
-        ``refit``; None: one pass).
+        ``refit``; None: one pass). The flash rig's also fits that cloud and
+        matches the windows on bends once more with the CAD at the fitted
+        pose (``Reconstructor.rematch_bends``).
     refit : callable(part, points_rig, T_cad_rig) -> registration, optional
         Fits the guided cloud, starting from the first pass's pose.
     """
@@ -155,9 +157,6 @@ def flash_stages(rig_calibration: str | Path | None = None, *, guided: bool = Tr
             **measure._registration_kwargs(part),
         )
 
-    def guide(r: FlashRig, cloud: Any, part: LoadedPart, T: np.ndarray) -> Any:
-        return r.reconstructor.guided(cloud, Guide.from_cad(part.cad, T))
-
     def refit(part: LoadedPart, points: np.ndarray, T_cad_rig: np.ndarray) -> Any:
         # From align's pose: the turn is searched already, no escape scan.
         return inspection_register(
@@ -167,6 +166,18 @@ def flash_stages(rig_calibration: str | Path | None = None, *, guided: bool = Tr
             escape_deg=None,
             **measure._registration_kwargs(part),
         )
+
+    def guide(r: FlashRig, cloud: Any, part: LoadedPart, T: np.ndarray) -> Any:
+        rec = r.reconstructor
+        guided = rec.guided(cloud, Guide.from_cad(part.cad, T))
+        # Then the windows on bends again, with the CAD where the guided cloud
+        # puts it: a guide placed off pulls them towards it.
+        try:
+            fit = refit(part, guided.points, np.linalg.inv(T))
+        except InspectionError as exc:
+            log.debug("bends not matched again: the guided cloud did not fit: %s", exc)
+            return guided
+        return rec.rematch_bends(guided, Guide.from_cad(part.cad, np.linalg.inv(fit.transform)))
 
     def deviations(part: LoadedPart, points_cad: np.ndarray) -> Any:
         return inspection_deviations(part.tree, points_cad, measure.comparison_points(part.spec))

@@ -6,6 +6,7 @@ import cv2
 import numpy as np
 import pytest
 import trimesh
+from scipy.spatial.transform import Rotation
 
 from inspection import _stereo
 from inspection.errors import InvalidInput
@@ -24,6 +25,7 @@ from inspection.reconstruct import (
     reconstruct,
     write_deviation_ply,
 )
+from inspection.registration import register
 from inspection.rig import Rig, belt_pose
 from inspection.simulate import simulate
 
@@ -295,6 +297,66 @@ def test_guided_from_a_kept_matching_is_the_same_cloud(
         Reconstructor.build(rig).guided(first, guide)
     with pytest.raises(InvalidInput, match="Guide"):
         reconstructor.guided(first, None)  # type: ignore[arg-type]
+
+
+def _in_plane_errors(T_cad_rig: np.ndarray, T_rig_part: np.ndarray) -> tuple[float, float]:
+    """The fitted pose's turn about the belt's normal (deg) and shift (mm), absolute."""
+    dT = T_cad_rig @ T_rig_part
+    turn = np.degrees(np.arctan2(dT[1, 0], dT[0, 0]))
+    return abs(float(turn)), float(np.linalg.norm(dT[:3, 3]))
+
+
+@pytest.mark.parametrize(("deg", "shift"), [(0.05, (0.2, 0.0, 0.0)), (-0.05, (0.0, 0.2, 0.0))])
+def test_rematching_the_bends_undoes_the_pull_of_a_misplaced_guide(
+    reconstructor: Reconstructor, panel_scene, deg: float, shift: tuple[float, ...]
+) -> None:
+    # A guide turned 0.05 deg and shifted 0.2 mm in the belt's plane pulls the
+    # windows on bends towards it: the fitted pose follows the guide by a
+    # quarter of its turn. Matching those windows again with the guide in
+    # place puts the fit back within what the noise leaves.
+    cad, tree, T, frames, _ = panel_scene
+    D = np.eye(4)
+    D[:3, :3] = Rotation.from_euler("z", deg, degrees=True).as_matrix()
+    D[:3, 3] = T[:3, 3] - D[:3, :3] @ T[:3, 3] + np.asarray(shift)
+    first = reconstructor(frames, keep_matching=True)
+    pulled = reconstructor.guided(first, Guide.from_cad(cad, D @ T))
+
+    def fit(cloud: Cloud) -> tuple[float, float]:
+        reg = register(tree, cloud.points, init=np.linalg.inv(T), weights=cloud.weights)
+        return _in_plane_errors(reg.transform, T)
+
+    turn, moved = fit(pulled)
+    assert turn > 0.008 and moved > 0.03
+    again = reconstructor.rematch_bends(pulled, Guide.from_cad(cad, T))
+    turn, moved = fit(again)
+    assert turn < 0.004 and moved < 0.02
+    # Only the windows on bends and at the outline were matched again: most
+    # points are those of the guided cloud, bit for bit.
+    rows = np.dtype((np.void, 3 * 8))
+    kept = np.isin(again.points.view(rows).ravel(), pulled.points.view(rows).ravel())
+    assert 0.6 < kept.mean() < 0.95
+    ran = set(again.report.timings_ms)
+    pairs = len(reconstructor.pairs) + len(reconstructor.guide_pairs)
+    assert {f"rematch{k}" for k in range(pairs)} <= ran
+    assert not any(k.startswith(("sgbm", "refine", "warp")) for k in ran)
+    # It can follow itself, with a guide still closer.
+    assert len(reconstructor.rematch_bends(again, Guide.from_cad(cad, T))) > 0
+
+
+def test_rematch_bends_needs_a_guided_cloud(
+    rig: Rig, reconstructor: Reconstructor, panel_scene
+) -> None:
+    cad, _, T, frames, plain = panel_scene
+    guide = Guide.from_cad(cad, T)
+    first = reconstructor(frames, keep_matching=True)
+    for cloud in (plain, first):
+        with pytest.raises(InvalidInput, match="guided"):
+            reconstructor.rematch_bends(cloud, guide)
+    guided = reconstructor.guided(first, guide)
+    with pytest.raises(InvalidInput, match="guided"):
+        Reconstructor.build(rig).rematch_bends(guided, guide)
+    with pytest.raises(InvalidInput, match="Guide"):
+        reconstructor.rematch_bends(guided, None)  # type: ignore[arg-type]
 
 
 def test_ring_pairs_join_the_guided_pass(
