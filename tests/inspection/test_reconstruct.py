@@ -240,6 +240,12 @@ def panel_scene(rig: Rig, reconstructor: Reconstructor):  # type: ignore[no-unty
     return cad, GridTree.build(cad), T, frames, reconstructor(frames)
 
 
+@pytest.fixture(scope="module")
+def panel_matching(reconstructor: Reconstructor, panel_scene) -> Cloud:
+    """The panel scene's unguided cloud, with its matching kept for the guided passes."""
+    return reconstructor(panel_scene[3], keep_matching=True)
+
+
 def _surface_errors(tree: GridTree, T: np.ndarray, cloud: Cloud) -> tuple[np.ndarray, np.ndarray]:
     """Signed distances of the points within 1 mm of the posed CAD, and which lie on bends
     (normal over 15 degrees from the panel's up: emboss, character line, edge radii)."""
@@ -308,18 +314,21 @@ def _in_plane_errors(T_cad_rig: np.ndarray, T_rig_part: np.ndarray) -> tuple[flo
 
 @pytest.mark.parametrize(("deg", "shift"), [(0.05, (0.2, 0.0, 0.0)), (-0.05, (0.0, 0.2, 0.0))])
 def test_rematching_the_bends_undoes_the_pull_of_a_misplaced_guide(
-    reconstructor: Reconstructor, panel_scene, deg: float, shift: tuple[float, ...]
+    reconstructor: Reconstructor,
+    panel_scene,
+    panel_matching: Cloud,
+    deg: float,
+    shift: tuple[float, ...],
 ) -> None:
     # A guide turned 0.05 deg and shifted 0.2 mm in the belt's plane pulls the
     # windows on bends towards it: the fitted pose follows the guide by a
     # quarter of its turn. Matching those windows again with the guide in
     # place puts the fit back within what the noise leaves.
-    cad, tree, T, frames, _ = panel_scene
+    cad, tree, T, *_ = panel_scene
     D = np.eye(4)
     D[:3, :3] = Rotation.from_euler("z", deg, degrees=True).as_matrix()
     D[:3, 3] = T[:3, 3] - D[:3, :3] @ T[:3, 3] + np.asarray(shift)
-    first = reconstructor(frames, keep_matching=True)
-    pulled = reconstructor.guided(first, Guide.from_cad(cad, D @ T))
+    pulled = reconstructor.guided(panel_matching, Guide.from_cad(cad, D @ T))
 
     def fit(cloud: Cloud) -> tuple[float, float]:
         reg = register(tree, cloud.points, init=np.linalg.inv(T), weights=cloud.weights)
@@ -344,15 +353,14 @@ def test_rematching_the_bends_undoes_the_pull_of_a_misplaced_guide(
 
 
 def test_rematch_bends_needs_a_guided_cloud(
-    rig: Rig, reconstructor: Reconstructor, panel_scene
+    rig: Rig, reconstructor: Reconstructor, panel_scene, panel_matching: Cloud
 ) -> None:
-    cad, _, T, frames, plain = panel_scene
+    cad, _, T, _, plain = panel_scene
     guide = Guide.from_cad(cad, T)
-    first = reconstructor(frames, keep_matching=True)
-    for cloud in (plain, first):
+    for cloud in (plain, panel_matching):
         with pytest.raises(InvalidInput, match="guided"):
             reconstructor.rematch_bends(cloud, guide)
-    guided = reconstructor.guided(first, guide)
+    guided = reconstructor.guided(panel_matching, guide)
     with pytest.raises(InvalidInput, match="guided"):
         Reconstructor.build(rig).rematch_bends(guided, guide)
     with pytest.raises(InvalidInput, match="Guide"):
