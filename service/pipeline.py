@@ -174,10 +174,10 @@ def flash_stages(rig_calibration: str | Path | None = None, *, guided: bool = Tr
         # puts it: a guide placed off pulls them towards it.
         try:
             fit = refit(part, guided.points, np.linalg.inv(T))
+            return rec.rematch_bends(guided, Guide.from_cad(part.cad, np.linalg.inv(fit.transform)))
         except InspectionError as exc:
             log.debug("bends not matched again: the guided cloud did not fit: %s", exc)
             return guided
-        return rec.rematch_bends(guided, Guide.from_cad(part.cad, np.linalg.inv(fit.transform)))
 
     def deviations(part: LoadedPart, points_cad: np.ndarray) -> Any:
         return inspection_deviations(part.tree, points_cad, measure.comparison_points(part.spec))
