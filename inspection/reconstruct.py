@@ -1225,24 +1225,30 @@ def _finish_pair(
             shape,
         )
     timings[f"warp{k}"] = (time.perf_counter() - t) * 1e3
+    return _triangulate_state(pair, st, (d_ref, score, step), p, timings, k, shape is not None)
+
+
+def _triangulate_state(
+    pair: _stereo.RectifiedPair,
+    st: _PairState,
+    fit: tuple[npt.NDArray[np.float32], ...],
+    p: ReconstructParams,
+    timings: dict[str, float],
+    k: int,
+    guided: bool,
+) -> _PairResult:
+    """The pair's result from its warped fit ``(d_ref, score, step)`` (crop
+    coordinates), kept with the state it started from (and, ``guided``, the fit)."""
     t = time.perf_counter()
+    d_ref, score, step = fit
     x_left = (st.px + st.x0).astype(np.float64)
     rows = st.py + st.y0
-    out = _triangulate_pair(
-        pair,
-        x_left,
-        rows,
-        d_ref - np.float32(st.shift),
-        score,
-        step,
-        st.d_init,
-        st.frame,
-        p,
-    )
+    d_full = d_ref - np.float32(st.shift)
+    out = _triangulate_pair(pair, x_left, rows, d_full, score, step, st.d_init, st.frame, p)
     timings[f"triangulate{k}"] = (time.perf_counter() - t) * 1e3
     out.state = st
-    if shape is not None:
-        out.guided = (d_ref, score, step)
+    if guided:
+        out.guided = fit
     return out
 
 
@@ -1284,15 +1290,7 @@ def _rematch_pair(
         plain = ok & (_bends(g_field, g_mask, px, py, p) | outline[py, px])
     _warp(*images, plain, d_ref, score, step, p)
     timings[f"rematch{k}"] = (time.perf_counter() - t) * 1e3
-    t = time.perf_counter()
-    x_left = (st.px + st.x0).astype(np.float64)
-    rows = st.py + st.y0
-    d_full = d_ref - np.float32(st.shift)
-    out = _triangulate_pair(pair, x_left, rows, d_full, score, step, st.d_init, st.frame, p)
-    timings[f"triangulate{k}"] = (time.perf_counter() - t) * 1e3
-    out.state = st
-    out.guided = (d_ref, score, step)
-    return out
+    return _triangulate_state(pair, st, (d_ref, score, step), p, timings, k, True)
 
 
 def _triangulate_pair(
