@@ -117,6 +117,89 @@ def _bilinear(img, u, v):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _slide_uv(xn, yn, pl0, pl1, pl2, pld, Rcr, C, Rp, tp, kproj):  # pragma: no cover
+    """Slide position (u, v) of the point where the ray (xn, yn, 1) of a camera
+    meets the plane pl . X = pld (camera frame); (-1, -1) when it does not."""
+    den = pl0 * xn + pl1 * yn + pl2
+    if abs(den) < 1e-12:
+        return -1.0, -1.0
+    z = pld / den
+    xc = xn * z
+    yc = yn * z
+    X0 = Rcr[0, 0] * xc + Rcr[0, 1] * yc + Rcr[0, 2] * z + C[0]
+    X1 = Rcr[1, 0] * xc + Rcr[1, 1] * yc + Rcr[1, 2] * z + C[1]
+    X2 = Rcr[2, 0] * xc + Rcr[2, 1] * yc + Rcr[2, 2] * z + C[2]
+    qx = Rp[0, 0] * X0 + Rp[0, 1] * X1 + Rp[0, 2] * X2 + tp[0]
+    qy = Rp[1, 0] * X0 + Rp[1, 1] * X1 + Rp[1, 2] * X2 + tp[1]
+    qz = Rp[2, 0] * X0 + Rp[2, 1] * X1 + Rp[2, 2] * X2 + tp[2]
+    if qz <= NEAR_MM:
+        return -1.0, -1.0
+    return kproj[0] * qx / qz + kproj[1] * qy / qz + kproj[2], kproj[3] * qy / qz + kproj[4]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _pixel_slide(
+    pattern, rays, i, j, up, vp, pl0, pl1, pl2, pld, Rcr, C, Rp, tp, kproj, samples
+):  # pragma: no cover - compiled
+    """The slide's mean over the footprint of real pixel (i, j) on the plane
+    pl . X = pld: ``samples`` x ``samples`` bilinear samples on a regular grid
+    over the pixel, placed through the footprint's Jacobian (the slide
+    position of the pixel's neighbours on the same plane). (up, vp) is the
+    slide position of the pixel's centre. ``samples`` 1: the centre only."""
+    if samples <= 1:
+        return _bilinear(pattern, up, vp)
+    H = rays.shape[0]
+    W = rays.shape[1]
+    j0 = max(j - 1, 0)
+    j1 = min(j + 1, W - 1)
+    i0 = max(i - 1, 0)
+    i1 = min(i + 1, H - 1)
+    xn = rays[i, j, 0]
+    yn = rays[i, j, 1]
+    sj = 1.0 / (j1 - j0)
+    si = 1.0 / (i1 - i0)
+    uj, vj = _slide_uv(
+        xn + (rays[i, j1, 0] - rays[i, j0, 0]) * sj,
+        yn + (rays[i, j1, 1] - rays[i, j0, 1]) * sj,
+        pl0,
+        pl1,
+        pl2,
+        pld,
+        Rcr,
+        C,
+        Rp,
+        tp,
+        kproj,
+    )
+    ui, vi = _slide_uv(
+        xn + (rays[i1, j, 0] - rays[i0, j, 0]) * si,
+        yn + (rays[i1, j, 1] - rays[i0, j, 1]) * si,
+        pl0,
+        pl1,
+        pl2,
+        pld,
+        Rcr,
+        C,
+        Rp,
+        tp,
+        kproj,
+    )
+    if uj < 0.0 or ui < 0.0:
+        return _bilinear(pattern, up, vp)
+    duj = uj - up
+    dvj = vj - vp
+    dui = ui - up
+    dvi = vi - vp
+    total = 0.0
+    for a in range(samples):
+        oa = (a + 0.5) / samples - 0.5
+        for b in range(samples):
+            ob = (b + 0.5) / samples - 0.5
+            total += _bilinear(pattern, up + ob * duj + oa * dui, vp + ob * dvj + oa * dvi)
+    return total / (samples * samples)
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _inside(sx, sy, faces, f, pu, pv):  # pragma: no cover - compiled
     """Is the point (pu, pv) inside projected face f (either winding, 1e-9 tolerance)?"""
     a = faces[f, 0]
@@ -228,6 +311,7 @@ def shade_scene(  # pragma: no cover - compiled
     belt_q,
     belt_alb,
     gain,
+    samples,
     out,
     points,
     flags,
@@ -282,6 +366,9 @@ def shade_scene(  # pragma: no cover - compiled
         The static part of the belt's shading, from :func:`belt_static`.
     gain : (H, W) float32
         Exposure times vignetting per pixel (radiance -> DN).
+    samples : int
+        The slide is averaged over each pixel's footprint on the part with
+        samples x samples samples (see :func:`_pixel_slide`); 1: the centre only.
     out : (H, W) float32
         Irradiance of the sensor in DN before noise (written).
     points : (H, W, 3) float32
@@ -435,7 +522,24 @@ def shade_scene(  # pragma: no cover - compiled
                 if qz > NEAR_MM:
                     up = kproj[0] * qx / qz + kproj[1] * qy / qz + kproj[2]
                     vp = kproj[3] * qy / qz + kproj[4]
-                    slide = _bilinear(pattern, up, vp)
+                    slide = _pixel_slide(
+                        pattern,
+                        rays,
+                        i,
+                        j,
+                        up,
+                        vp,
+                        planes[f, 0],
+                        planes[f, 1],
+                        planes[f, 2],
+                        planes[f, 3],
+                        Rcr,
+                        C,
+                        Rp,
+                        tp,
+                        kproj,
+                        samples,
+                    )
                     if slide > 0.0:
                         lit = _shadow(smap_z, smap_f, up, vp, qz, f, _bias(qz, fpx, cos_l))
                         falloff = (r0 / dist) * (r0 / dist)
@@ -689,6 +793,7 @@ def belt_static(  # pragma: no cover - compiled
     texel_mm,
     belt_half_width,
     floor_albedo,
+    samples,
     belt_irr,
     belt_q,
     belt_alb,
@@ -699,7 +804,7 @@ def belt_static(  # pragma: no cover - compiled
     times the cosine (before shadows); ``belt_q`` (H, W, 4) float32, the slide
     position (u, v), depth from the projector (mm) and shadow bias (mm) of the
     belt point; ``belt_alb`` (H, W) float32, the belt's albedo there (belt at
-    rest). The formulas are those of :func:`shade_scene`.
+    rest). The formulas are those of :func:`shade_scene`, ``samples`` too.
     """
     H, W = belt_irr.shape
     ncx = Rcr[2, 0]
@@ -739,7 +844,9 @@ def belt_static(  # pragma: no cover - compiled
                 continue
             up = kproj[0] * qx / qz + kproj[1] * qy / qz + kproj[2]
             vp = kproj[3] * qy / qz + kproj[4]
-            slide = _bilinear(pattern, up, vp)
+            slide = _pixel_slide(
+                pattern, rays, i, j, up, vp, ncx, ncy, ncz, ndc, Rcr, C, Rp, tp, kproj, samples
+            )
             falloff = (r0 / dist) * (r0 / dist)
             belt_irr[i, j] = power * falloff * slide * cos_l
             belt_q[i, j, 0] = up

@@ -17,6 +17,14 @@ What a frame set contains, and why (each is a way real frames are hard):
   undistorted once per rig), vignetting (cos^4), optical blur, and **sensor
   noise** (shot noise with variance proportional to the signal, read noise,
   8-bit quantisation).
+- **Pixel area**: a pixel collects the light over its whole area, so the
+  projected speckle is averaged over each pixel's footprint on the part (3 x 3
+  samples placed through the footprint's Jacobian; ``pixel_samples``). Taken
+  at the pixel's centre alone, the speckle's fine grain aliases, and
+  differently in each camera: on clean frames of the demo panel that biased
+  the mean over a 10 mm disc of the reconstructed top by 0.010 mm RMS, an
+  error no real sensor makes (0.006 mm with the area; the simulator's cost
+  rose from 0.12 to 0.15 s per frame set).
 
 Rendering: a numba z-buffer per camera into an undistorted buffer, then exact
 ray-plane intersections per real pixel (see :mod:`inspection._raster`); the
@@ -79,6 +87,12 @@ class RenderOptions:
         Broad sheen lobe.
     blur_px : float
         Optical blur (Gaussian sigma, pixels).
+    pixel_samples : int
+        The sensor integrates light over each pixel's area: the projected
+        pattern is averaged over the pixel's footprint on the part with
+        ``pixel_samples`` x ``pixel_samples`` samples (1: the pixel's centre
+        only, which aliases the speckle; see the module notes). The empty
+        belt, precomputed per rig, always uses the default.
     shot_noise : float
         Variance of the shot noise per DN of signal.
     read_noise_dn : float
@@ -101,6 +115,7 @@ class RenderOptions:
     specular_broad: float = 0.12
     shininess_broad: float = 40.0
     blur_px: float = 0.6
+    pixel_samples: int = 3
     shot_noise: float = 0.3
     read_noise_dn: float = 1.2
     part_dirt_spots: int = 6
@@ -127,6 +142,14 @@ class RenderOptions:
                 raise InvalidInput(f"RenderOptions.{name} must be finite and >= 0, got {value!r}")
         if not 0 < self.part_albedo <= 1:
             raise InvalidInput("RenderOptions.part_albedo must be in (0, 1]")
+        if isinstance(self.pixel_samples, bool) or not isinstance(
+            self.pixel_samples, (int, np.integer)
+        ):
+            raise InvalidInput("RenderOptions.pixel_samples must be an int")
+        if not 1 <= self.pixel_samples <= 8:
+            raise InvalidInput(
+                f"RenderOptions.pixel_samples must be in 1..8, got {self.pixel_samples}"
+            )
         if self.part_dirt_spots < 0 or self.lens_dirt_spots < 0:
             raise InvalidInput("dirt spot counts must be >= 0")
         if not np.isfinite(self.belt_shift_mm):
@@ -245,6 +268,7 @@ class Simulator:
                 _TEXEL_MM,
                 rig.conveyor.width_mm / 2.0,
                 _FLOOR_ALBEDO,
+                RenderOptions.pixel_samples,
                 belt_irr,
                 belt_q,
                 belt_alb,
@@ -355,6 +379,7 @@ class Simulator:
                 setup.belt_q,
                 setup.belt_alb,
                 setup.vignette * np.float32(opts.exposure_dn),
+                opts.pixel_samples,
                 out,
                 points,
                 flags,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import trimesh
@@ -161,6 +163,34 @@ def test_bad_seed_and_options_are_refused(rig) -> None:
         RenderOptions(blur_px=-1.0)
     with pytest.raises(InvalidInput, match="Rig"):
         simulate("rig", box, np.eye(4))  # type: ignore[call-overload]
+
+
+def test_a_pixel_integrates_the_pattern_over_its_area() -> None:
+    """A pixel is the mean of the light over its area, as a sensor's is: at
+    3 x 3 samples it matches a render at three times the resolution averaged
+    over 3 x 3 blocks (the same sample positions); the pixel centre alone
+    (``pixel_samples=1``) aliases the speckle and is far from it."""
+    plate = trimesh.creation.box((300.0, 200.0, 30.0))
+    plate.apply_translation((0.0, 0.0, 15.0))
+    sharp = replace(RenderOptions.clean(), blur_px=0.0)
+    w, h = 480, 384
+    fine = simulate(
+        Rig.nominal(3 * w, 3 * h), plate, np.eye(4), options=replace(sharp, pixel_samples=1)
+    )
+    centre = (slice(h // 2 - 48, h // 2 + 48), slice(w // 2 - 64, w // 2 + 64))
+    for n, bound in ((3, 1.5), (1, None)):
+        images = simulate(
+            Rig.nominal(w, h), plate, np.eye(4), options=replace(sharp, pixel_samples=n)
+        )
+        for image, reference in zip(images, fine, strict=True):
+            box = reference.astype(np.float64).reshape(h, 3, w, 3).mean(axis=(1, 3))
+            diff = float(np.abs(image[centre] - box[centre]).mean())
+            if bound is not None:
+                assert diff < bound
+            else:
+                assert diff > 4.0, "the centre sample alone should alias the speckle"
+    with pytest.raises(InvalidInput, match="pixel_samples"):
+        RenderOptions(pixel_samples=0)
 
 
 _HASH_SCRIPT = """
