@@ -17,9 +17,11 @@ guided pass, which shows what each later step gains); the displacement of
 the part's origin (the centre of its footprint); the largest
 comparison-point error, also at the true pose, which separates the
 reconstruction's local error from the fit's; and the seconds from frames to
-fit. Goals (the line's): 0.05 deg, 0.1 mm, +-0.05 mm. The 0.1 mm is held
-against the corners, the stricter reading: a turn of 0.025 deg alone moves
-them by 0.1 mm. No peer: the figures are the line's accuracy, not a speed.
+fit. Goals (the line's): the pose within 0.05 deg and 0.1 mm, comparison
+points within +-0.05 mm. The pose's 0.1 mm is its translation: the
+displacement of the part's origin. The corners are printed as well but not
+held to 0.1 mm: 0.05 deg, the rotation the goal allows, alone moves them
+by 0.2 mm. No peer: the figures are the line's accuracy, not a speed.
 
 Run: ``python -m bench.bench_endtoend`` (or ``make bench BENCH=endtoend``).
 """
@@ -52,7 +54,7 @@ SITES = {
 }
 RADIUS_MM = 10.0
 ROTATION_GOAL_DEG = 0.05
-CORNER_GOAL_MM = 0.1
+SHIFT_GOAL_MM = 0.1
 DEVIATION_GOAL_MM = 0.05
 
 
@@ -157,10 +159,10 @@ def main() -> int:
     print()
     checks = [  # (label, values, goal, unit, a goal of the line)
         ("rotation", angles, ROTATION_GOAL_DEG, "deg", True),
-        ("corner displacement", shifts, CORNER_GOAL_MM, "mm", True),
-        ("  the same after the 1st pass", firsts, CORNER_GOAL_MM, "mm", False),
-        ("  ... after the guided pass", mids, CORNER_GOAL_MM, "mm", False),
-        ("displacement of the origin", centres, CORNER_GOAL_MM, "mm", False),
+        ("displacement of the origin", centres, SHIFT_GOAL_MM, "mm", True),
+        ("corner displacement", shifts, SHIFT_GOAL_MM, "mm", False),
+        ("  the same after the 1st pass", firsts, SHIFT_GOAL_MM, "mm", False),
+        ("  ... after the guided pass", mids, SHIFT_GOAL_MM, "mm", False),
         ("comparison-point error", errs, DEVIATION_GOAL_MM, "mm", True),
         ("  the same at the true pose", errs_true, DEVIATION_GOAL_MM, "mm", False),
     ]
