@@ -117,13 +117,14 @@ def _bilinear(img, u, v):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _slide_uv(xn, yn, pl0, pl1, pl2, pld, Rcr, C, Rp, tp, kproj):  # pragma: no cover
+def _slide_uv(xn, yn, pl, Rcr, C, Rp, tp, kproj):  # pragma: no cover - compiled
     """Slide position (u, v) of the point where the ray (xn, yn, 1) of a camera
-    meets the plane pl . X = pld (camera frame); (-1, -1) when it does not."""
-    den = pl0 * xn + pl1 * yn + pl2
+    meets the plane pl = (nx, ny, nz, d), n . X = d in the camera frame;
+    (-1, -1) when it does not."""
+    den = pl[0] * xn + pl[1] * yn + pl[2]
     if abs(den) < 1e-12:
         return -1.0, -1.0
-    z = pld / den
+    z = pl[3] / den
     xc = xn * z
     yc = yn * z
     X0 = Rcr[0, 0] * xc + Rcr[0, 1] * yc + Rcr[0, 2] * z + C[0]
@@ -139,13 +140,13 @@ def _slide_uv(xn, yn, pl0, pl1, pl2, pld, Rcr, C, Rp, tp, kproj):  # pragma: no 
 
 @njit(cache=True, nogil=True, inline="always")
 def _pixel_slide(
-    pattern, rays, i, j, up, vp, pl0, pl1, pl2, pld, Rcr, C, Rp, tp, kproj, samples
+    pattern, rays, i, j, up, vp, pl, Rcr, C, Rp, tp, kproj, samples
 ):  # pragma: no cover - compiled
     """The slide's mean over the footprint of real pixel (i, j) on the plane
-    pl . X = pld: ``samples`` x ``samples`` bilinear samples on a regular grid
-    over the pixel, placed through the footprint's Jacobian (the slide
-    position of the pixel's neighbours on the same plane). (up, vp) is the
-    slide position of the pixel's centre. ``samples`` 1: the centre only."""
+    pl (see :func:`_slide_uv`): ``samples`` x ``samples`` bilinear samples on
+    a regular grid over the pixel, placed through the footprint's Jacobian
+    (the slide position of the pixel's neighbours on the same plane). (up, vp)
+    is the slide position of the pixel's centre. ``samples`` 1: the centre only."""
     if samples <= 1:
         return _bilinear(pattern, up, vp)
     H = rays.shape[0]
@@ -154,36 +155,15 @@ def _pixel_slide(
     j1 = min(j + 1, W - 1)
     i0 = max(i - 1, 0)
     i1 = min(i + 1, H - 1)
-    xn = rays[i, j, 0]
-    yn = rays[i, j, 1]
     sj = 1.0 / (j1 - j0)
     si = 1.0 / (i1 - i0)
-    uj, vj = _slide_uv(
-        xn + (rays[i, j1, 0] - rays[i, j0, 0]) * sj,
-        yn + (rays[i, j1, 1] - rays[i, j0, 1]) * sj,
-        pl0,
-        pl1,
-        pl2,
-        pld,
-        Rcr,
-        C,
-        Rp,
-        tp,
-        kproj,
-    )
-    ui, vi = _slide_uv(
-        xn + (rays[i1, j, 0] - rays[i0, j, 0]) * si,
-        yn + (rays[i1, j, 1] - rays[i0, j, 1]) * si,
-        pl0,
-        pl1,
-        pl2,
-        pld,
-        Rcr,
-        C,
-        Rp,
-        tp,
-        kproj,
-    )
+    # The rays one pixel along the row and one down the column.
+    xj = rays[i, j, 0] + (rays[i, j1, 0] - rays[i, j0, 0]) * sj
+    yj = rays[i, j, 1] + (rays[i, j1, 1] - rays[i, j0, 1]) * sj
+    xi = rays[i, j, 0] + (rays[i1, j, 0] - rays[i0, j, 0]) * si
+    yi = rays[i, j, 1] + (rays[i1, j, 1] - rays[i0, j, 1]) * si
+    uj, vj = _slide_uv(xj, yj, pl, Rcr, C, Rp, tp, kproj)
+    ui, vi = _slide_uv(xi, yi, pl, Rcr, C, Rp, tp, kproj)
     if uj < 0.0 or ui < 0.0:
         return _bilinear(pattern, up, vp)
     duj = uj - up
@@ -529,10 +509,7 @@ def shade_scene(  # pragma: no cover - compiled
                         j,
                         up,
                         vp,
-                        planes[f, 0],
-                        planes[f, 1],
-                        planes[f, 2],
-                        planes[f, 3],
+                        (planes[f, 0], planes[f, 1], planes[f, 2], planes[f, 3]),
                         Rcr,
                         C,
                         Rp,
@@ -845,7 +822,7 @@ def belt_static(  # pragma: no cover - compiled
             up = kproj[0] * qx / qz + kproj[1] * qy / qz + kproj[2]
             vp = kproj[3] * qy / qz + kproj[4]
             slide = _pixel_slide(
-                pattern, rays, i, j, up, vp, ncx, ncy, ncz, ndc, Rcr, C, Rp, tp, kproj, samples
+                pattern, rays, i, j, up, vp, (ncx, ncy, ncz, ndc), Rcr, C, Rp, tp, kproj, samples
             )
             falloff = (r0 / dist) * (r0 / dist)
             belt_irr[i, j] = power * falloff * slide * cos_l
