@@ -1266,25 +1266,21 @@ def _rematch_pair(
     t = time.perf_counter()
     shape = _guide_disparity(pair, guide)[st.roi] + np.float32(st.shift)
     d_ref, score, step = (a.copy() for a in guided)
-    on_part = np.isfinite(shape)
-    g_field = np.where(on_part, shape, 0.0).astype(np.float32)
-    g_mask = on_part.astype(np.float32)
+    g_field, g_mask, shade, bent = _guide_maps(shape, p)
     px, py = st.px, st.py
     ok = (
         np.isfinite(d_ref)
         & (score >= p.min_score)
         & (np.abs(d_ref - (st.d_init + st.shift)) <= p.max_shift_px)
-        & on_part[py, px]
+        & (g_mask[py, px] > 0.0)
         & (np.abs(g_field[py, px] - d_ref) <= p.guide_tolerance_px)
     )
     kw = (p.warp_window, p.warp_window)
     inside = cv2.boxFilter(g_mask, cv2.CV_32F, kw, normalize=False, borderType=cv2.BORDER_CONSTANT)
     outline = inside < p.warp_window * p.warp_window - 0.5
     images = (st.left_n, st.right_n, st.wl, st.wr, g_field, g_mask, px, py)
-    if p.shading:
-        su, sv, bent = _shading(shape, on_part, p)
-        shaded = ok & bent[py, px]
-        _warp(*images, shaded, d_ref, score, step, p, (su, sv))
+    if bent is not None:
+        _warp(*images, ok & bent[py, px], d_ref, score, step, p, shade)
         plain = ok & ~bent[py, px] & outline[py, px]
     else:
         plain = ok & (_bends(g_field, g_mask, px, py, p) | outline[py, px])
@@ -1390,15 +1386,10 @@ def _refine_warped(
     in crop coordinates); returns new ``d_ref``, ``score``, ``step``.
     """
     ks = (p.warp_smooth, p.warp_smooth)
-    # The guide's field (0 off the part), its weight mask, and where it is on the part.
-    guided = None
-    shade = bent = None
+    guided = shade = bent = None
     if guide is not None:
-        on_part = np.isfinite(guide)
-        guided = (np.where(on_part, guide, 0.0).astype(np.float32), on_part.astype(np.float32))
-        if p.shading:
-            su, sv, bent = _shading(guide, on_part, p)
-            shade = (su, sv)
+        g_field, g_mask, shade, bent = _guide_maps(guide, p)
+        guided = (g_field, g_mask)
     passes = p.warp_passes if guide is None else p.guide_passes
     for _ in range(passes):
         ok = (
@@ -1487,6 +1478,20 @@ def _warp(
             left_n, right_n, wl, wr, shape, mask, *shade, _SHADING_RIDGE, *pixels, *fit
         )
     d_ref[idx], score[idx], step[idx] = d2, s2, st2
+
+
+def _guide_maps(guide: npt.NDArray[np.float32], p: ReconstructParams) -> tuple[Any, ...]:
+    """What the warped kernels take of a guide's disparity field over a crop
+    (NaN off the part): the field with 0 off the part, its mask (1 on the
+    part), and with ``p.shading`` the surface coordinates and the windows on
+    bends of :func:`_shading` (else None, None)."""
+    on_part = np.isfinite(guide)
+    g_field = np.where(on_part, guide, 0.0).astype(np.float32)
+    g_mask = on_part.astype(np.float32)
+    if not p.shading:
+        return g_field, g_mask, None, None
+    su, sv, bent = _shading(guide, on_part, p)
+    return g_field, g_mask, (su, sv), bent
 
 
 def _shading(
