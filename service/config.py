@@ -27,13 +27,10 @@ from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-NAME_PATTERN = r"^[A-Za-z0-9._-]+$"
-"""Line, station, part and serial names: safe in zenoh keys, URLs and file names."""
+from .names import KEY_PREFIX_PATTERN, NAME_MAX_LEN, NAME_PATTERN
 
-_NAME_RE = re.compile(NAME_PATTERN)
-
-Name = Annotated[str, Field(pattern=NAME_PATTERN, min_length=1, max_length=64)]
-"""A name restricted to ``[A-Za-z0-9._-]+`` (at most 64 characters)."""
+Name = Annotated[str, Field(pattern=NAME_PATTERN, min_length=1, max_length=NAME_MAX_LEN)]
+"""A line, station, part or serial name: see :mod:`service.names` for the rule."""
 
 GENERATED_PANEL = "generated:panel"
 """The ``cad`` value that selects the project's own procedural sheet-metal panel."""
@@ -45,11 +42,6 @@ class ConfigError(ValueError):
 
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
-
-
-def is_valid_name(value: str) -> bool:
-    """Whether ``value`` may be used as a line, station, part or serial name."""
-    return bool(_NAME_RE.fullmatch(value)) and len(value) <= 64
 
 
 # --------------------------------------------------------------------------- parts
@@ -282,7 +274,7 @@ class ZenohMode(StrEnum):
 
 
 class ZenohSection(_Strict):
-    prefix: str = Field(default="insp/v1", pattern=r"^[A-Za-z0-9._-]+(/[A-Za-z0-9._-]+)*$")
+    prefix: str = Field(default="insp/v1", pattern=KEY_PREFIX_PATTERN)
     mode: ZenohMode = ZenohMode.peer
     listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
     connect: list[str] = Field(default_factory=list)

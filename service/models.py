@@ -21,7 +21,8 @@ from typing import Annotated, Generic, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from .config import NAME_PATTERN, ComparisonPointSpec, Name, PartSpecBase
+from .config import ComparisonPointSpec, Name, PartSpecBase
+from .names import NAME_PATTERN
 
 SCHEMA_VERSION = 1
 """Version of :class:`InspectionResult`'s JSON."""

@@ -23,6 +23,7 @@ from __future__ import annotations
 import json
 import logging
 import shutil
+import tempfile
 import threading
 import time
 from collections.abc import Callable
@@ -32,13 +33,21 @@ from pathlib import Path
 from typing import Any
 
 from inspection.cad import CadModel, load_cad
+from inspection.errors import CadLoadError
 
 from .config import PartSpec, PartSpecBase, canonical_hash, load_part_spec
 from .models import Job, JobState, PartPublic, PartState
+from .names import NAME_RULE, is_valid_name
 
 log = logging.getLogger(__name__)
 
 UPLOAD_SUFFIXES = (".stl", ".obj", ".ply", ".step", ".stp")
+
+SPEC_FILE = "spec.json"
+"""An uploaded part's spec, in its folder; it names the CAD file beside it."""
+
+STAGING_PREFIX = ".creating-"
+"""Folders an upload is written into before they are renamed to the part's name."""
 
 
 class PartError(Exception):
@@ -341,60 +350,106 @@ class PartRegistry:
             )
 
     def add_uploaded(self) -> None:
-        """Register the parts created through the API in an earlier run."""
+        """Register the parts created through the API in an earlier run.
+
+        Only folders that :meth:`create` made count: a direct child of the
+        uploads folder (no link), named as its ``spec.json`` names the part.
+        Anything else there (a creation cut short, a folder someone put
+        there) is left alone.
+        """
         if not self.uploads_dir.is_dir():
             return
-        for spec_file in sorted(self.uploads_dir.glob("*/spec.json")):
+        for spec_file in sorted(self.uploads_dir.glob(f"*/{SPEC_FILE}")):
+            folder = spec_file.parent
             try:
                 spec = PartSpec.model_validate_json(spec_file.read_text())
             except ValueError as exc:
-                log.error("ignoring uploaded part %s: %s", spec_file.parent, exc)
+                log.error("ignoring uploaded part %s: %s", folder, exc)
+                continue
+            if folder.name != spec.name or folder.is_symlink():
+                log.warning("ignoring %s: not a part folder the service made", folder)
                 continue
             with self._lock:
                 if spec.name in self._entries:
                     log.warning("uploaded part %s shadowed by a configured one", spec.name)
                     continue
-            self.add(spec, spec_file.parent, configured=False)
+            self.add(spec, folder, configured=False)
 
-    def create(self, spec: PartSpecBase, cad_bytes: bytes, filename: str) -> Job:
-        """Create a part from an uploaded CAD file and start building its tree.
-
-        The CAD is checked (loaded) before anything is kept, so a bad upload
-        leaves no trace. Returns the build job.
+    def _upload_dir(self, name: str) -> Path:
+        """The folder of uploaded part ``name``, checked to be a direct child of the uploads root.
 
         Raises
         ------
         PartConflict
-            A part of that name exists.
+            ``name`` is not a valid name, or the folder resolves (through a
+            link, say) to somewhere other than the uploads root's own child.
+        """
+        if not is_valid_name(name):
+            raise PartConflict(f"part name {name!r} is not a name: {NAME_RULE}")
+        root = self.uploads_dir.resolve()
+        folder = (root / name).resolve()
+        if folder.parent != root or folder.name != name:
+            raise PartConflict(f"part {name!r}: its folder would lie outside {root}")
+        return folder
+
+    def create(self, spec: PartSpecBase, cad_bytes: bytes, filename: str) -> Job:
+        """Create a part from an uploaded CAD file and start building its tree.
+
+        The files are written into a new staging folder of the service's own,
+        the CAD is checked (loaded), and only then is the folder renamed to
+        the part's name: a bad upload leaves no trace, and a failure removes
+        the staging folder alone. Returns the build job.
+
+        Raises
+        ------
+        PartConflict
+            A part of that name exists, or a folder of that name that the
+            service did not make is in the way.
         inspection.CadLoadError
-            The upload is not a usable mesh.
+            The upload is not a usable mesh, or its file name has no CAD suffix.
         """
         suffix = Path(filename).suffix.lower()
+        if suffix not in UPLOAD_SUFFIXES:
+            raise CadLoadError(
+                f"the CAD file must end in one of {', '.join(UPLOAD_SUFFIXES)}, got {filename!r}"
+            )
+        target = self._upload_dir(spec.name)
+        full = PartSpec(**spec.model_dump(), cad=f"cad{suffix}")
         with self._lock:
             if spec.name in self._entries:
                 raise PartConflict(f"part {spec.name!r} exists; delete it first")
+            if target.exists() or target.is_symlink():
+                raise PartConflict(
+                    f"part {spec.name!r}: {target} exists and was not made by the service"
+                )
             # Reserve the name while the upload is checked.
-            self._entries[spec.name] = _Entry(
-                spec=PartSpec(**spec.model_dump(), cad=f"cad{suffix}"),
-                base_dir=self.uploads_dir / spec.name,
-                configured=False,
-            )
-        target = self.uploads_dir / spec.name
+            self._entries[spec.name] = _Entry(spec=full, base_dir=target, configured=False)
+        staging: Path | None = None
         try:
-            target.mkdir(parents=True, exist_ok=True)
-            (target / f"cad{suffix}").write_bytes(cad_bytes)
-            full = PartSpec(**spec.model_dump(), cad=f"cad{suffix}")
-            load_cad(target / f"cad{suffix}", scale=full.scale, name=full.name)  # fail fast
-            (target / "spec.json").write_text(full.model_dump_json(indent=2))
+            self.uploads_dir.mkdir(parents=True, exist_ok=True)
+            # mkdtemp makes a new folder or fails: whatever it names is ours to remove.
+            staging = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=self.uploads_dir.resolve()))
+            (staging / full.cad).write_bytes(cad_bytes)
+            load_cad(staging / full.cad, scale=full.scale, name=full.name)  # fail fast
+            (staging / SPEC_FILE).write_text(full.model_dump_json(indent=2))
+            if target.exists() or target.is_symlink():
+                raise PartConflict(f"part {spec.name!r}: {target} appeared meanwhile")
+            staging.rename(target)
         except BaseException:
             with self._lock:
                 self._entries.pop(spec.name, None)
-            shutil.rmtree(target, ignore_errors=True)
+            if staging is not None and staging.exists():
+                shutil.rmtree(staging, ignore_errors=True)
             raise
         return self.start(spec.name)
 
     def delete(self, name: str) -> None:
-        """Forget an uploaded part and remove its files (its cached tree stays, keyed by hash)."""
+        """Forget an uploaded part and remove the files the service wrote for it.
+
+        Removes the part's ``spec.json`` and the CAD file it names, then the
+        folder if nothing else is left in it; never a folder's whole tree.
+        Its cached tree stays, keyed by hash.
+        """
         with self._lock:
             entry = self._get_entry(name)
             if entry.configured:
@@ -403,8 +458,23 @@ class PartRegistry:
                 )
             if entry.state == PartState.building:
                 raise PartConflict(f"part {name!r} is still being built; delete it when done")
+            folder = self._upload_dir(name)
+            if folder != entry.base_dir.resolve():
+                raise PartConflict(f"part {name!r} is not kept in {folder}")
             del self._entries[name]
-        shutil.rmtree(self.uploads_dir / name, ignore_errors=True)
+        for written in (entry.spec.cad, SPEC_FILE):
+            path = folder / written
+            # A spec edited by hand could name another file: remove only a plain file in place.
+            if Path(written).name == written and path.parent == folder and not path.is_symlink():
+                path.unlink(missing_ok=True)
+        try:
+            folder.rmdir()
+        except FileNotFoundError:
+            pass
+        except OSError:
+            log.warning(
+                "part %s deleted; %s kept, it holds files the service did not write", name, folder
+            )
 
     # ------------------------------------------------------------------ building
 

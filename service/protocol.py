@@ -16,15 +16,15 @@ The header lists every image with its size, pixel format and encoding (raw
 format is specified in ``docs/protocol.md`` precisely enough for a reader in
 any language; this module is the reference implementation.
 
-Names (line, station, part, serial) are restricted to ``[A-Za-z0-9._-]+`` and
-rejected at the edge otherwise, so that a name can never add a level to a key
-expression or match as a wildcard.
+Names (line, station, part, serial) follow :mod:`service.names` (1 to 64
+characters from ``[A-Za-z0-9._-]``, not dots alone) and are rejected at the
+edge otherwise, so that a name can never add a level to a key expression,
+match as a wildcard, or name a parent folder.
 """
 
 from __future__ import annotations
 
 import json
-import re
 import struct
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -34,6 +34,8 @@ import cv2
 import numpy as np
 
 from inspection.arrays import Image
+
+from .names import NAME_MAX_LEN, NAME_RULE, is_valid_name
 
 MAGIC = b"INSF"
 VERSION = 1
@@ -49,9 +51,6 @@ PIXEL_FORMATS = ("mono8",)
 MAX_HEADER_BYTES = 1 << 20
 MAX_IMAGES = 16
 MAX_SIDE_PX = 16384
-MAX_NAME_LEN = 64
-
-_NAME_RE = re.compile(r"[A-Za-z0-9._-]+")
 
 
 class ProtocolError(ValueError):
@@ -67,14 +66,13 @@ def validate_name(value: object, what: str = "name") -> str:
     Raises
     ------
     ProtocolError
-        Not a string, empty, too long, or a character outside ``[A-Za-z0-9._-]``.
+        Not a string, or not a name by :data:`service.names.NAME_RULE`.
     """
     if not isinstance(value, str):
         raise ProtocolError(f"{what} must be a string, got {type(value).__name__}")
-    if len(value) > MAX_NAME_LEN:
-        raise ProtocolError(f"{what} is longer than {MAX_NAME_LEN} characters")
-    if not _NAME_RE.fullmatch(value):
-        raise ProtocolError(f"{what} {value!r} must match [A-Za-z0-9._-]+")
+    if not is_valid_name(value):
+        shown = value if len(value) <= NAME_MAX_LEN else value[:NAME_MAX_LEN] + "..."
+        raise ProtocolError(f"{what} {shown!r} is not a name: {NAME_RULE}")
     return value
 
 

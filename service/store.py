@@ -30,8 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import NAME_PATTERN
 from .models import InspectionResult, Status, Trend, TrendPoint, Verdict
+from .names import NAME_PATTERN
 
 log = logging.getLogger(__name__)
 

@@ -7,16 +7,29 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Annotated, Any
 
-from fastapi import Depends, Request
+from fastapi import Depends, Path, Query, Request
 
 from ..config import LineConfig
 from ..models import InspectionResult
+from ..names import NAME_MAX_LEN, NAME_PATTERN, NAME_RULE
 from ..parts import PartRegistry
 from ..store import DeviationArchive, ResultStore
 from .events import ResultHub
 from .metrics import Metrics
 
 log = logging.getLogger(__name__)
+
+PartPath = Annotated[
+    str,
+    Path(pattern=NAME_PATTERN, max_length=NAME_MAX_LEN, description=f"A part name: {NAME_RULE}"),
+]
+"""A part name in a route's path, checked before any route code sees it."""
+
+PartQuery = Annotated[
+    str | None,
+    Query(pattern=NAME_PATTERN, max_length=NAME_MAX_LEN, description=f"A part name: {NAME_RULE}"),
+]
+"""An optional part name in a query string."""
 
 Pipeline = Callable[..., Any]
 """``pipeline(part, points, trigger, *, frame) -> Inspection`` (as ``inspect_cloud``)."""

@@ -8,6 +8,7 @@ kind must get a clear 4xx error body and leave earlier results intact.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import http.client
 import io
 import json
@@ -24,7 +25,7 @@ from fastapi.testclient import TestClient
 from inspection.panel import PanelSpec, panel_height, sheet_metal_panel
 from inspection.rig import belt_pose
 from service.api import ResultHub, create_app
-from service.config import load_line_config
+from service.config import PartSpecBase, load_line_config
 from service.models import InspectionResult, PointResult, make_result_id, software_version
 from service.parts import PartRegistry
 from service.store import DeviationArchive, ResultStore
@@ -649,3 +650,94 @@ def test_ply_and_npy_uploads_parse_to_the_same_points(encoding):
     structured = np.zeros(500, dtype=[("x", "f8"), ("y", "f8"), ("z", "f8"), ("i", "f4")])
     structured["x"], structured["y"], structured["z"] = pts.T
     np.testing.assert_array_equal(parse_cloud(npy_bytes(structured)), pts)
+
+
+# ----------------------------------------------------------------------------- hostile names
+
+HOSTILE_NAMES = ["..", ".", "...", "%2e%2e", "a/.."]
+
+
+def tree_digest(*roots: Path) -> dict[str, str]:
+    """Every file below ``roots`` with a hash of its bytes: what a request must not touch.
+
+    SQLite's ``-shm`` file is its readers' shared index, rewritten by any
+    read; it holds no data and is left out.
+    """
+    out = {}
+    for root in roots:
+        for p in sorted(root.rglob("*")):
+            if p.is_file() and not p.name.endswith("-shm"):
+                out[str(p)] = hashlib.sha256(p.read_bytes()).hexdigest()
+    return out
+
+
+def multipart(fields: dict[str, str], files: dict[str, tuple[str, bytes]]) -> tuple[bytes, dict]:
+    boundary = "h0stile"
+    chunks = []
+    for k, v in fields.items():
+        chunks.append(f'--{boundary}\r\nContent-Disposition: form-data; name="{k}"\r\n\r\n{v}\r\n')
+    body = "".join(chunks).encode()
+    for k, (filename, data) in files.items():
+        body += (
+            (
+                f'--{boundary}\r\nContent-Disposition: form-data; name="{k}"; '
+                f'filename="{filename}"\r\nContent-Type: application/octet-stream\r\n\r\n'
+            ).encode()
+            + data
+            + b"\r\n"
+        )
+    body += f"--{boundary}--\r\n".encode()
+    return body, {"Content-Type": f"multipart/form-data; boundary={boundary}"}
+
+
+def test_dot_names_touch_no_file_of_the_data_directory(server, app_parts, line, tmp_path):
+    """Names of dots, encoded dots and a climbing path, sent raw to a real server.
+
+    The data directory holds a real store, an archived deviation, a cached
+    tree and an uploaded part, so that a delete of the root, of the uploads
+    folder or of a sibling would show as a changed digest.
+    """
+    cfg, reg = line
+    _, store, archive, _, _ = app_parts
+    store.put(stored_result(1))
+    archive.save(stored_result(1).id, np.zeros((3, 3)), np.zeros(3))
+    stl = tmp_path / "valid.stl"
+    sheet_metal_panel(PanelSpec().scaled(120.0, 80.0)).to_trimesh().export(stl)
+    valid = stl.read_bytes()
+    reg.wait(reg.create(_spec_base("kept"), valid, "p.stl").id, timeout_s=120)
+    data_dir = Path(cfg.storage.data_dir)
+    roots = (data_dir, tmp_path)
+    before = tree_digest(*roots)
+    assert any("/parts/kept/" in p for p in before) and any("/trees/" in p for p in before)
+    assert any(p.endswith("results.sqlite") for p in before)
+
+    def check(status: int, body: bytes, what: str) -> None:
+        assert 400 <= status < 500, (what, status, body)
+        err = json.loads(body)["error"]
+        assert err["code"] and err["message"], what
+        assert tree_digest(*roots) == before, what
+
+    try:
+        for name in HOSTILE_NAMES:
+            for cad in (b"x", valid):  # unreadable, then a mesh that would be accepted
+                body, headers = multipart(
+                    {"spec": json.dumps({"name": name})}, {"cad": ("p.stl", cad)}
+                )
+                status, _, reply = call(server.port, "POST", "/v1/parts", body, headers)
+                check(status, reply, f"POST {name!r} ({len(cad)} bytes)")
+            for method in ("DELETE", "GET"):
+                status, _, reply = call(server.port, method, f"/v1/parts/{name}")
+                check(status, reply, f"{method} /v1/parts/{name}")
+            for path in (f"/v1/parts/{name}/trends", f"/v1/inspections/{name}/colormap.png"):
+                status, _, reply = call(server.port, "GET", path)
+                check(status, reply, f"GET {path}")
+        names = [p["name"] for p in json.loads(call(server.port, "GET", "/v1/parts")[2])["items"]]
+        assert sorted(names) == sorted([PART, "kept"])
+    finally:
+        reg.delete("kept")
+    assert not (data_dir / "parts" / "kept").exists()
+    assert (data_dir / "parts").is_dir()  # the uploads root itself stays
+
+
+def _spec_base(name: str) -> PartSpecBase:
+    return PartSpecBase(name=name)

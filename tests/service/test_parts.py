@@ -129,6 +129,57 @@ def test_uploads_survive_a_restart_and_bad_ones_leave_nothing(tmp_path):
         assert reg.names() == [] and not (uploads / "up").exists()
 
 
+def _upload_spec(name: str):
+    from service.models import PartCreate
+
+    return PartCreate(name=name, tree={"spacing_mm": 2.0})
+
+
+def _files(*roots: Path) -> dict[str, bytes]:
+    return {str(p): p.read_bytes() for r in roots for p in r.rglob("*") if p.is_file()}
+
+
+def test_uploads_touch_only_what_the_registry_wrote(tmp_path):
+    """A failed creation removes its staging folder alone; a delete removes its own files.
+
+    A folder in the way that the registry did not make stays as it is, and
+    so does a file someone left inside a part's folder.
+    """
+    stl = tmp_path / "u.stl"
+    sheet_metal_panel(PanelSpec().scaled(100.0, 70.0)).to_trimesh().export(stl)
+    uploads = tmp_path / "uploads"
+    (uploads / "foreign").mkdir(parents=True)
+    (uploads / "foreign" / "notes.txt").write_text("not ours")
+    (uploads / "stray.txt").write_text("not ours either")
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (outside / "spec.json").write_text(PartSpec(name="linked", cad="cad.stl").model_dump_json())
+    (uploads / "linked").symlink_to(outside, target_is_directory=True)
+    before = _files(uploads, outside)
+    with PartRegistry(tmp_path / "trees", uploads, alignment=False) as reg:
+        reg.add_uploaded()
+        assert reg.names() == []  # a linked folder is not one the registry made
+        with pytest.raises(CadLoadError):
+            reg.create(_upload_spec("broken"), b"solid\nendsolid\n", "b.stl")
+        with pytest.raises(CadLoadError):
+            reg.create(_upload_spec("named"), stl.read_bytes(), "u.exe")
+        with pytest.raises(PartConflict):
+            reg.create(_upload_spec("foreign"), stl.read_bytes(), "u.stl")
+        with pytest.raises(PartConflict):
+            reg.create(_upload_spec("linked"), stl.read_bytes(), "u.stl")
+        assert _files(uploads, outside) == before
+        assert sorted(p.name for p in uploads.iterdir()) == ["foreign", "linked", "stray.txt"]
+
+        reg.wait(reg.create(_upload_spec("up"), stl.read_bytes(), "u.stl").id)
+        assert sorted(p.name for p in (uploads / "up").iterdir()) == ["cad.stl", "spec.json"]
+        (uploads / "up" / "operator-notes.txt").write_text("kept")
+        reg.delete("up")
+        assert sorted(p.name for p in (uploads / "up").iterdir()) == ["operator-notes.txt"]
+        (uploads / "up" / "operator-notes.txt").unlink()
+        (uploads / "up").rmdir()
+        assert _files(uploads, outside) == before
+
+
 def test_the_alignment_model_is_cached_beside_the_trees(tmp_path, monkeypatch):
     """Computed once, written beside the trees; a later process (an empty
     in-process cache) reads it back unchanged; a corrupt file is recomputed."""

@@ -10,13 +10,13 @@ from fastapi import APIRouter, Query, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response
 
-from ...config import NAME_PATTERN, is_valid_name
 from ...inspect import CloudFrame, Trigger, validate_cloud
 from ...models import ErrorBody, InspectionResult, Page, Status, new_upload_id
+from ...names import NAME_RULE, is_valid_name
 from ...store import Filters, InvalidCursor
 from ..clouds import UnsupportedCloudFormat, parse_cloud
 from ..colormap import render_top_view
-from ..deps import Services, ServicesDep
+from ..deps import PartQuery, Services, ServicesDep
 from ..errors import ApiError
 from ..forms import file_field, read_multipart, text_field
 
@@ -108,9 +108,7 @@ async def create_inspection(svc: ServicesDep, request: Request) -> InspectionRes
             ) from exc
         serial = text_field(form, "serial") or f"upload-{next(_counter)}"
         if not is_valid_name(serial):
-            raise ApiError(
-                422, "validation_error", f"serial must match {NAME_PATTERN}, got {serial!r}"
-            )
+            raise ApiError(422, "validation_error", f"serial {serial!r} is not a name: {NAME_RULE}")
         part = svc.parts.get(part_name)  # 404 unknown / 409 not ready, before reading the cloud
         data, _ = await file_field(form, "file")
         # InvalidInput (NaN, too few points, truncated file) goes to the 422
@@ -148,7 +146,7 @@ async def create_inspection(svc: ServicesDep, request: Request) -> InspectionRes
 )
 def list_inspections(
     svc: ServicesDep,
-    part: str | None = Query(None, pattern=NAME_PATTERN),
+    part: PartQuery = None,
     status: Status | None = None,
     since: str | None = Query(None, description="ns since the epoch, or ISO 8601 (naive: UTC)"),
     limit: int = Query(50, ge=1, le=1000),

@@ -8,10 +8,10 @@ from fastapi import APIRouter, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from pydantic import ValidationError
 
-from ...config import NAME_PATTERN
 from ...models import ErrorBody, Job, Page, PartCreate, PartPublic, Trend
+from ...names import NAME_MAX_LEN, NAME_PATTERN
 from ...parts import UPLOAD_SUFFIXES
-from ..deps import ServicesDep
+from ..deps import PartPath, ServicesDep
 from ..errors import ApiError
 from ..forms import file_field, read_multipart, text_field
 
@@ -51,7 +51,10 @@ def list_parts(
     svc: ServicesDep,
     limit: int = Query(100, ge=1, le=1000),
     cursor: str | None = Query(
-        None, pattern=NAME_PATTERN, description="`next` of the previous page"
+        None,
+        pattern=NAME_PATTERN,
+        max_length=NAME_MAX_LEN,
+        description="`next` of the previous page",
     ),
 ) -> Page[PartPublic]:
     names = [n for n in svc.parts.names() if cursor is None or n > cursor]
@@ -66,7 +69,7 @@ def list_parts(
 
 
 @router.get("/v1/parts/{name}", response_model=PartPublic, responses=_ERRORS)
-def get_part(svc: ServicesDep, name: str) -> PartPublic:
+def get_part(svc: ServicesDep, name: PartPath) -> PartPublic:
     return svc.parts.public(name)
 
 
@@ -116,7 +119,7 @@ async def create_part(svc: ServicesDep, request: Request, response: Response) ->
 @router.delete(
     "/v1/parts/{name}", status_code=204, responses=_ERRORS, summary="Delete an uploaded part"
 )
-def delete_part(svc: ServicesDep, name: str) -> Response:
+def delete_part(svc: ServicesDep, name: PartPath) -> Response:
     svc.parts.delete(name)
     return Response(status_code=204)
 
@@ -139,7 +142,7 @@ def get_job(svc: ServicesDep, job_id: str) -> Job:
 )
 def trends(
     svc: ServicesDep,
-    name: str,
+    name: PartPath,
     window: int | None = Query(None, ge=2, le=100_000, description="Parts (default: the config's)"),
 ) -> Trend:
     svc.parts.public(name)  # 404 for unknown parts

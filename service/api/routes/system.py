@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Query
+from fastapi import APIRouter
 from fastapi.responses import JSONResponse, PlainTextResponse, StreamingResponse
 
-from ...config import NAME_PATTERN
 from ...models import Health, Status, software_version
-from ..deps import Services, ServicesDep
+from ..deps import PartQuery, Services, ServicesDep
 from ..metrics import CONTENT_TYPE
 
 router = APIRouter()
@@ -54,7 +53,7 @@ def metrics(svc: ServicesDep) -> PlainTextResponse:
 )
 async def stream(
     svc: ServicesDep,
-    part: str | None = Query(None, pattern=NAME_PATTERN),
+    part: PartQuery = None,
     status: Status | None = None,
 ) -> StreamingResponse:
     events = svc.hub.stream(part=part, status=status.value if status else None)
