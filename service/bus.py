@@ -188,7 +188,11 @@ class RingSubscriber:
                 log.exception("subscriber handler failed on %s", sample.key_expr)
 
     def close(self, timeout_s: float = 5.0) -> None:
-        """Undeclare and join the reading thread."""
+        """Undeclare and join the reading thread.
+
+        Samples still waiting in the ring are discarded: undeclaring deletes
+        zenoh's ring, and the thread ends after the sample it holds, if any.
+        """
         if self._closed:
             return
         self._closed = True

@@ -54,35 +54,45 @@ def test_frames_arrive_in_order_with_block_and_ring_subscriber():
 
 
 def test_ring_subscriber_stays_bounded_when_the_reader_is_slow():
-    port = free_port()
-    release = threading.Event()
+    """A reader stuck on one sample while more arrive then gets only the newest
+    ``capacity``: zenoh's ring drops the oldest instead of growing, and the last
+    sample published is delivered."""
+    port, capacity, n = free_port(), 3, 50
+    holding, release, fenced, last_read = (threading.Event() for _ in range(4))
     got = []
 
     def slow(sample):
+        seq = int.from_bytes(sample.payload.to_bytes(), "little")
+        holding.set()
         release.wait(10)  # the reader is stuck: zenoh's ring must drop, not grow
-        got.append(int.from_bytes(sample.payload.to_bytes(), "little"))
+        got.append(seq)
+        if seq == n - 1:
+            last_read.set()
 
     with bus.open_session(peer(port)) as a, bus.open_session(client(port)) as b:
-        sub = bus.RingSubscriber(a, "t/x", slow, capacity=3)
-        pub = b.declare_publisher("t/x")
-        assert bus.wait_for_subscribers(pub, 10)
-        for i in range(50):
-            pub.put(i.to_bytes(4, "little"))
-        # Wait until the last one is in the ring (the reader holds at most one more).
-        flushed = threading.Event()
-        marker = bus.RingSubscriber(
-            a,
-            "t/x",
-            lambda s: flushed.set() if s.payload.to_bytes() == (49).to_bytes(4, "little") else None,
-            capacity=64,
-        )
-        pub.put((49).to_bytes(4, "little"))
-        assert flushed.wait(10)
-        release.set()
-        marker.close()
+        sub = bus.RingSubscriber(a, "t/x", slow, capacity=capacity)
+        # b's puts reach a over one link and a dispatches them in order, so once the
+        # fence (a key `sub` does not match) is seen, every sample is in `sub`'s ring.
+        fence_sub = bus.RingSubscriber(a, "t/fence", lambda s: fenced.set(), capacity=1)
+        pub = bus.frame_publisher(b, "t/x")  # BLOCK: any loss is the ring's, not the link's
+        fence = bus.frame_publisher(b, "t/fence")
+        try:
+            assert bus.wait_for_subscribers(pub, 10) and bus.wait_for_subscribers(fence, 10)
+            pub.put((0).to_bytes(4, "little"))
+            assert holding.wait(10)  # the reader holds sample 0; the ring is empty
+            for i in range(1, n):
+                pub.put(i.to_bytes(4, "little"))
+            fence.put(b"")
+            assert fenced.wait(10)
+        finally:
+            release.set()
+        # close() would discard what still waits in the ring: read it all first.
+        assert last_read.wait(10)
+        fence_sub.close()
         sub.close()
+        fence.undeclare()
         pub.undeclare()
-    assert len(got) <= 1 + 3 + 1 and got[-1] == 49
+    assert got == [0, *range(n - capacity, n)]
 
 
 def test_liveliness_token_and_heartbeat():
