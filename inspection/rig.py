@@ -56,6 +56,7 @@ forward; pixel centres at integer coordinates.
 from __future__ import annotations
 
 import hashlib
+import importlib.resources
 import logging
 import math
 import os
@@ -77,8 +78,10 @@ RIG_FORMAT = "inspection-rig/1"
 ENV_RIG = "INSPECTION_RIG"
 """Environment variable naming a rig TOML file that :meth:`Rig.default` reads instead."""
 
-DEFAULT_RIG_PATH = Path(__file__).resolve().parent.parent / "configs" / "rig.toml"
-"""The calibrated rig of the repository (``configs/rig.toml``)."""
+DEFAULT_RIG_DATA = "data/rig.toml"
+"""The calibrated rig shipped with the package: package data of ``inspection``
+(``inspection/data/rig.toml``, declared in pyproject.toml), so that an installed
+wheel has it. :meth:`Rig.default` reads it."""
 
 # The measurement volume (x, y, z extents, mm) the nominal rig is built for.
 VOLUME_MM = (800.0, 500.0, 200.0)
@@ -750,25 +753,37 @@ class Rig:
     def default(cls) -> Rig:
         """The calibrated rig the line measures with.
 
-        Reads ``$INSPECTION_RIG`` if set, else ``configs/rig.toml`` of the
-        repository (produced by ``inspection calibrate`` from rendered ChArUco
-        images).
+        Reads ``$INSPECTION_RIG`` if set, else the rig shipped with the package
+        (:data:`DEFAULT_RIG_DATA`, produced by ``inspection calibrate`` from
+        rendered ChArUco images), which an installed wheel carries as package
+        data.
 
         Raises
         ------
         FileNotFoundError
-            When the file does not exist.
+            When ``$INSPECTION_RIG`` names no file, or the package lacks its
+            rig (an incomplete installation).
         InvalidInput
             When it is not a valid rig file.
         """
         env = os.environ.get(ENV_RIG)
-        path = Path(env) if env else DEFAULT_RIG_PATH
-        if not path.is_file():
-            hint = f" (from ${ENV_RIG})" if env else ""
+        if env:
+            path = Path(env)
+            if not path.is_file():
+                raise FileNotFoundError(
+                    f"no rig calibration at {path} (from ${ENV_RIG}): "
+                    f"run `inspection calibrate --out {path}`"
+                )
+            return cls.load(path)
+        resource = importlib.resources.files("inspection").joinpath(DEFAULT_RIG_DATA)
+        try:
+            text = resource.read_text(encoding="utf-8")
+        except FileNotFoundError as exc:
             raise FileNotFoundError(
-                f"no rig calibration at {path}{hint}: run `inspection calibrate --out {path}`"
-            )
-        return cls.load(path)
+                f"the package's calibrated rig {resource} is missing: the installation is "
+                "incomplete (the wheel must carry it as package data)"
+            ) from exc
+        return cls.from_toml(text, where=str(resource))
 
     def with_image_size(self, width: int, height: int) -> Rig:
         """This rig with every camera's image scaled to ``width`` x ``height``."""
@@ -881,12 +896,24 @@ class Rig:
             its ``id`` does not match its content.
         """
         p = Path(path)
-        text = p.read_text(encoding="utf-8")
+        return cls.from_toml(p.read_text(encoding="utf-8"), where=str(p))
+
+    @classmethod
+    def from_toml(cls, text: str, *, where: str = "rig") -> Rig:
+        """Read a rig from TOML text written by :meth:`to_toml`.
+
+        ``where`` names the text's origin in error messages.
+
+        Raises
+        ------
+        InvalidInput
+            As :meth:`load`.
+        """
         try:
             data = tomllib.loads(text)
         except tomllib.TOMLDecodeError as exc:
-            raise InvalidInput(f"{p}: not valid TOML: {exc}") from exc
-        return cls.from_dict(data, where=str(p))
+            raise InvalidInput(f"{where}: not valid TOML: {exc}") from exc
+        return cls.from_dict(data, where=where)
 
     @classmethod
     def from_dict(cls, data: dict[str, Any], *, where: str = "rig") -> Rig:

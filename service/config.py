@@ -237,8 +237,9 @@ class LineSection(_Strict):
 class StationSection(_Strict):
     name: Name = "st1"
     rig_calibration: str | None = Field(
-        default="rig.toml",
-        description="Calibrated rig (TOML), relative to the line file; None: Rig.default().",
+        default=None,
+        description="Calibrated rig (TOML written by `inspection calibrate`), relative to the "
+        "line file; unset: Rig.default(), the rig shipped with the package.",
     )
     parts_dir: str = Field(default="parts", description="Part specs, relative to the line file.")
     guided_matching: bool = Field(

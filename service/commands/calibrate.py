@@ -1,7 +1,7 @@
 """``inspection calibrate``: calibrate the rig from ChArUco board images and write its TOML.
 
 Without ``--images`` the board is rendered by the simulator with the rig as
-built (``Rig.nominal()``), which is how ``configs/rig.toml`` is produced; the
+built (``Rig.nominal()``), which is how the packaged ``inspection/data/rig.toml`` is produced; the
 command then also reports how far the estimate is from that truth.
 
 With ``--images DIR`` it reads real images: one sub-directory per board view
@@ -29,9 +29,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument(
-        "--out", default="configs/rig.toml", help="rig TOML to write (default: %(default)s)"
-    )
+    p.add_argument("--out", default="rig.toml", help="rig TOML to write (default: %(default)s)")
     p.add_argument(
         "--images",
         type=Path,

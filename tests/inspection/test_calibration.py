@@ -48,7 +48,7 @@ def test_calibration_error_costs_little_in_triangulation(result, truth) -> None:
     for rms, worst in errors.values():
         # mm over the whole volume, from only 8 views: the corners of the
         # volume are poorly covered (~0.12 mm RMS, up to 0.74 mm there); 20
-        # views, as for configs/rig.toml, give ~0.02 mm RMS and < 0.1 mm.
+        # views, as for the packaged rig, give ~0.02 mm RMS and < 0.1 mm.
         assert rms < 0.2 and worst < 1.0
 
 

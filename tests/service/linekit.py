@@ -40,7 +40,7 @@ def demo(trees: Path) -> tuple[Stages, LoadedPart]:
     """The flash rig (the line's stages) and the demo panel loaded by a part registry, as the
     line loads it: tree from the cache in ``trees``, alignment model, warm-up.
     Done once per test process."""
-    stages = flash_stages(ROOT / "configs" / "rig.toml")
+    stages = flash_stages()
     registry = PartRegistry(trees, trees / "uploads")
     try:
         registry.add(load_part_spec(PARTS_DIR / f"{PART}.toml"), PARTS_DIR, configured=True)

@@ -31,8 +31,6 @@ def line_file(tmp_path: Path, trees: Path, period_s: float = 2.0, queue_size: in
     """A copy of the default line with the repo's parts and the session's tree cache."""
     text = (ROOT / "configs" / "line.toml").read_text()
     text = text.replace('parts_dir = "parts"', f'parts_dir = "{ROOT / "configs" / "parts"}"')
-    text = text.replace('rig_calibration = "rig.toml"',
-                        f'rig_calibration = "{ROOT / "configs" / "rig.toml"}"')  # fmt: skip
     text = text.replace('trees_dir = "trees"', f'trees_dir = "{trees}"')
     text = text.replace("trigger_period_s = 2.0", f"trigger_period_s = {period_s}")
     text = text.replace("queue_size = 4 ", f"queue_size = {queue_size} ")
