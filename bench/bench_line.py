@@ -106,7 +106,6 @@ def line_config(tmp: Path, trees: Path) -> Path:
     conf = ROOT / "configs"
     text = (conf / "line.toml").read_text()
     text = text.replace('parts_dir = "parts"', f'parts_dir = "{conf / "parts"}"')
-    text = text.replace('rig_calibration = "rig.toml"', f'rig_calibration = "{conf / "rig.toml"}"')
     text = text.replace('trees_dir = "trees"', f'trees_dir = "{trees}"')
     path = tmp / "line.toml"
     path.write_text(text)
@@ -198,51 +197,28 @@ def simulate_ms(n: int = 5) -> list[float]:
 
 
 def stage_cpu_ms(config: Path, data_dir: Path, n: int) -> dict[str, list[float]]:
-    """CPU time (ms, this process) of each stage on ``n`` parts.
-
-    With the CAD-guided second pass: its reconstruction and the fit from the
-    first pose are timed apart from the first pass's.
+    """CPU time (ms, this process) of the whole measurement of ``n`` parts, and the
+    wall time of each of its stages as the sequence reports it (``timings_ms``).
 
     The line's own pieces, one part at a time: the station as the worker loads
-    it (warmed up), the ingest's simulated rig, and the pipeline's stages
-    called the way :func:`service.inspect.inspect_cloud` calls them.
+    it (warmed up), the ingest's simulated rig, and the station's one measure
+    callable (``inspection.measure_frames``).
     """
-    from service import inspect as measure
     from service.config import load_line_config
     from service.line import Station
 
     cfg = load_line_config(config, overrides={("storage", "data_dir"): str(data_dir)})
     station = Station.load(cfg)
-    out: dict[str, list[float]] = {"reconstruct": [], "align": [], "deviations": []}
+    out: dict[str, list[float]] = {"measure CPU": []}
     try:
         rig, stages = station.simulated_rig(), station.stages
-        if stages.guide is not None:
-            out |= {"guided": [], "refit": []}
         for seq in range(n):
             fs = rig.capture(seq, 0)
-            part = station.parts[fs.part]
             t = time.process_time()
-            first = stages.reconstruct(stages.rig, fs.images)
-            points = np.asarray(first.points)
-            out["reconstruct"].append((time.process_time() - t) * 1e3)
-            points = points[np.isfinite(points).all(axis=1)]
-            fit = measure.subsample(points, part.spec.registration.max_points)
-            t = time.process_time()
-            T = np.asarray(stages.align(part, fit).transform)
-            out["align"].append((time.process_time() - t) * 1e3)
-            if stages.guide is not None and stages.refit is not None:
-                t = time.process_time()
-                cloud = stages.guide(stages.rig, first, part, np.linalg.inv(T))
-                points = np.asarray(cloud.points)
-                out["guided"].append((time.process_time() - t) * 1e3)
-                fit = measure.subsample(points, part.spec.registration.max_points)
-                t = time.process_time()
-                T = np.asarray(stages.refit(part, fit, T).transform)
-                out["refit"].append((time.process_time() - t) * 1e3)
-            cad_points = points @ T[:3, :3].T + T[:3, 3]
-            t = time.process_time()
-            stages.deviations(part, cad_points)
-            out["deviations"].append((time.process_time() - t) * 1e3)
+            m = stages.measure(station.parts[fs.part], fs.images)
+            out["measure CPU"].append((time.process_time() - t) * 1e3)
+            for stage, ms in m.timings_ms.items():
+                out.setdefault(f"{stage} wall", []).append(ms)
     finally:
         station.close()
     return out

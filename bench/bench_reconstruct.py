@@ -110,11 +110,9 @@ def _sgbm_peer(rec, frames):  # type: ignore[no-untyped-def]
 
 
 def main() -> int:
-    from inspection.alignment import align, alignment_model
-    from inspection.grid import GridTree
+    from inspection.measure import MeasureParams, PartModel, measure_frames
     from inspection.panel import PanelSpec, sheet_metal_panel
-    from inspection.reconstruct import Guide, Reconstructor
-    from inspection.registration import register
+    from inspection.reconstruct import Reconstructor
     from inspection.rig import Rig, belt_pose
     from inspection.simulate import simulate
 
@@ -130,12 +128,10 @@ def main() -> int:
     recs = {name: Reconstructor.build(r) for name, r in rigs.items()}
     build_s = (time.perf_counter() - start) / len(recs)
 
-    tree = GridTree.build(cad)
-    model = alignment_model(cad)
+    part = PartModel.build(cad)
     ok = True
     rows = []
     guided_times: list[float] = []
-    rematch_times: list[float] = []
     sim_times: list[float] = []
     rec_times: list[float] = []
     rec_cpu: list[float] = []
@@ -173,25 +169,15 @@ def main() -> int:
             if name == "nominal":
                 ok &= len(cloud) >= MIN_POINTS and rms <= RMS_GOAL_MM
             else:
-                # The line's second pass: the CAD at the pose fitted to this cloud.
-                first = rec(frames, keep_matching=True)
-                fit = align(tree, first.points, model=model, cad=cad, weights=first.weights)
-                guide = Guide.from_cad(cad, np.linalg.inv(fit.transform))
-                start = time.perf_counter()
-                guided = rec.guided(first, guide)
-                guided_times.append(time.perf_counter() - start)
-                rms, med, frac = _accuracy(distances_to_mesh(mesh, guided.points))
-                rows.append(
-                    ("  then guided (CAD at fitted pose)", name, len(guided), frac, rms, med)
-                )
-                kw = {"init": fit.transform, "weights": guided.weights, "escape_deg": None}
-                refit = register(tree, guided.points, **kw)
-                guide = Guide.from_cad(cad, np.linalg.inv(refit.transform))
-                start = time.perf_counter()
-                again = rec.rematch_bends(guided, guide)
-                rematch_times.append(time.perf_counter() - start)
-                rms, med, frac = _accuracy(distances_to_mesh(mesh, again.points))
-                rows.append(("  then its bends again", name, len(again), frac, rms, med))
+                # The line's passes, as its sequence makes them: guided by the CAD at
+                # the pose fitted to this cloud, then the bends again.
+                m = measure_frames(part, rec, frames, MeasureParams())
+                labels = {"guided": "  then guided (CAD at fitted pose)",
+                          "bends": "  then its bends again"}  # fmt: skip
+                for p in m.passes[1:]:
+                    rms, med, frac = _accuracy(distances_to_mesh(mesh, p.points))
+                    rows.append((labels[p.name], name, len(p.points), frac, rms, med))
+                guided_times.append(m.timings_ms["guide"] / 1e3)
         if i == 0:
             rec = recs["nominal"]
             peer_pts = _sgbm_peer(rec, frames)
@@ -214,10 +200,7 @@ def main() -> int:
     )
     if guided_times:
         guided_ms = statistics.median(guided_times) * 1e3
-        print(f"guided second pass (Reconstructor.guided): {guided_ms:7.0f} ms")
-    if rematch_times:
-        rematch_ms = statistics.median(rematch_times) * 1e3
-        print(f"bends again (Reconstructor.rematch_bends):  {rematch_ms:7.0f} ms")
+        print(f"guided passes (first fit, guided pass, its fit, bends again): {guided_ms:7.0f} ms")
     cpu_s = statistics.median(rec_cpu)
     cores = os.cpu_count() or 1
     print(

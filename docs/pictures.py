@@ -1,10 +1,9 @@
 """Regenerate the README's pictures: ``.venv/bin/python docs/pictures.py``.
 
 The rig layout and one trigger's frames come from :mod:`inspection.pictures`;
-the deviation map is one simulated part with a 1 mm dent, measured the way the
-line measures it (simulate with the nominal rig, reconstruct with the
-calibrated one, align, match again guided by the CAD at that pose, fit,
-deviations) and drawn the way the API draws it.
+the deviation map is one simulated part with a 1 mm dent, rendered with the
+nominal rig, measured by the line's own sequence (``inspection.measure_frames``
+with the calibrated rig) and drawn the way the API draws it.
 """
 
 from __future__ import annotations
@@ -42,17 +41,14 @@ def deviation_map(path: Path) -> None:
     T_rig_part[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
     T_rig_part[:3, 3] = (40.0, -20.0, 0.0)
     frames = inspection.simulate(inspection.Rig.nominal(), dented, T_rig_part, seed=1)
-    rec = inspection.Reconstructor.build(inspection.Rig.default())
-    cloud = rec(frames, keep_matching=True)
-    tree = inspection.GridTree.build(cad)
-    fit = inspection.align(tree, cloud.points, cad=cad)
-    cloud = rec.guided(cloud, inspection.Guide.from_cad(cad, np.linalg.inv(fit.transform)))
-    fit = inspection.register(tree, cloud.points, init=fit.transform, escape_deg=None)
-    points_cad = cloud.points @ fit.transform[:3, :3].T + fit.transform[:3, 3]
-    dev = inspection.deviations(tree, points_cad, [])
+    part = inspection.PartModel.build(cad)
+    m = inspection.measure_frames(part, inspection.Rig.default(), frames)
+    if m.deviations is None:
+        raise SystemExit(f"the picture's part was not measured: {m.reason}")
     png = render_top_view(
-        points_cad, dev.distances, limit_mm=0.5, size_px=560, title="deviation from CAD, mm"
-    )
+        m.points_cad(), m.deviations.distances, limit_mm=0.5, size_px=560,
+        title="deviation from CAD, mm",
+    )  # fmt: skip
     path.write_bytes(png)
 
 

@@ -1,7 +1,9 @@
 """In-line shape inspection: the computation.
 
 Reconstruct a point cloud from the rig's frames, align it to the part's CAD
-model through a precomputed closest-point grid, and measure deviations.
+model through a precomputed closest-point grid, and measure deviations: the
+whole sequence is :func:`measure_frames` (or :func:`measure_cloud`) against a
+:class:`PartModel`.
 Pure computation: numpy, scipy, numba, OpenCV, trimesh. Units are millimetres;
 transforms are 4x4 float64 arrays named by their frames (``T_cad_rig`` maps
 rig-frame points into the CAD frame).
@@ -23,6 +25,16 @@ from .errors import (
     TreeMismatch,
 )
 from .grid import Closest, GridTree, warmup
+from .measure import (
+    FitQuality,
+    Measurement,
+    MeasureParams,
+    PartModel,
+    Pass,
+    RegisterParams,
+    measure_cloud,
+    measure_frames,
+)
 from .panel import PanelSpec, sheet_metal_panel
 from .reconstruct import Cloud, Guide, Prior, Reconstructor, ReconstructParams, reconstruct
 from .registration import Registration, StopReason, register
@@ -42,15 +54,21 @@ __all__ = [
     "ComparisonPoint",
     "Conveyor",
     "Deviations",
+    "FitQuality",
     "GridTree",
     "Guide",
     "InspectionError",
     "InsufficientOverlap",
     "InvalidInput",
+    "MeasureParams",
+    "Measurement",
     "PanelSpec",
+    "PartModel",
+    "Pass",
     "Prior",
     "Projector",
     "ReconstructParams",
+    "RegisterParams",
     "ReconstructionError",
     "Reconstructor",
     "Registration",
@@ -64,6 +82,8 @@ __all__ = [
     "calibrate",
     "deviations",
     "load_cad",
+    "measure_cloud",
+    "measure_frames",
     "reconstruct",
     "register",
     "sheet_metal_panel",

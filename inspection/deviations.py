@@ -36,7 +36,9 @@ __all__ = [
     "FieldSummary",
     "Verdict",
     "deviations",
+    "check_comparison_points",
     "load_comparison_points",
+    "part_verdict",
     "robust_location",
     "warmup",
 ]
@@ -188,6 +190,21 @@ def load_comparison_points(path: str | Path) -> tuple[ComparisonPoint, ...]:
     return points
 
 
+def check_comparison_points(points: Iterable[object]) -> tuple[ComparisonPoint, ...]:
+    """``points`` as a tuple, checked to be ComparisonPoints with distinct names.
+
+    Raises
+    ------
+    InvalidInput
+    """
+    out = tuple(points)
+    for cp in out:
+        if not isinstance(cp, ComparisonPoint):
+            raise InvalidInput(f"expected ComparisonPoint, got {type(cp).__name__}")
+    _check_unique(out)  # type: ignore[arg-type]
+    return out  # type: ignore[return-value]
+
+
 def _check_unique(points: Sequence[ComparisonPoint]) -> None:
     seen: set[str] = set()
     for cp in points:
@@ -214,6 +231,8 @@ class ComparisonResult:
     spread_mm : float
         Robust standard deviation (MAD x 1.4826) of the pooled distances, mm;
         NaN when not measurable.
+    reason : str or None
+        Why the point is not measurable.
     """
 
     name: str
@@ -223,6 +242,7 @@ class ComparisonResult:
     lower_mm: float
     upper_mm: float
     spread_mm: float
+    reason: str | None = None
 
     def to_dict(self) -> dict[str, object]:
         return {
@@ -233,24 +253,30 @@ class ComparisonResult:
             "support": self.support,
             "verdict": self.verdict.value,
             "spread_mm": None if math.isnan(self.spread_mm) else self.spread_mm,
+            "reason": self.reason,
         }
 
 
 @dataclass(frozen=True)
 class FieldSummary:
-    """Statistics of the signed distances of every point, mm.
+    """Statistics of the signed distances of the inlier points, mm.
 
     Attributes
     ----------
     n : int
+        Points measured.
+    inliers : int
+        Points counted in the statistics: those within the correspondence
+        distance of the CAD (the others are background or gross outliers).
     mean_mm, std_mm, rms_mm, min_mm, max_mm, max_abs_mm : float
     median_mm, mad_mm : float
         Median and median absolute deviation from it.
     p01_mm, p05_mm, p95_mm, p99_mm : float
-        Percentiles.
+        Percentiles. Every statistic is NaN when no point is an inlier.
     """
 
     n: int
+    inliers: int
     mean_mm: float
     std_mm: float
     rms_mm: float
@@ -265,27 +291,37 @@ class FieldSummary:
     p99_mm: float
 
     @classmethod
-    def of(cls, d: Scalars) -> FieldSummary:
+    def of(cls, d: Scalars, inliers: np.ndarray | None = None) -> FieldSummary:
+        """The statistics of ``d[inliers]`` (every finite value when ``inliers`` is None)."""
         d = np.asarray(d, dtype=np.float64)
-        p01, p05, p50, p95, p99 = np.percentile(d, [1, 5, 50, 95, 99])
+        keep = np.isfinite(d) if inliers is None else np.asarray(inliers, bool) & np.isfinite(d)
+        x = d[keep]
+        if len(x) == 0:
+            nan = math.nan
+            return cls(len(d), 0, *([nan] * 12))
+        p01, p05, p50, p95, p99 = np.percentile(x, [1, 5, 50, 95, 99])
         return cls(
             n=len(d),
-            mean_mm=float(d.mean()),
-            std_mm=float(d.std()),
-            rms_mm=float(np.sqrt(np.mean(d * d))),
-            min_mm=float(d.min()),
-            max_mm=float(d.max()),
-            max_abs_mm=float(np.abs(d).max()),
+            inliers=len(x),
+            mean_mm=float(x.mean()),
+            std_mm=float(x.std()),
+            rms_mm=float(np.sqrt(np.mean(x * x))),
+            min_mm=float(x.min()),
+            max_mm=float(x.max()),
+            max_abs_mm=float(np.abs(x).max()),
             median_mm=float(p50),
-            mad_mm=float(np.median(np.abs(d - p50))),
+            mad_mm=float(np.median(np.abs(x - p50))),
             p01_mm=float(p01),
             p05_mm=float(p05),
             p95_mm=float(p95),
             p99_mm=float(p99),
         )
 
-    def to_dict(self) -> dict[str, float | int]:
-        return dict(self.__dict__)
+    def to_dict(self) -> dict[str, float | int | None]:
+        return {
+            k: (None if isinstance(v, float) and math.isnan(v) else v)
+            for k, v in self.__dict__.items()
+        }
 
 
 @dataclass(frozen=True, eq=False)
@@ -296,24 +332,33 @@ class Deviations:
     ----------
     distances : (N,) float64, mm
         Signed distance of every point (positive on the outer side).
+    inliers : (N,) bool
+        Points within ``max_distance_mm`` of the CAD: the field's statistics
+        count these only.
     comparison : tuple of ComparisonResult
         One per comparison point, in the given order.
     summary : FieldSummary
-        Statistics of ``distances`` (the whole field).
+        Statistics of the inliers' ``distances`` (the whole field).
     verdict : Verdict
-        ``fail`` if any comparison point fails, else ``not_measurable`` if any
-        cannot be judged, else ``pass``.
+        The part's verdict by :func:`part_verdict`.
     """
 
     distances: Scalars
+    inliers: np.ndarray
     comparison: tuple[ComparisonResult, ...]
     summary: FieldSummary
     verdict: Verdict
 
-    @property
-    def field(self) -> FieldSummary:
-        """Alias of ``summary`` (the name used in inspection results)."""
-        return self.summary
+
+def part_verdict(comparison: Iterable[ComparisonResult]) -> Verdict:
+    """``fail`` if any comparison point fails, else ``not_measurable`` if any
+    cannot be judged, else ``pass``."""
+    verdicts = {r.verdict for r in comparison}
+    if Verdict.FAIL in verdicts:
+        return Verdict.FAIL
+    if Verdict.NOT_MEASURABLE in verdicts:
+        return Verdict.NOT_MEASURABLE
+    return Verdict.PASS
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -402,6 +447,7 @@ def deviations(
     comparison_points: Iterable[ComparisonPoint] = (),
     *,
     min_support: int = 10,
+    max_distance_mm: float = math.inf,
 ) -> Deviations:
     """Signed deviations of every point, and at each comparison point.
 
@@ -415,6 +461,9 @@ def deviations(
     min_support : int
         A comparison point with fewer pooled points is ``not_measurable``
         (unless the point sets its own ``min_support``).
+    max_distance_mm : float
+        Points farther than this from the CAD are left out of the field's
+        statistics (the registration's correspondence distance).
 
     Returns
     -------
@@ -426,13 +475,11 @@ def deviations(
         Bad points, duplicate comparison point names, ``min_support < 1``.
     """
     P = validate_points(points_cad, name="points_cad")
-    cps = tuple(comparison_points)
-    for cp in cps:
-        if not isinstance(cp, ComparisonPoint):
-            raise InvalidInput(f"expected ComparisonPoint, got {type(cp).__name__}")
-    _check_unique(cps)
+    cps = check_comparison_points(comparison_points)
     if min_support < 1:
         raise InvalidInput(f"min_support must be >= 1, got {min_support}")
+    if not max_distance_mm > 0:
+        raise InvalidInput(f"max_distance_mm must be positive, got {max_distance_mm}")
     cl = tree.query(P)
     d = np.asarray(cl.distances, dtype=np.float64)
     normals = np.asarray(cl.normals, dtype=np.float64)
@@ -451,9 +498,10 @@ def deviations(
             log.warning("comparison point %s: kind %r is not measured yet", cp.name, cp.kind)
             results.append(
                 ComparisonResult(
-                    cp.name, math.nan, 0, Verdict.NOT_MEASURABLE, cp.lower_mm, cp.upper_mm, math.nan
+                    cp.name, math.nan, 0, Verdict.NOT_MEASURABLE, cp.lower_mm, cp.upper_mm,
+                    math.nan, f"kind {cp.kind!r} is not measured",
                 )
-            )
+            )  # fmt: skip
             continue
         idx = support_of[cp.name]
         n_cp = np.asarray(cp.normal)
@@ -473,6 +521,7 @@ def deviations(
                     cp.lower_mm,
                     cp.upper_mm,
                     math.nan,
+                    f"{support} points in its support, {need} needed",
                 )
             )
             continue
@@ -489,17 +538,13 @@ def deviations(
                 spread,
             )
         )
-    verdicts = {r.verdict for r in results}
-    if Verdict.FAIL in verdicts:
-        verdict = Verdict.FAIL
-    elif Verdict.NOT_MEASURABLE in verdicts:
-        verdict = Verdict.NOT_MEASURABLE
-    else:
-        verdict = Verdict.PASS
+    verdict = part_verdict(results)
+    inliers = np.abs(d) <= max_distance_mm
     log.debug("deviations: %d points, %d comparison points, verdict %s", len(P), len(cps), verdict)
     return Deviations(
         distances=d,
+        inliers=inliers,
         comparison=tuple(results),
-        summary=FieldSummary.of(d),
+        summary=FieldSummary.of(d, inliers),
         verdict=verdict,
     )

@@ -361,6 +361,17 @@ class Registration:
         Unit eigenvectors ``(omega L, t)`` of the directions the data do not
         constrain (eigenvalue below 1e-3 of the largest); empty when the pose
         is fully determined. A flat plate seen from one side has three.
+    pose_center : (3,) float64, mm, CAD frame
+        The point the twist ``(omega, t)`` of ``observability`` and
+        ``pose_covariance`` turns about (the weighted centroid of the fitted
+        points at the final pose).
+    pose_radius_mm : float
+        ``L``, the RMS radius of the fitted points about ``pose_center``.
+    pose_covariance : (6, 6) float64, mm^2
+        Covariance of the twist ``(omega L, t)`` that the noise leaves in the
+        pose, ``sigma^2 H^-1 / sum v`` over the constrained directions (the
+        degenerate ones contribute nothing here: see
+        ``degenerate_directions``).
     loss : str
     accepted_steps : int
     rejected_steps : int
@@ -375,6 +386,9 @@ class Registration:
     subset_sizes: np.ndarray
     observability: np.ndarray
     degenerate_directions: np.ndarray
+    pose_center: np.ndarray
+    pose_radius_mm: float
+    pose_covariance: np.ndarray
     loss: str
     accepted_steps: int
     rejected_steps: int
@@ -1508,7 +1522,13 @@ def register(
         _, H, _ = _cost_normal_equations(X, Nrm, seen(r, Fn, T), v, sigma, loss_id, c, center, L)
     eig, vec = np.linalg.eigh(H)
     eig = np.maximum(eig, 0.0)
-    degenerate = vec[:, eig < _DEGENERATE_REL_EIG * max(float(eig[-1]), 1e-300)].T.copy()
+    free = eig < _DEGENERATE_REL_EIG * max(float(eig[-1]), 1e-300)
+    degenerate = vec[:, free].T.copy()
+    # Gauss-Newton's covariance of the twist: sigma^2 (sum w J J^T)^-1, and H
+    # is that sum divided by the weight total.
+    vs = max(float(np.sum(v[v > 0])), 1e-300)
+    inv_eig = np.where(free, 0.0, 1.0 / np.where(free, 1.0, eig))
+    covariance = (vec * inv_eig) @ vec.T * (float(sigma) ** 2 / vs)
 
     T = _orthonormalised(T)
     T_final = T
@@ -1548,6 +1568,9 @@ def register(
         subset_sizes=np.asarray(sizes, dtype=np.int64),
         observability=eig,
         degenerate_directions=degenerate,
+        pose_center=np.asarray(center, dtype=np.float64).copy(),
+        pose_radius_mm=float(L),
+        pose_covariance=covariance,
         loss=loss,
         accepted_steps=accepted,
         rejected_steps=rejected,

@@ -26,6 +26,7 @@ COMMANDS = {
     "info": "tree",
     "align": "align",
     "check": "align",
+    "measure": "measure",
     "calibrate": "calibrate",
     "run": "line",
     "router": "line",

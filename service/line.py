@@ -26,8 +26,10 @@ from typing import Any
 import numpy as np
 import zenoh
 
+from inspection.cad import CadModel
+
 from . import bus
-from .config import LineConfig, load_part_spec
+from .config import LineConfig, PartSpec, load_part_spec
 from .ingest import Ingest, SimPart, SimulatedRig, SimulationSettings
 from .models import InspectionResult, software_version
 from .parts import LoadedPart, PartRegistry, load_part_cad
@@ -59,10 +61,14 @@ class Station:
     stages: Stages
     parts: dict[str, LoadedPart]
     registry: PartRegistry | None = None
+    cads: dict[str, tuple[PartSpec, CadModel]] = field(default_factory=dict)
+    """What the simulator renders: every part's spec and CAD (those of ``parts`` by default)."""
     keys: Keys = field(init=False)
 
     def __post_init__(self) -> None:
         self.keys = Keys(self.cfg.line.name, self.cfg.zenoh.prefix)
+        for name, p in self.parts.items():
+            self.cads.setdefault(name, (p.spec, p.cad))
 
     @classmethod
     def load(
@@ -85,11 +91,11 @@ class Station:
         """
         stages = stages or stages_for(cfg)
         if not build_trees:
-            parts = {}
+            cads = {}
             for path in cfg.part_spec_paths():
                 spec = load_part_spec(path)
-                parts[spec.name] = LoadedPart(spec, load_part_cad(spec, path.parent), None, "")
-            station = cls(cfg, stages, parts)
+                cads[spec.name] = (spec, load_part_cad(spec, path.parent))
+            station = cls(cfg, stages, {}, cads=cads)
             if warm_up:
                 station.warm_up(measure=False)
             return station
@@ -141,7 +147,10 @@ class Station:
         sim = self.cfg.simulator
         return SimulatedRig(
             self.stages,
-            [SimPart.from_cad(n, p.cad, flat=p.spec.is_generated) for n, p in self.parts.items()],
+            [
+                SimPart.from_cad(n, cad, flat=spec.is_generated)
+                for n, (spec, cad) in self.cads.items()
+            ],
             line=self.cfg.line.name,
             station=self.name,
             settings=SimulationSettings(
@@ -174,12 +183,11 @@ class Station:
         calibration id and the calibrated rig itself (TOML)."""
         meta = {
             "stages": self.stages.name,
-            "guided": "true" if self.stages.guide is not None else "false",
+            "guided": "true" if self.stages.guided else "false",
             "calibration_id": self.stages.calibration_id,
         }
-        calibrated = getattr(self.stages.rig, "calibrated", None)
-        if calibrated is not None and hasattr(calibrated, "to_toml"):
-            meta["calibration_toml"] = calibrated.to_toml()
+        if self.stages.calibration_toml is not None:
+            meta["calibration_toml"] = self.stages.calibration_toml
         return meta
 
     def recorder(self, data_dir: Path | None = None) -> Recorder:
@@ -227,7 +235,7 @@ def archive_sink(
     """
 
     def sink(outcome: Outcome, fs: FrameSet | None) -> None:
-        T, points, d = outcome.T_cad_rig, outcome.points_rig, outcome.distances
+        T, points, d = outcome.transform, outcome.points, outcome.distances
         if T is None or points is None or d is None:
             return
         if len(points) > max_points:

@@ -21,10 +21,12 @@ from typing import Annotated, Generic, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from inspection.deviations import Verdict
+
 from .config import ComparisonPointSpec, Name, PartSpecBase
 from .names import NAME_PATTERN
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 """Version of :class:`InspectionResult`'s JSON."""
 
 T = TypeVar("T")
@@ -47,14 +49,6 @@ class Status(StrEnum):
     missed = "missed"
 
 
-class Verdict(StrEnum):
-    """The verdict of one comparison point."""
-
-    passed = "pass"
-    fail = "fail"
-    not_measurable = "not_measurable"
-
-
 class PointResult(_Model):
     """The deviation at one named comparison point."""
 
@@ -66,6 +60,7 @@ class PointResult(_Model):
     upper_mm: float
     support: int = Field(ge=0, description="Measured points pooled within the support radius.")
     verdict: Verdict
+    reason: str | None = Field(default=None, description="Why the point is not measurable.")
 
 
 class FieldStats(_Model):
@@ -118,6 +113,32 @@ class InspectionResult(_Model):
     transform: Matrix4 | None = None
     rms_mm: float | None = Field(default=None, ge=0)
     inlier_fraction: float | None = Field(default=None, ge=0, le=1)
+    converged: bool | None = Field(default=None, description="The final fit converged.")
+    stop_reason: str | None = Field(
+        default=None, description="Why the fit stopped: converged, max_iterations, no_progress."
+    )
+    iterations: int | None = Field(default=None, ge=0, description="Iterations of the final fit.")
+    observability: float | None = Field(
+        default=None,
+        ge=0,
+        description="Smallest over largest eigenvalue of the fit's normal matrix "
+        "(1: constrained alike in every direction; 0: a direction left free).",
+    )
+    weak_directions: list[str] = Field(
+        default_factory=list,
+        description="Directions the measured surface leaves free, CAD frame "
+        "(e.g. 'translation along x', 'rotation about z').",
+    )
+    ambiguous: bool | None = Field(
+        default=None,
+        description="The global search found another pose fitting almost as well "
+        "(null: no global search ran).",
+    )
+    runner_up_score: float | None = Field(
+        default=None,
+        ge=0,
+        description="The best other pose's score over the chosen one's (1: fits as well).",
+    )
     comparison: list[PointResult] = Field(default_factory=list)
     field: FieldStats | None = None
     timings_ms: dict[str, float] = Field(default_factory=dict)

@@ -28,12 +28,16 @@ import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from inspection.cad import CadModel, load_cad
-from inspection.errors import CadLoadError
+from inspection.deviations import ComparisonPoint
+from inspection.errors import CadLoadError, InspectionError
+from inspection.measure import Frame, MeasureParams, PartModel, RegisterParams, measure_cloud
 
 from .config import PartSpec, PartSpecBase, canonical_hash, load_part_spec
 from .models import Job, JobState, PartPublic, PartState
@@ -71,29 +75,66 @@ class PartConflict(PartError):
 
 @dataclass(frozen=True, eq=False)
 class LoadedPart:
-    """A part ready to inspect: its spec, CAD model, tree and comparison points.
+    """A part ready to inspect: its spec, the model it is measured against, and how.
 
     Attributes
     ----------
     spec : PartSpec
-    cad : CadModel
-    tree : inspection.grid.GridTree
+    model : inspection.PartModel
+        The CAD, its tree, its alignment model and comparison points.
     tree_hash : str
         The tree's content hash (``GridTree.hash``): identifies exactly the tree used.
-    alignment_model : inspection.alignment.AlignmentModel or None
-        The resting poses and templates of the global alignment, computed once
-        per part (None where the alignment stage is not installed).
+    params : inspection.MeasureParams
+        The spec's settings as the measuring sequence takes them.
     """
 
     spec: PartSpec
-    cad: CadModel
-    tree: Any
+    model: PartModel
     tree_hash: str
-    alignment_model: Any = field(default=None, repr=False)
+    params: MeasureParams
 
     @property
     def name(self) -> str:
         return self.spec.name
+
+    @property
+    def cad(self) -> CadModel:
+        return self.model.cad
+
+
+def comparison_points(spec: PartSpec) -> tuple[ComparisonPoint, ...]:
+    """The spec's comparison points as the measuring sequence takes them."""
+    return tuple(
+        ComparisonPoint(
+            name=p.name,
+            position=tuple(p.position_mm),  # type: ignore[arg-type]
+            normal=tuple(p.normal),  # type: ignore[arg-type]
+            lower_mm=p.lower_mm,
+            upper_mm=p.upper_mm,
+            radius_mm=p.radius_mm,
+            kind=p.kind.value,
+            min_support=p.min_support,
+        )
+        for p in spec.points
+    )
+
+
+def measure_params(spec: PartSpec, *, guided: bool = True) -> MeasureParams:
+    """The measuring sequence's parameters from a part spec (and the station's ``guided``)."""
+    r = spec.registration
+    return MeasureParams(
+        guided=guided,
+        max_points=r.max_points,
+        min_inlier_fraction=r.min_inlier_fraction,
+        max_rms_mm=r.max_rms_mm,
+        ambiguous_is_error=r.ambiguous_is_error,
+        register=RegisterParams(
+            loss=r.loss.value,
+            max_iterations=r.max_iterations,
+            max_distance_mm=r.max_correspondence_mm,
+            view_direction=r.view_direction(),
+        ),
+    )
 
 
 @dataclass(eq=False)
@@ -226,7 +267,12 @@ def load_part(
     report(0.95, "computing resting poses")
     model = _alignment_model(cad, trees_dir) if alignment else None
     report(1.0, "ready")
-    return LoadedPart(spec=spec, cad=cad, tree=tree, tree_hash=tree.hash, alignment_model=model)
+    return LoadedPart(
+        spec=spec,
+        model=PartModel(cad, tree, model, comparison_points(spec)),
+        tree_hash=tree.hash,
+        params=measure_params(spec),
+    )
 
 
 _models: dict[str, Any] = {}
@@ -284,6 +330,39 @@ def _alignment_model(cad: CadModel, trees_dir: Path | None = None) -> Any:
                     log.warning("%s: alignment model not cached: %s", cad.name, exc)
         _models[cad.hash] = model
         return model
+
+
+def warm_up(part: LoadedPart, *, points: int = 3000) -> float:
+    """Measure the part once on points of its own surface; returns seconds.
+
+    The numerical kernels compile on their first call (seconds); doing it
+    while the part loads keeps that off the first inspected part.
+    """
+    t0 = time.perf_counter()
+    cad = part.cad
+    up = cad.faces[cad.face_normals[:, 2] > 0.3]
+    if len(up) == 0:
+        up = cad.faces
+    # Points spread evenly over the faces looking up: a cloud like the rig's.
+    tri = cad.vertices[up]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    rng = np.random.default_rng(0)
+    pick = rng.choice(len(tri), size=points, p=area / area.sum())
+    a, b = rng.random((2, points))
+    flip = a + b > 1
+    a[flip], b[flip] = 1 - a[flip], 1 - b[flip]
+    t = tri[pick]
+    cloud = t[:, 0] + a[:, None] * (t[:, 1] - t[:, 0]) + b[:, None] * (t[:, 2] - t[:, 0])
+    frames: tuple[Frame, ...] = ("rig", "cad") if part.model.alignment is not None else ("cad",)
+    for frame in frames:
+        try:
+            m = measure_cloud(part.model, cloud, part.params, frame=frame)
+        except InspectionError as exc:
+            log.info("warm-up of %s incomplete: %s", part.name, exc)
+            break
+        if m.verdict is None:
+            log.info("warm-up of %s (%s frame): %s", part.name, frame, m.reason)
+    return time.perf_counter() - t0
 
 
 # --------------------------------------------------------------------------- registry
@@ -539,12 +618,10 @@ class PartRegistry:
                 job_id, state=JobState.failed, message=entry.error, finished_ns=time.time_ns()
             )
             return
-        if self.alignment and loaded.alignment_model is not None:
+        if self.alignment and loaded.model.alignment is not None:
             self._update_job(job_id, progress=0.98, message="warming up")
             from inspection.deviations import warmup as deviations_warmup
             from inspection.grid import warmup
-
-            from .inspect import warm_up
 
             # Readiness means the first real part is not the one paying for compilation.
             log.info("grid kernels ready in %.1f s", warmup())

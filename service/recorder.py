@@ -348,11 +348,11 @@ class Recorder:
                 )
                 for cam, img in zip(fs.cameras, fs.images, strict=True):
                     f.proto(f"/{cam}/image", self._image(cam, img, t), t)
-                if outcome.points_rig is not None and len(outcome.points_rig):
-                    f.proto("/cloud", _cloud(outcome.points_rig, outcome.distances, t), t)
+                if outcome.points is not None and len(outcome.points):
+                    f.proto("/cloud", _cloud(outcome.points, outcome.distances, t), t)
                 self.frames_recorded += 1
-            if outcome.T_cad_rig is not None and np.isfinite(outcome.T_cad_rig).all():
-                f.proto("/part/pose", _pose(np.linalg.inv(outcome.T_cad_rig), t), t)
+            if outcome.transform is not None and np.isfinite(outcome.transform).all():
+                f.proto("/part/pose", _pose(np.linalg.inv(outcome.transform), t), t)
             f.json(
                 "/result", "InspectionResult", self._schema, result.model_dump_json().encode(), t
             )

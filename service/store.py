@@ -319,9 +319,9 @@ class ResultStore:
                     fails[c.name] = 0
                     order.append(c.name)
                 limits[c.name] = (c.lower_mm, c.upper_mm)
-                if c.verdict == Verdict.fail:
+                if c.verdict == Verdict.FAIL:
                     fails[c.name] += 1
-                if c.deviation_mm is not None and c.verdict != Verdict.not_measurable:
+                if c.deviation_mm is not None and c.verdict != Verdict.NOT_MEASURABLE:
                     values[c.name].append(c.deviation_mm)
         points = [
             _trend_point(

@@ -15,6 +15,7 @@ from fastapi import FastAPI
 from ..config import LineConfig
 from ..models import software_version
 from ..parts import PartRegistry
+from ..results import measure_upload
 from ..store import DeviationArchive, ResultStore
 from .deps import Pipeline, Services
 from .errors import install_error_handlers
@@ -46,8 +47,8 @@ def create_app(
     parts : PartRegistry
         The parts and their trees (the caller preloads and closes it).
     pipeline : callable, optional
-        ``pipeline(part, points, trigger, *, frame) -> Inspection``;
-        default :func:`service.inspect.inspect_cloud`.
+        ``pipeline(part, points, trigger, *, frame) -> Outcome``;
+        default :func:`service.results.measure_upload`.
     bus : ResultHub, optional
         Fan-out of new results to ``/v1/stream``. Pass the one the worker or
         a zenoh subscriber publishes into; default: a new one, fed by the
@@ -61,9 +62,7 @@ def create_app(
         part registry's readiness is always checked.
     """
     if pipeline is None:
-        from ..inspect import inspect_cloud
-
-        pipeline = inspect_cloud
+        pipeline = measure_upload
     hub = bus if bus is not None else ResultHub()
     if archive is None:
         archive = DeviationArchive(settings.storage.deviations_path())

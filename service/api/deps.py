@@ -32,7 +32,7 @@ PartQuery = Annotated[
 """An optional part name in a query string."""
 
 Pipeline = Callable[..., Any]
-"""``pipeline(part, points, trigger, *, frame) -> Inspection`` (as ``inspect_cloud``)."""
+"""``pipeline(part, points, trigger, *, frame) -> Outcome``, as ``results.measure_upload``."""
 
 
 @dataclass(eq=False)

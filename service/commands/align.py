@@ -1,23 +1,44 @@
-"""``inspection align`` and ``inspection check``: fit a measured cloud to the CAD.
+"""``inspection align`` and ``inspection check``: measure a cloud against the CAD.
+
+Both measure through :func:`inspection.measure.measure_cloud`, the sequence
+the line and the REST API measure with; this module only builds the part
+model from the command line, maps the options onto
+:class:`~inspection.measure.MeasureParams` and prints the
+:class:`~inspection.measure.Measurement`.
 
 ``align CAD_OR_TREE CLOUD`` finds T_cad_data, the transform that maps the
-cloud into the CAD frame: a global search over the part's resting poses
-(the cloud in a frame with z up, the part lying anywhere), then robust fine
-registration. With ``--no-global`` only the fine registration runs, from the
-identity (a cloud already roughly in the CAD frame).
+cloud into the CAD frame. Where the cloud lies decides how:
+
+- by default (frame ``data``) the cloud lies anywhere, in a frame with z up:
+  a global search over the part's resting poses, then robust fine
+  registration;
+- ``--seen-from-above`` (frame ``rig``): the same, and the cloud was
+  measured from +z of its frame, so no point is fitted onto a face turned
+  away from the sensor (loss tukey or welsch);
+- ``--no-global`` (frame ``cad``): the cloud is already roughly in the CAD
+  frame; only the fine registration runs, from the identity.
 
 ``check CAD_OR_TREE CLOUD --points POINTS.json`` also measures the
-deviations: over the whole cloud and at each comparison point, with the
-verdict.
+deviations, over the whole cloud and at each comparison point, and gives the
+part's verdict; ``--write-ply`` writes the cloud in the CAD frame with each
+point's signed deviation.
+
+Both print the fit (transform, residual, inliers, why it stopped,
+observability, the directions the data leave free, the global search's
+candidates) and its quality as the service reports it (the free directions
+by name, the observability ratio, the runner-up pose's score), and the
+measurement's reason.
 
 CAD_OR_TREE is a CAD file (STL, OBJ, PLY, STEP; its tree is built on the
-fly), ``builtin:panel``, or a tree saved by ``build-tree`` (.npz). CLOUD is a
-PLY, XYZ/TXT/CSV or NPY file of points in mm. POINTS.json is a list of
-comparison points (name, position, normal, lower_mm, upper_mm, radius_mm).
+fly), ``builtin:panel``, or a tree saved by ``build-tree`` (.npz; the CAD is
+taken from the vertices and faces it stores). CLOUD is a PLY, XYZ/TXT/CSV or
+NPY file of points in mm. POINTS.json is a list of comparison points (name,
+position, normal, lower_mm, upper_mm, radius_mm).
 
-Exit codes: 0 a converged, unambiguous fit (align) or a part that passes
-(check); 1 a fit that did not converge or is ambiguous, or a failed part;
-3 a part that cannot be judged (not measurable); 2 bad input.
+Exit codes: 0 a usable, unambiguous fit (align) or a part that passes
+(check); 1 a fit that is not usable (did not converge, too few inliers, too
+high a residual) or is ambiguous, or a part that fails; 3 a part that cannot
+be judged (not measurable); 2 bad input (message on stderr).
 """
 
 from __future__ import annotations
@@ -27,10 +48,16 @@ import json
 import logging
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from inspection.deviations import ComparisonPoint
+    from inspection.measure import Frame, Measurement, MeasureParams, PartModel
+    from inspection.registration import Registration
 
 log = logging.getLogger(__name__)
 
@@ -55,12 +82,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         p.add_argument(
             "--scale", type=float, default=1.0, help="multiplies CAD coordinates to give mm"
         )
-        p.add_argument(
+        where = p.add_mutually_exclusive_group()
+        where.add_argument(
             "--no-global",
             action="store_true",
-            help="skip the global search: fine registration from the identity",
+            help="the cloud is roughly in the CAD frame: fine registration from the identity",
         )
-        p.add_argument(
+        where.add_argument(
             "--seen-from-above",
             action="store_true",
             help="the cloud was measured from above (+z of its frame): points are not fitted "
@@ -77,7 +105,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     common(a)
-    a.set_defaults(func=cmd_align)
+    a.set_defaults(func=cmd_align, points=None, min_support=None, write_ply=None)
 
     c = subparsers.add_parser(
         "check",
@@ -90,7 +118,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--points", metavar="POINTS.json", type=Path, required=True, help="comparison points (JSON)"
     )
     c.add_argument(
-        "--min-support", type=int, default=10, help="points needed at a comparison point (10)"
+        "--min-support",
+        type=int,
+        default=None,
+        help="points needed at a comparison point (the line's default, 10)",
     )
     c.add_argument(
         "--write-ply",
@@ -102,15 +133,78 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     c.set_defaults(func=cmd_check)
 
 
-def _load_tree(spec: str, scale: float) -> Any:
-    """A GridTree from a saved file, or built from a CAD file or the built-in panel."""
-    from inspection.cad import load_cad
+# --------------------------------------------------------------------------- inputs
+
+
+def frame_of(args: argparse.Namespace) -> Frame:
+    """The frame the cloud is given in, from ``--no-global`` and ``--seen-from-above``."""
+    if args.no_global:
+        return "cad"
+    return "rig" if args.seen_from_above else "data"
+
+
+def measure_params(args: argparse.Namespace) -> MeasureParams:
+    """The line's MeasureParams with the command line's loss, seed and minimum support.
+
+    Raises
+    ------
+    InvalidInput
+        A view direction with a loss without a plateau, a bad minimum support.
+    """
+    from inspection.measure import MeasureParams, RegisterParams
+
+    register = RegisterParams(
+        loss=args.loss,
+        seed=args.seed,
+        view_direction=(0.0, 0.0, 1.0) if args.seen_from_above else None,
+    )
+    if args.min_support is None:
+        return MeasureParams(register=register)
+    return MeasureParams(register=register, min_support=args.min_support)
+
+
+def load_model(
+    spec: str, scale: float, points: Sequence[ComparisonPoint] = (), *, alignment: bool
+) -> PartModel:
+    """The part model of a CAD file, ``builtin:panel`` or a saved tree.
+
+    Parameters
+    ----------
+    spec : str
+        CAD_OR_TREE.
+    scale : float
+        Multiplies the CAD's coordinates to give mm (not for a saved tree).
+    points : sequence of ComparisonPoint
+    alignment : bool
+        Compute the global search's model (needed unless the cloud is given
+        in the CAD frame).
+
+    Raises
+    ------
+    CadLoadError
+        An unreadable CAD file.
+    InvalidInput
+        A missing or unreadable tree file, ``--scale`` with a tree.
+    TreeMismatch
+        A tree whose stored mesh is not the geometry it claims to be built for.
+    """
+    from inspection.alignment import alignment_model
+    from inspection.cad import CadModel, load_cad
+    from inspection.errors import InvalidInput, TreeMismatch
     from inspection.grid import GridTree
+    from inspection.measure import PartModel
 
     if Path(spec).suffix.lower() in TREE_SUFFIXES:
         if scale != 1.0:
-            raise SystemExit("--scale does not apply to a saved tree")
-        return GridTree.load(spec)
+            raise InvalidInput("--scale does not apply to a saved tree (its CAD is in mm)")
+        tree = GridTree.load(spec)
+        cad = CadModel.from_arrays(tree.vertices, tree.faces, name=tree.name, source=spec)
+        if cad.hash != tree.cad_hash:
+            raise TreeMismatch(
+                f"{spec}: the mesh stored in the tree hashes to {cad.hash[:12]}, "
+                f"the tree claims CAD {tree.cad_hash[:12]}"
+            )
+        return PartModel(cad, tree, alignment_model(cad) if alignment else None, tuple(points))
     if spec == BUILTIN_PANEL:
         from inspection.panel import sheet_metal_panel
 
@@ -122,33 +216,40 @@ def _load_tree(spec: str, scale: float) -> Any:
         cad.name,
         len(cad.faces),
     )
-    return GridTree.build(cad)
+    return PartModel.build(cad, points, alignment=alignment)
 
 
-def _fit(args: argparse.Namespace) -> tuple[Any, Any, np.ndarray, dict[str, float]]:
-    from inspection.alignment import align
+def _measure(
+    args: argparse.Namespace, points: Sequence[ComparisonPoint] = ()
+) -> tuple[PartModel, Measurement, dict[str, float]]:
+    """Read the inputs and measure the cloud; the timings of reading added."""
     from inspection.cloud_io import read_cloud
-    from inspection.registration import register as fine
+    from inspection.measure import measure_cloud
 
-    timings: dict[str, float] = {}
+    params = measure_params(args)
+    frame = frame_of(args)
     t0 = time.perf_counter()
-    tree = _load_tree(args.model, args.scale)
-    timings["tree_ms"] = (time.perf_counter() - t0) * 1e3
+    cloud = read_cloud(args.cloud)
+    read_ms = (time.perf_counter() - t0) * 1e3
     t0 = time.perf_counter()
-    points = read_cloud(args.cloud)
-    timings["read_ms"] = (time.perf_counter() - t0) * 1e3
-    t0 = time.perf_counter()
-    view = np.array([0.0, 0.0, 1.0]) if args.seen_from_above else None
-    if args.no_global:
-        reg = fine(tree, points, loss=args.loss, seed=args.seed, view_direction=view)
-    else:
-        reg = align(tree, points, loss=args.loss, seed=args.seed, view_direction=view)
-    timings["fit_ms"] = (time.perf_counter() - t0) * 1e3
-    return tree, reg, points, timings
+    part = load_model(args.model, args.scale, points, alignment=frame != "cad")
+    part_ms = (time.perf_counter() - t0) * 1e3
+    m = measure_cloud(part, cloud, params, frame=frame)
+    return part, m, {"read": read_ms, "part": part_ms, **m.timings_ms}
 
 
-def registration_dict(reg: Any) -> dict[str, Any]:
+def _bad_input(command: str, exc: Exception) -> int:
+    print(f"inspection {command}: {exc}", file=sys.stderr)
+    return EXIT_ERROR
+
+
+# --------------------------------------------------------------------------- output
+
+
+def registration_dict(reg: Registration) -> dict[str, Any]:
     """JSON-ready summary of a Registration (or Alignment)."""
+    from inspection.alignment import Alignment
+
     out: dict[str, Any] = {
         "transform": np.asarray(reg.transform).tolist(),
         "rms_mm": float(reg.rms_mm),
@@ -161,7 +262,7 @@ def registration_dict(reg: Any) -> dict[str, Any]:
         "observability": np.asarray(reg.observability).tolist(),
         "degenerate_directions": np.asarray(reg.degenerate_directions).tolist(),
     }
-    if hasattr(reg, "ambiguous"):
+    if isinstance(reg, Alignment):
         out["ambiguous"] = bool(reg.ambiguous)
         out["candidates"] = [
             {"pose_index": c.pose_index, "angle_deg": c.angle_deg, "score_mm2": c.score}
@@ -170,7 +271,30 @@ def registration_dict(reg: Any) -> dict[str, Any]:
     return out
 
 
-def _print_registration(reg: Any) -> None:
+def measurement_dict(m: Measurement) -> dict[str, Any]:
+    """The verdict, reason, frame and fit quality of ``m``, JSON-ready."""
+    q = m.quality
+    return {
+        "verdict": None if m.verdict is None else m.verdict.value,
+        "reason": m.reason,
+        "frame": m.frame,
+        "quality": None
+        if q is None
+        else {
+            "converged": q.converged,
+            "stop_reason": q.stop_reason,
+            "iterations": q.iterations,
+            "observability": q.observability,
+            "weak_directions": list(q.weak_directions),
+            "ambiguous": q.ambiguous,
+            "runner_up_score": q.runner_up_score,
+        },
+    }
+
+
+def _print_registration(reg: Registration) -> None:
+    from inspection.alignment import Alignment
+
     T = np.asarray(reg.transform)
     print("T_cad_data (maps the cloud into the CAD frame, mm):")
     for row in T:
@@ -185,76 +309,117 @@ def _print_registration(reg: Any) -> None:
         f"observability: weakest {obs[0]:.3g}, strongest {obs[-1]:.3g}"
         + (f"; {free} unconstrained direction(s): the pose is not unique" if free else "")
     )
-    if hasattr(reg, "ambiguous"):
+    if isinstance(reg, Alignment):
         scores = ", ".join(f"{c.score:.3g}" for c in reg.candidates[:4])
         word = "AMBIGUOUS: another pose fits as well" if reg.ambiguous else "unambiguous"
         print(f"global search: {word} (candidate scores, mm^2: {scores})")
+
+
+def _print_measurement(m: Measurement) -> None:
+    """The fit, its quality and the reason, as text."""
+    if m.registration is not None:
+        _print_registration(m.registration)
+    else:
+        print("no fit")
+    q = m.quality
+    if q is not None:
+        print(quality_line(q.observability, q.weak_directions, q.runner_up_score))
+    if m.reason:
+        print(f"reason: {m.reason}")
+
+
+def quality_line(
+    observability: float, weak_directions: Sequence[str], runner_up_score: float | None
+) -> str:
+    """One line on what the fit says of itself."""
+    weak = ", ".join(weak_directions) or "none"
+    line = f"fit quality: observability ratio {observability:.3g}, weak directions: {weak}"
+    if runner_up_score is not None:
+        line += f", runner-up pose at {runner_up_score:.2f} of the chosen one's score"
+    return line
+
+
+def _timings_line(timings: dict[str, float]) -> str:
+    return "time: " + ", ".join(f"{k} {v:.0f} ms" for k, v in timings.items())
+
+
+def _usable(m: Measurement) -> bool:
+    """A fit the part can be measured from, and not ambiguous."""
+    return m.verdict is not None and not (m.quality is not None and m.quality.ambiguous)
+
+
+# --------------------------------------------------------------------------- commands
 
 
 def cmd_align(args: argparse.Namespace) -> int:
     from inspection.errors import InspectionError
 
     try:
-        _, reg, _, timings = _fit(args)
-    except InspectionError as exc:
-        print(f"inspection align: {exc}", file=sys.stderr)
-        return EXIT_ERROR
-    good = reg.converged and not getattr(reg, "ambiguous", False)
+        _, m, timings = _measure(args)
+    except (InspectionError, OSError) as exc:
+        return _bad_input("align", exc)
     if args.json:
-        print(json.dumps({**registration_dict(reg), "timings_ms": timings}, indent=2))
+        fit = registration_dict(m.registration) if m.registration is not None else {}
+        print(json.dumps({**fit, **measurement_dict(m), "timings_ms": timings}, indent=2))
     else:
-        _print_registration(reg)
-        print(f"time: fit {timings['fit_ms']:.0f} ms (tree {timings['tree_ms']:.0f} ms)")
-    return EXIT_OK if good else EXIT_BAD_FIT
+        _print_measurement(m)
+        print(_timings_line(timings))
+    return EXIT_OK if _usable(m) else EXIT_BAD_FIT
 
 
 def cmd_check(args: argparse.Namespace) -> int:
     from inspection.cloud_io import write_ply
-    from inspection.deviations import Verdict, deviations, load_comparison_points
+    from inspection.deviations import Verdict, load_comparison_points
     from inspection.errors import InspectionError
 
     try:
-        points_spec = load_comparison_points(args.points)
-        tree, reg, points, timings = _fit(args)
-        T = np.asarray(reg.transform)
-        points_cad = points @ T[:3, :3].T + T[:3, 3]
-        t0 = time.perf_counter()
-        devs = deviations(tree, points_cad, points_spec, min_support=args.min_support)
-        timings["deviations_ms"] = (time.perf_counter() - t0) * 1e3
+        points = load_comparison_points(args.points)
+        _, m, timings = _measure(args, points)
+        points_cad = m.points_cad()
         if args.write_ply is not None:
-            write_ply(args.write_ply, points_cad, scalars={"deviation": devs.distances})
-    except InspectionError as exc:
-        print(f"inspection check: {exc}", file=sys.stderr)
-        return EXIT_ERROR
-    ambiguous = bool(getattr(reg, "ambiguous", False))
+            if m.deviations is None or points_cad is None:
+                log.warning("%s not written: the cloud has no usable fit", args.write_ply)
+            else:
+                write_ply(args.write_ply, points_cad, scalars={"deviation": m.deviations.distances})
+    except (InspectionError, OSError) as exc:
+        return _bad_input("check", exc)
+    devs = m.deviations
     if args.json:
         doc = {
-            "verdict": devs.verdict.value,
-            "registration": registration_dict(reg),
-            "comparison": [c.to_dict() for c in devs.comparison],
-            "field": devs.summary.to_dict(),
+            **measurement_dict(m),
+            "registration": None if m.registration is None else registration_dict(m.registration),
+            "comparison": [] if devs is None else [c.to_dict() for c in devs.comparison],
+            "field": None if devs is None else devs.summary.to_dict(),
             "timings_ms": timings,
         }
         print(json.dumps(doc, indent=2))
     else:
-        _print_registration(reg)
-        s = devs.summary
-        print(
-            f"field: {s.n} points, mean {s.mean_mm:+.4f} mm, std {s.std_mm:.4f} mm, "
-            f"p05 {s.p05_mm:+.4f}, p95 {s.p95_mm:+.4f}, max |d| {s.max_abs_mm:.4f} mm"
-        )
-        width = max([len(c.name) for c in devs.comparison] + [4])
-        print(f"{'name':<{width}}  {'deviation':>10}  {'tolerance':>19}  {'support':>7}  verdict")
-        for c in devs.comparison:
-            dev = "-" if np.isnan(c.deviation_mm) else f"{c.deviation_mm:+.4f}"
-            tol = f"[{c.lower_mm:+.3f}, {c.upper_mm:+.3f}]"
-            print(f"{c.name:<{width}}  {dev:>10}  {tol:>19}  {c.support:>7}  {c.verdict.value}")
-        print(f"part: {devs.verdict.value.upper()}")
-    if ambiguous or not reg.converged:
-        log.warning("the fit is %s", "ambiguous" if ambiguous else "not converged")
+        _print_measurement(m)
+        if devs is not None:
+            s = devs.summary
+            print(
+                f"field: {s.n} points ({s.inliers} inliers), mean {s.mean_mm:+.4f} mm, "
+                f"std {s.std_mm:.4f} mm, p05 {s.p05_mm:+.4f}, p95 {s.p95_mm:+.4f}, "
+                f"max |d| {s.max_abs_mm:.4f} mm"
+            )
+            width = max([len(c.name) for c in devs.comparison] + [4])
+            print(
+                f"{'name':<{width}}  {'deviation':>10}  {'tolerance':>19}  {'support':>7}  verdict"
+            )
+            for c in devs.comparison:
+                dev = "-" if np.isnan(c.deviation_mm) else f"{c.deviation_mm:+.4f}"
+                tol = f"[{c.lower_mm:+.3f}, {c.upper_mm:+.3f}]"
+                why = f"  ({c.reason})" if c.reason else ""
+                print(
+                    f"{c.name:<{width}}  {dev:>10}  {tol:>19}  {c.support:>7}  "
+                    f"{c.verdict.value}{why}"
+                )
+        print(f"part: {'NO VERDICT' if m.verdict is None else m.verdict.value.upper()}")
+        print(_timings_line(timings))
+    if m.verdict is None or not _usable(m):
         return EXIT_BAD_FIT
     return {
         Verdict.PASS: EXIT_OK,
         Verdict.FAIL: EXIT_BAD_FIT,
         Verdict.NOT_MEASURABLE: EXIT_NOT_MEASURABLE,
-    }[devs.verdict]
+    }[m.verdict]

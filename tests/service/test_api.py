@@ -86,7 +86,6 @@ def write_line(root: Path) -> Path:
     line.write_text(
         f"""
 [station]
-rig_calibration = "rig.toml"
 parts = ["{PART}"]
 [storage]
 data_dir = "{(root / "data").as_posix()}"
@@ -105,7 +104,7 @@ def line(tmp_path_factory):
     with PartRegistry.from_config(cfg) as reg:
         reg.preload()
         assert reg.ready(), reg.states()
-        assert reg.get(PART).alignment_model is not None  # computed at load, not per upload
+        assert reg.get(PART).model.alignment is not None  # computed at load, not per upload
         yield cfg, reg
 
 

@@ -24,6 +24,9 @@ DESIGN_FIELDS = {
     "schema_version", "id", "line", "station", "part", "serial", "seq", "triggered_ns",
     "status", "reason", "transform", "rms_mm", "inlier_fraction", "comparison", "field",
     "timings_ms", "spec_version", "cad_hash", "tree_hash", "calibration_id", "software_version",
+    # The fit's diagnostics ("One measuring sequence"):
+    "converged", "stop_reason", "iterations", "observability", "weak_directions", "ambiguous",
+    "runner_up_score",
 }  # fmt: skip
 
 

@@ -195,16 +195,29 @@ def test_the_alignment_model_is_cached_beside_the_trees(tmp_path, monkeypatch):
     assert path is not None and path.is_file()
     monkeypatch.setattr(parts, "_models", {})
     mtime = path.stat().st_mtime_ns
-    again = load_part(s, tmp_path, trees).alignment_model
+    again = load_part(s, tmp_path, trees).model.alignment
     assert path.stat().st_mtime_ns == mtime  # read, not recomputed
-    assert len(again.poses) == len(first.alignment_model.poses)
-    for a, b in zip(again.poses, first.alignment_model.poses, strict=True):
+    assert len(again.poses) == len(first.model.alignment.poses)
+    for a, b in zip(again.poses, first.model.alignment.poses, strict=True):
         assert a.transform.tobytes() == b.transform.tobytes()
         assert a.template.tobytes() == b.template.tobytes()
         assert (a.axis_rad, a.elongation) == (b.axis_rad, b.elongation)
-    assert again.surface.samples.tobytes() == first.alignment_model.surface.samples.tobytes()
+    assert again.surface.samples.tobytes() == first.model.alignment.surface.samples.tobytes()
     assert isinstance(AlignmentModel.load(path, key=first.cad.hash), AlignmentModel)
     monkeypatch.setattr(parts, "_models", {})
     path.write_bytes(b"not a model")
-    assert len(load_part(s, tmp_path, trees).alignment_model.poses) == len(again.poses)
+    assert len(load_part(s, tmp_path, trees).model.alignment.poses) == len(again.poses)
     assert path.stat().st_size > 1000
+
+
+def test_the_line_and_the_benchmarks_measure_with_the_same_parameters():
+    """The service maps configs/ onto the sequence's parameters; the benchmarks (and the
+    end-to-end test) take the line's defaults: the two must be the same."""
+    from bench import bench_endtoend
+    from service.config import load_line_config, load_part_spec
+    from service.parts import measure_params
+
+    cfg = load_line_config(Path(__file__).resolve().parents[2] / "configs" / "line.toml")
+    for path in cfg.part_spec_paths():
+        got = measure_params(load_part_spec(path), guided=cfg.station.guided_matching)
+        assert got == bench_endtoend.params(), path

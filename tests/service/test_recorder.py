@@ -84,10 +84,10 @@ def test_round_trip_with_foxglove_schemas(tmp_path, outcomes):
     _, cloud = by_topic["/cloud"][0]
     assert [f.name for f in cloud.fields] == ["x", "y", "z", "deviation"]
     arr = np.frombuffer(cloud.data, dtype="<f4").reshape(-1, 4)
-    np.testing.assert_allclose(arr[:, :3], outcomes[0][0].points_rig, atol=1e-3)
+    np.testing.assert_allclose(arr[:, :3], outcomes[0][0].points, atol=1e-3)
     np.testing.assert_allclose(arr[:, 3], outcomes[0][0].distances, atol=1e-5)
     _, pose = by_topic["/part/pose"][0]
-    T_rig_cad = np.linalg.inv(outcomes[0][0].T_cad_rig)
+    T_rig_cad = np.linalg.inv(outcomes[0][0].transform)
     assert pose.parent_frame_id == "rig"
     np.testing.assert_allclose(
         [pose.translation.x, pose.translation.y, pose.translation.z], T_rig_cad[:3, 3], atol=1e-9

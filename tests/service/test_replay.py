@@ -28,9 +28,9 @@ def shift(outcome):
     c = [p.model_copy(update={"deviation_mm": (p.deviation_mm or 0) + 1e-3}) for p in r.comparison]
     return type(outcome)(
         r.model_copy(update={"comparison": c}),
-        outcome.points_rig,
+        outcome.points,
         outcome.distances,
-        outcome.T_cad_rig,
+        outcome.transform,
     )
 
 
@@ -109,12 +109,12 @@ def test_replay_refuses_a_changed_cad(tmp_path, recording):
 def test_replay_matches_as_the_recording_did(recording):
     meta, _ = read_recording(recording)
     assert meta["rig"]["guided"] == "true"  # the line's default
-    assert recorded_stages(meta).guide is not None
+    assert recorded_stages(meta).guided
     one_pass = {"rig": {**meta["rig"], "guided": "false"}}
-    assert recorded_stages(one_pass).guide is None
+    assert not recorded_stages(one_pass).guided
     # A recording from before the guided pass existed was measured in one pass.
     older = {"rig": {k: v for k, v in meta["rig"].items() if k != "guided"}}
-    assert recorded_stages(older).guide is None
+    assert not recorded_stages(older).guided
 
 
 def test_publish_replays_frames_onto_zenoh(recording):

@@ -9,51 +9,52 @@ from __future__ import annotations
 
 import dataclasses
 import threading
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 from linekit import LINE, PART, PARTS_DIR, ROOT, STATION, client, demo, free_port, peer, rig
 
+from inspection.deviations import Verdict
+from inspection.measure import Measurement, PartModel
 from inspection.panel import sheet_metal_panel
 from service import bus
 from service.config import load_line_config, load_part_spec
 from service.line import stages_for
 from service.models import Status
-from service.parts import LoadedPart
+from service.parts import LoadedPart, measure_params
 from service.pipeline import Pipeline, Stages
 from service.protocol import FrameSet, Keys, encode_frameset
 from service.worker import Job, JobQueue, Worker, ZenohWorker, result_from_json
 
 
-def quick_stages() -> Stages:
-    """Stages that answer at once: four 16 x 16 images, a flat patch, an exact fit."""
+def quick_measure(part: LoadedPart, frames: list[np.ndarray]) -> Measurement:
+    """A measurement at once: a flat patch, fitted exactly, that passes."""
     patch = np.stack(np.meshgrid(np.arange(20.0), np.arange(20.0)), -1).reshape(-1, 2)
     points = np.column_stack([patch, np.full(len(patch), 47.0)])
-
-    def deviations(part, points_cad):
-        return SimpleNamespace(distances=np.zeros(len(points_cad)), comparison=[])
-
-    return Stages(
-        name="quick",
-        rig=None,
-        calibration_id="quick-rig",
-        reconstruct=lambda rig, frames: SimpleNamespace(points=points),
-        align=lambda part, pts: SimpleNamespace(
-            transform=np.eye(4), rms_mm=0.0, inlier_fraction=1.0
-        ),  # fmt: skip
-        deviations=deviations,
-        render=lambda rig, mesh, T, seed: [np.full((16, 16), i, np.uint8) for i in range(4)],
+    return Measurement(
+        verdict=Verdict.PASS,
+        reason=None,
+        frame="rig",
+        transform=np.eye(4),
+        points=points,
+        timings_ms={"reconstruct": 0.0, "total": 0.0},
     )
 
 
-QUICK = quick_stages()
+QUICK = Stages(
+    name="quick",
+    rig=None,
+    calibration_id="quick-rig",
+    measure=quick_measure,
+    render=lambda rig, mesh, T, seed: [np.full((16, 16), i, np.uint8) for i in range(4)],
+)
 
 
 @pytest.fixture(scope="module")
 def quick_part() -> LoadedPart:
     spec = load_part_spec(PARTS_DIR / f"{PART}.toml")
-    return LoadedPart(spec, sheet_metal_panel(name=PART), None, "quick-tree")
+    model = PartModel.build(sheet_metal_panel(name=PART), spacing_mm=5.0, alignment=False)
+    return LoadedPart(spec, model, "quick-tree", measure_params(spec))
 
 
 def pipeline(part: LoadedPart, stages: Stages = QUICK) -> Pipeline:
@@ -187,94 +188,22 @@ def test_unknown_part_is_an_error(framesets, quick_part):
     assert got.results[0].status is Status.error and "unknown part" in got.results[0].reason
 
 
-@pytest.mark.parametrize(
-    "points", [np.full((500, 3), np.nan), np.zeros((0, 3))], ids=["nan", "empty"]
-)
-def test_nan_and_empty_clouds_are_errors(framesets, points, quick_part):
-    bad = dataclasses.replace(QUICK, reconstruct=lambda rig, frames: SimpleNamespace(points=points))
-    w, got = make_worker(pipeline(quick_part, bad))
+def test_an_unmeasured_part_is_an_error_with_the_reason(framesets, quick_part):
+    def nothing_seen(part, frames):
+        return Measurement(verdict=None, reason="empty cloud: no surface seen", frame="rig")
+
+    w, got = make_worker(pipeline(quick_part, dataclasses.replace(QUICK, measure=nothing_seen)))
     w.handle(job(framesets[0]))
-    assert got.results[0].status is Status.error and "empty cloud" in got.results[0].reason
-
-
-def test_a_cloud_of_the_wrong_shape_is_an_error(framesets, quick_part):
-    bad = dataclasses.replace(
-        QUICK, reconstruct=lambda rig, frames: SimpleNamespace(points=np.zeros((500, 2)))
-    )
-    w, got = make_worker(pipeline(quick_part, bad))
-    w.handle(job(framesets[0]))
-    assert got.results[0].status is Status.error
-    assert "points of shape (500, 2)" in got.results[0].reason
-
-
-def _guided_stages(first: SimpleNamespace, calls: list) -> Stages:
-    """QUICK with a first fit ``first``, a guided pass whose cloud lies 1 mm higher, and a
-    refit that says which pose it started from; ``calls`` records what the two were given."""
-    base = QUICK.reconstruct(None, None).points
-    T_refit = np.eye(4)
-    T_refit[2, 3] = -1.0
-
-    def guide(rig, cloud, part, T_rig_part):
-        calls.append(("guide", T_rig_part))
-        return SimpleNamespace(points=base + [0.0, 0.0, 1.0])
-
-    def refit(part, points, init):
-        calls.append(("refit", init, points))
-        return SimpleNamespace(transform=T_refit, rms_mm=0.0, inlier_fraction=1.0)
-
-    return dataclasses.replace(QUICK, align=lambda part, pts: first, guide=guide, refit=refit)
-
-
-def test_guided_pass_reconstructs_again_at_the_first_pose(framesets, quick_part):
-    T_first = np.eye(4)
-    T_first[:3, 3] = (5.0, -3.0, 2.0)
-    calls: list = []
-    first = SimpleNamespace(transform=T_first, rms_mm=0.0, inlier_fraction=1.0)
-    outcome = pipeline(quick_part, _guided_stages(first, calls)).run(framesets[0])
-    r = outcome.result
-    assert r.status is not Status.error, r.reason
-    (g, T_rig_part), (f, init, points) = calls
-    assert (g, f) == ("guide", "refit")
-    np.testing.assert_allclose(T_rig_part, np.linalg.inv(T_first))
-    np.testing.assert_array_equal(init, T_first)
-    # The guided cloud is the one fitted, measured and kept.
-    np.testing.assert_array_equal(points[:, 2], 48.0)
-    np.testing.assert_array_equal(outcome.points_rig[:, 2], 48.0)
-    assert r.transform[2][3] == -1.0
-    assert r.timings_ms["guide"] >= 0.0
-
-
-@pytest.mark.parametrize(
-    "first",
-    [
-        SimpleNamespace(transform=np.eye(4), rms_mm=0.0, inlier_fraction=1.0, ambiguous=True),
-        SimpleNamespace(transform=np.eye(4), rms_mm=0.0, inlier_fraction=0.01),
-        SimpleNamespace(transform=np.full((4, 4), np.nan), rms_mm=0.0, inlier_fraction=1.0),
-    ],
-    ids=["ambiguous", "few-inliers", "nan"],
-)
-def test_no_guided_pass_from_an_untrusted_first_fit(framesets, quick_part, first):
-    calls: list = []
-    r = pipeline(quick_part, _guided_stages(first, calls)).run(framesets[0]).result
-    assert calls == []
-    # The one-pass fit reports what is wrong with it, as without a guide.
-    if getattr(first, "ambiguous", False):
-        assert "ambiguous" in r.reason
-    else:
-        assert r.status is Status.error
+    r = got.results[0]
+    assert r.status is Status.error and r.reason == "empty cloud: no surface seen"
+    assert r.transform is None and r.serial == framesets[0].serial
 
 
 def test_guided_matching_follows_the_station_setting() -> None:
     line = ROOT / "configs" / "line.toml"
-    assert stages_for(load_line_config(line)).guide is not None
+    assert stages_for(load_line_config(line)).guided is True
     off = load_line_config(line, overrides={("station", "guided_matching"): False})
-    stages = stages_for(off)
-    assert stages.guide is None and stages.refit is None
-
-
-def test_guide_comes_with_refit() -> None:
-    with pytest.raises(ValueError, match="guide and refit"):
-        dataclasses.replace(QUICK, guide=lambda *a: None)
+    assert stages_for(off).guided is False
 
 
 def test_a_crashing_stage_or_sink_does_not_stop_the_worker(framesets, quick_part):
@@ -284,7 +213,7 @@ def test_a_crashing_stage_or_sink_does_not_stop_the_worker(framesets, quick_part
     def bad_sink(outcome, fs):
         raise OSError("disk full")
 
-    crashing = dataclasses.replace(QUICK, align=boom)
+    crashing = dataclasses.replace(QUICK, measure=boom)
     w, got = make_worker(pipeline(quick_part, crashing), sinks=[bad_sink])
     w.handle(job(framesets[0]))
     w.handle(job(framesets[1]))
@@ -402,7 +331,7 @@ def test_worker_and_api_measure_with_the_same_loaded_part(tmp_path, trees):
         assert station.registry is not None and station.registry.ready()
         part = station.registry.get(PART)
         assert station.parts[PART] is part
-        assert station.pipeline().parts[PART].tree is part.tree
-        assert part.alignment_model is not None
+        assert station.pipeline().parts[PART].model.tree is part.model.tree
+        assert part.model.alignment is not None
     finally:
         station.close()

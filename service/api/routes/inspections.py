@@ -10,9 +10,11 @@ from fastapi import APIRouter, Query, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response
 
-from ...inspect import CloudFrame, Trigger, validate_cloud
+from inspection.measure import validate_cloud
+
 from ...models import ErrorBody, InspectionResult, Page, Status, new_upload_id
 from ...names import NAME_RULE, is_valid_name
+from ...results import upload_trigger
 from ...store import Filters, InvalidCursor
 from ..clouds import UnsupportedCloudFormat, parse_cloud
 from ..colormap import render_top_view
@@ -26,6 +28,8 @@ UPLOAD_STATION = "api"
 """The station recorded for clouds measured through the API (not from a trigger)."""
 
 _counter = itertools.count(1)
+
+FRAMES = ("rig", "data", "cad")
 
 _POST_BODY = {
     "requestBody": {
@@ -44,9 +48,10 @@ _POST_BODY = {
                         "part": {"type": "string", "description": "Part name"},
                         "frame": {
                             "type": "string",
-                            "enum": ["rig", "cad"],
+                            "enum": list(FRAMES),
                             "default": "rig",
-                            "description": "rig: anywhere (global alignment); cad: near CAD frame",
+                            "description": "rig: seen from above, anywhere on the belt; "
+                            "data: any frame, anywhere; cad: near the CAD frame",
                         },
                         "serial": {"type": "string", "description": "Default: upload-<n>"},
                     },
@@ -99,13 +104,11 @@ async def create_inspection(svc: ServicesDep, request: Request) -> InspectionRes
         part_name = text_field(form, "part")
         if part_name is None:
             raise ApiError(422, "validation_error", "the form needs a 'part' field")
-        frame_raw = text_field(form, "frame", "rig") or "rig"
-        try:
-            frame = CloudFrame(frame_raw)
-        except ValueError as exc:
+        frame = text_field(form, "frame", "rig") or "rig"
+        if frame not in FRAMES:
             raise ApiError(
-                422, "validation_error", f"frame must be 'rig' or 'cad', got {frame_raw!r}"
-            ) from exc
+                422, "validation_error", f"frame must be one of {', '.join(FRAMES)}, got {frame!r}"
+            )
         serial = text_field(form, "serial") or f"upload-{next(_counter)}"
         if not is_valid_name(serial):
             raise ApiError(422, "validation_error", f"serial {serial!r} is not a name: {NAME_RULE}")
@@ -117,24 +120,18 @@ async def create_inspection(svc: ServicesDep, request: Request) -> InspectionRes
             points = validate_cloud(parse_cloud(data))
         except UnsupportedCloudFormat as exc:
             raise ApiError(415, "unsupported_cloud_format", str(exc)) from exc
-        trigger = Trigger(
+        trigger = upload_trigger(
+            part,
             id=new_upload_id(),
             line=svc.settings.line.name,
             station=UPLOAD_STATION,
             serial=serial,
-            seq=0,
             triggered_ns=time.time_ns(),
         )
     finally:
         await form.close()
-    try:
-        outcome = await run_in_threadpool(svc.pipeline, part, points, trigger, frame=frame)
-    except ModuleNotFoundError as exc:
-        # An installation without the alignment stage still serves results.
-        raise ApiError(
-            503, "pipeline_unavailable", f"inspection is not available here: {exc}"
-        ) from exc
-    await run_in_threadpool(svc.record, outcome.result, outcome.points_cad, outcome.distances)
+    outcome = await run_in_threadpool(svc.pipeline, part, points, trigger, frame=frame)
+    await run_in_threadpool(svc.record, outcome.result, outcome.points_cad(), outcome.distances)
     return outcome.result
 
 
