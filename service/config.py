@@ -125,7 +125,7 @@ class RegistrationSettings(_Strict):
         "(else it is measured and the reason says so).",
     )
     max_points: int = Field(
-        default=50_000,
+        default=150_000,
         ge=100,
         le=10_000_000,
         description="Clouds are subsampled to this size to fit.",

@@ -119,6 +119,10 @@ def test_good_framesets_are_measured_with_the_flash_rig(flash):
         np.testing.assert_allclose(err[:3, :3], np.eye(3), atol=2e-3)
         np.testing.assert_allclose(err[:3, 3], 0.0, atol=1.0)
         assert set(r.timings_ms) >= {"reconstruct", "guide", "align", "deviations", "total"}
+        # The fit's own diagnostics travel with the result.
+        assert r.converged is True and r.stop_reason == "converged" and r.iterations > 0
+        assert 0 < r.observability <= 1 and r.weak_directions == []
+        assert r.ambiguous is False
         assert r.cad_hash == part.cad.hash and r.tree_hash == part.tree_hash
         assert r.calibration_id == stages.calibration_id and r.software_version
     dented = [r for r, fs in zip(got.results, framesets, strict=True) if fs.truth.defect]

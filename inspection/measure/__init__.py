@@ -1,0 +1,40 @@
+"""The measuring sequence from a trigger's frames, or a cloud, to the part's verdict.
+
+``sequence`` reads top to bottom like the algorithm (:func:`measure_frames`,
+:func:`measure_cloud`); ``params`` holds its settings, ``part`` what a part
+is measured against, ``result`` what comes back, ``judging`` how a fit and
+its points are judged.
+"""
+
+from __future__ import annotations
+
+from .judging import fit_quality, pose_sigma_mm
+from .params import Frame, MeasureParams, RegisterParams
+from .part import PartModel
+from .result import FitQuality, Measurement, Pass
+from .sequence import (
+    MAX_POINTS,
+    MIN_POINTS,
+    measure_cloud,
+    measure_frames,
+    subsample,
+    validate_cloud,
+)
+
+__all__ = [
+    "MAX_POINTS",
+    "MIN_POINTS",
+    "FitQuality",
+    "Frame",
+    "Measurement",
+    "MeasureParams",
+    "Pass",
+    "PartModel",
+    "RegisterParams",
+    "fit_quality",
+    "measure_cloud",
+    "measure_frames",
+    "pose_sigma_mm",
+    "subsample",
+    "validate_cloud",
+]

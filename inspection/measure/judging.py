@@ -1,0 +1,161 @@
+"""How a fit is judged: its quality, the pose's uncertainty at a point, and the verdict's reason."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Sequence
+
+import numpy as np
+import numpy.typing as npt
+
+from ..alignment import Alignment
+from ..deviations import ComparisonPoint, ComparisonResult, Deviations, Verdict, part_verdict
+from ..registration import Registration, StopReason
+from .params import MeasureParams
+from .result import FitQuality
+
+# The names of the twist's components (omega L, t), in the CAD frame.
+_DIRECTION_NAMES = (
+    "rotation about x",
+    "rotation about y",
+    "rotation about z",
+    "translation along x",
+    "translation along y",
+    "translation along z",
+)
+# A free direction that moves a point along its normal by more than this
+# fraction of its own (unit) size leaves the point's deviation undetermined.
+_FREE_MOVES = 1e-3
+
+
+def _fit_problem(fit: Registration, quality: FitQuality, p: MeasureParams) -> str | None:
+    """Why the fit cannot be measured from, or None."""
+    if not fit.converged:
+        return (
+            f"the fit did not converge ({fit.stop_reason.value} after {fit.iterations} iterations)"
+        )
+    if quality.ambiguous and p.ambiguous_is_error:
+        return (
+            "pose ambiguous: another pose fits almost as well "
+            f"(score {quality.runner_up_score:.2f} of the chosen one's)"
+        )
+    if not fit.inlier_fraction >= p.min_inlier_fraction:
+        return (
+            f"fit kept {fit.inlier_fraction:.0%} of the points, "
+            f"below the {p.min_inlier_fraction:.0%} required"
+        )
+    if not fit.rms_mm <= p.max_rms_mm:
+        return f"fit residual {fit.rms_mm:.3f} mm above the {p.max_rms_mm} mm allowed"
+    return None
+
+
+def fit_quality(fit: Registration, search: Registration | None = None) -> FitQuality:
+    """The diagnostics of ``fit``: convergence, observability, free directions, and
+    the ambiguity of the global search (``fit`` itself, or ``search`` it started from)."""
+    eig = np.asarray(fit.observability, dtype=np.float64)
+    ratio = float(eig[0] / eig[-1]) if eig[-1] > 0 else 0.0
+    ambiguous = runner_up = None
+    found = search if search is not None else fit
+    if isinstance(found, Alignment):
+        ambiguous = bool(found.ambiguous)
+        finalists = [c for c in found.candidates if c.refined]
+        if len(finalists) > 1 and finalists[0].score > 0:
+            runner_up = float(finalists[1].score / finalists[0].score)
+    return FitQuality(
+        converged=bool(fit.converged),
+        stop_reason=StopReason(fit.stop_reason).value,
+        iterations=int(fit.iterations),
+        observability=ratio,
+        weak_directions=tuple(_direction_name(u) for u in fit.degenerate_directions),
+        ambiguous=ambiguous,
+        runner_up_score=runner_up,
+    )
+
+
+def _direction_name(u: np.ndarray) -> str:
+    a = np.abs(u)
+    return " + ".join(_DIRECTION_NAMES[i] for i in np.flatnonzero(a >= 0.5 * a.max()))
+
+
+def pose_sigma_mm(
+    fit: Registration, position: npt.ArrayLike, normal: npt.ArrayLike
+) -> tuple[float, tuple[str, ...]]:
+    """How far the pose's uncertainty moves a CAD point along a direction (1 sigma, mm).
+
+    The fit's twist ``(omega L, t)`` about ``fit.pose_center`` moves a point
+    ``q`` along ``n`` by ``J . x`` with ``J = ((q - c) x n / L, n)``; its
+    variance is ``J^T C J`` with ``C = fit.pose_covariance``. A direction the
+    data leave free that moves the point along ``n`` makes it infinite.
+
+    Returns
+    -------
+    sigma_mm : float
+        ``inf`` when a free direction moves the point.
+    free : tuple of str
+        The names of the free directions that do.
+    """
+    q = np.asarray(position, dtype=np.float64)
+    n = np.asarray(normal, dtype=np.float64)
+    n = n / np.linalg.norm(n)
+    L = float(fit.pose_radius_mm)
+    J = np.concatenate([np.cross(q - fit.pose_center, n) / L, n])
+    moving = tuple(
+        _direction_name(u) for u in fit.degenerate_directions if abs(float(J @ u)) > _FREE_MOVES
+    )
+    if moving:
+        return math.inf, moving
+    return float(np.sqrt(max(float(J @ fit.pose_covariance @ J), 0.0))), ()
+
+
+def _held_to_the_pose(
+    devs: Deviations,
+    points: Sequence[ComparisonPoint],
+    fit: Registration,
+    p: MeasureParams,
+) -> Deviations:
+    """The deviations with every judged point whose deviation the pose leaves
+    uncertain (3 sigma along its normal above ``uncertainty_fraction`` of its
+    tolerance band) made not measurable, with the reason."""
+    by_name = {cp.name: cp for cp in points}
+    out: list[ComparisonResult] = []
+    for c in devs.comparison:
+        if c.verdict is Verdict.NOT_MEASURABLE:
+            out.append(c)
+            continue
+        cp = by_name[c.name]
+        sigma, free = pose_sigma_mm(fit, cp.position, cp.normal)
+        allowed = p.uncertainty_fraction * (cp.upper_mm - cp.lower_mm)
+        if 3.0 * sigma <= allowed:
+            out.append(c)
+            continue
+        if free:
+            why = f"the fit leaves {', '.join(free)} free, which moves this point along its normal"
+        else:
+            why = (
+                f"the pose leaves its deviation uncertain by {3 * sigma:.4f} mm (3 sigma), "
+                f"over {allowed:.4f} mm allowed"
+            )
+        out.append(
+            dataclasses.replace(
+                c, verdict=Verdict.NOT_MEASURABLE, deviation_mm=math.nan, reason=why
+            )
+        )
+    comparison = tuple(out)
+    return dataclasses.replace(devs, comparison=comparison, verdict=part_verdict(comparison))
+
+
+def _reason(devs: Deviations, note: str | None) -> str | None:
+    """Which points made the verdict, and any note of the fit."""
+    parts = []
+    if devs.verdict is Verdict.FAIL:
+        names = [c.name for c in devs.comparison if c.verdict is Verdict.FAIL]
+        parts.append("out of tolerance at " + ", ".join(names))
+    elif devs.verdict is Verdict.NOT_MEASURABLE:
+        why = [
+            f"{c.name} ({c.reason})" for c in devs.comparison if c.verdict is Verdict.NOT_MEASURABLE
+        ]
+        parts.append("not measurable at " + "; ".join(why))
+    if note:
+        parts.append(note)
+    return "; ".join(parts) or None

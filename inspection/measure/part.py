@@ -1,0 +1,100 @@
+"""What a part is measured against: its CAD, closest-point tree, alignment model and points."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..alignment import AlignmentModel, alignment_model
+from ..cad import CadModel
+from ..deviations import ComparisonPoint, check_comparison_points, load_comparison_points
+from ..errors import InvalidInput
+from ..grid import GridTree
+
+
+@dataclass(frozen=True, eq=False)
+class PartModel:
+    """Everything measured against, built once per part type.
+
+    Attributes
+    ----------
+    cad : CadModel
+    tree : GridTree
+        The closest-point grid of ``cad``.
+    alignment : AlignmentModel or None
+        Resting poses and templates of the global search; None: clouds can
+        only be measured near the CAD frame (``frame="cad"``).
+    comparison_points : tuple of ComparisonPoint
+    """
+
+    cad: CadModel
+    tree: GridTree
+    alignment: AlignmentModel | None
+    comparison_points: tuple[ComparisonPoint, ...] = ()
+
+    @classmethod
+    def build(
+        cls,
+        cad: CadModel,
+        comparison_points: Sequence[ComparisonPoint] = (),
+        *,
+        spacing_mm: float | None = None,
+        band_mm: float | None = None,
+        alignment: bool = True,
+    ) -> PartModel:
+        """Build the tree (``GridTree.build``) and the alignment model of ``cad``.
+
+        Parameters
+        ----------
+        cad : CadModel
+        comparison_points : sequence of ComparisonPoint
+        spacing_mm, band_mm : float, optional
+            The grid's build parameters; None: its defaults.
+        alignment : bool
+            Compute the global search's model (seconds; needed for clouds
+            anywhere in the rig).
+        """
+        if not isinstance(cad, CadModel):
+            raise InvalidInput(f"cad must be a CadModel, got {type(cad).__name__}")
+        tree = GridTree.build(
+            cad,
+            **({} if spacing_mm is None else {"spacing_mm": spacing_mm}),  # type: ignore[arg-type]
+            **({} if band_mm is None else {"band_mm": band_mm}),  # type: ignore[arg-type]
+        )
+        model = alignment_model(cad) if alignment else None
+        return cls(cad, tree, model, check_comparison_points(comparison_points))
+
+    def __post_init__(self) -> None:
+        object.__setattr__(
+            self, "comparison_points", check_comparison_points(self.comparison_points)
+        )
+
+    def save(self, directory: str | Path) -> Path:
+        """Write the tree, the alignment model and the comparison points into ``directory``."""
+        d = Path(directory)
+        d.mkdir(parents=True, exist_ok=True)
+        self.tree.save(d / "tree.npz")
+        if self.alignment is not None:
+            self.alignment.save(d / "alignment.npz", key=self.cad.hash)
+        doc = {"points": [cp.to_dict() for cp in self.comparison_points]}
+        (d / "points.json").write_text(json.dumps(doc, indent=2))
+        return d
+
+    @classmethod
+    def load(cls, directory: str | Path, *, cad: CadModel) -> PartModel:
+        """Read what :meth:`save` wrote; refuses a tree or model built from another CAD.
+
+        Raises
+        ------
+        TreeMismatch
+            The tree's CAD hash, parameters or format do not match ``cad``.
+        InvalidInput
+            A missing or unreadable file, or an alignment model of another CAD.
+        """
+        d = Path(directory)
+        tree = GridTree.load(d / "tree.npz", cad=cad)
+        path = d / "alignment.npz"
+        model = AlignmentModel.load(path, key=cad.hash) if path.is_file() else None
+        return cls(cad, tree, model, load_comparison_points(d / "points.json"))

@@ -1,0 +1,406 @@
+"""The measuring sequence, step by step: from one trigger's frames, or a cloud, to a verdict.
+
+This module is the only place where the stages are put in order; the
+worker, the CLI, the REST API, the benchmarks and the tests all measure
+through :func:`measure_frames` and :func:`measure_cloud`. The sequence for
+the four-camera flash rig:
+
+1. reconstruct the frames into a cloud in the rig frame;
+2. align the cloud to the CAD (global search over the resting poses, then
+   robust fine registration);
+3. when the first fit can be trusted (``guided``): match the frames again
+   with the CAD at that pose shaping the matching windows, fit, match the
+   windows on bends once more with the CAD at that fit;
+4. fit the final cloud, starting from the first pose;
+5. judge the fit (converged, inliers, residual, ambiguity);
+6. measure signed deviations over the cloud and at the comparison points;
+7. hold each comparison point's verdict against the pose's own uncertainty
+   along its normal, and give the part its verdict.
+
+Invalid input raises :class:`~inspection.errors.InvalidInput`; a valid
+input that cannot be measured (no surface seen, no fit) gives a
+:class:`Measurement` with ``verdict`` None and the reason.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from collections.abc import Sequence
+
+import numpy as np
+import numpy.typing as npt
+
+from ..alignment import align
+from ..deviations import deviations
+from ..errors import InspectionError, InvalidInput
+from ..reconstruct import Cloud, Guide, Reconstructor
+from ..registration import Registration, register
+from ..rig import Rig
+from .judging import _fit_problem, _held_to_the_pose, _reason, fit_quality
+from .params import Frame, MeasureParams
+from .part import PartModel
+from .result import Measurement, Pass, _apply
+
+log = logging.getLogger(__name__)
+
+MIN_POINTS = 10
+"""Fewer measured points than this are not a cloud."""
+MAX_POINTS = 20_000_000
+"""Larger clouds are refused (memory), far above the rig's ~300k points."""
+
+
+def measure_frames(
+    part: PartModel,
+    rig: Rig | Reconstructor,
+    frames: Sequence[npt.NDArray[np.uint8]],
+    params: MeasureParams | None = None,
+) -> Measurement:
+    """Measure one trigger's frames of ``part``.
+
+    Parameters
+    ----------
+    part : PartModel
+    rig : Rig or Reconstructor
+        The calibrated rig the frames were taken with; pass its
+        ``Reconstructor`` (``Reconstructor.build(rig)``) to reuse the
+        precomputed rectification across parts.
+    frames : sequence of (H, W) uint8 images, one per camera
+    params : MeasureParams, optional
+        Default: the line's.
+
+    Returns
+    -------
+    Measurement
+        ``transform`` is T_cad_rig; ``passes`` holds each matching pass.
+
+    Raises
+    ------
+    InvalidInput
+        Frames that do not fit the rig, a part without an alignment model.
+    """
+    p = params if params is not None else MeasureParams()
+    _check_part(part, "rig")
+    rec = rig if isinstance(rig, Reconstructor) else Reconstructor.build(rig)
+    timings: dict[str, float] = {}
+    t_start = time.perf_counter()
+    kw = p.register.kwargs("rig")
+
+    # 1. The cloud.
+    t = time.perf_counter()
+    cloud = rec(frames, keep_matching=p.guided)
+    timings["reconstruct"] = _ms(t)
+    first = _pass("first", cloud)
+    if len(first.points) == 0:
+        return _unmeasured("empty cloud: no surface seen in the frames", timings, t_start, first)
+
+    # 2. and 3. The first fit and, from it, the guided passes.
+    passes = [first]
+    start: np.ndarray | None = None
+    final: Registration | None = None
+    if p.guided:
+        t = time.perf_counter()
+        fit = _try_align(part, first, p, kw)
+        passes[0] = dataclasses.replace(first, fit=fit)
+        if fit is not None and _trusted(fit, p):
+            start = fit.transform
+            guided = rec.guided(cloud, Guide.from_cad(part.cad, np.linalg.inv(start)))
+            passes += _bends(part, rec, guided, start, p, kw)
+            if len(passes[-1].points) == 0:
+                log.debug("no guided cloud: measured from the first pass")
+                passes, start = passes[:1], None
+        else:
+            log.debug("no guided pass: the first fit is not trusted")
+            final = fit
+        timings["guide"] = _ms(t)
+
+    # 4. The final fit.
+    last = passes[-1]
+    t = time.perf_counter()
+    try:
+        if final is None:
+            final = _fit(part, last.points, last.weights, p, kw, start=start)
+    except InspectionError as exc:
+        timings["align"] = _ms(t)
+        return _unmeasured(f"alignment failed: {exc}", timings, t_start, *passes)
+    timings["align"] = _ms(t)
+    passes[-1] = dataclasses.replace(last, fit=final)
+    search = passes[0].fit if start is not None else None
+    return _judge(part, last.points, final, p, "rig", timings, t_start, tuple(passes), search)
+
+
+def measure_cloud(
+    part: PartModel,
+    points: npt.ArrayLike,
+    params: MeasureParams | None = None,
+    *,
+    frame: Frame = "rig",
+    weights: npt.ArrayLike | None = None,
+) -> Measurement:
+    """Measure a cloud of ``part``.
+
+    Parameters
+    ----------
+    part : PartModel
+    points : (N, 3) float64, mm
+        In ``frame``.
+    params : MeasureParams, optional
+        Default: the line's (``guided`` does not apply to a cloud).
+    frame : {"rig", "cad", "data"}
+        ``rig``: seen from above (the view direction applies), anywhere on
+        the belt; ``data``: any frame, anywhere (no view direction);
+        ``cad``: near the CAD frame, only the fine registration runs.
+    weights : (N,) float64, optional
+        Per-point quality, used when ``params.use_weights``.
+
+    Returns
+    -------
+    Measurement
+        ``transform`` is T_cad_<frame>.
+
+    Raises
+    ------
+    InvalidInput
+        Not an (N, 3) array of finite numbers with at least
+        :data:`MIN_POINTS` points; bad weights; an unknown frame.
+    """
+    p = params if params is not None else MeasureParams()
+    if frame not in ("rig", "cad", "data"):
+        raise InvalidInput(f"frame must be 'rig', 'cad' or 'data', got {frame!r}")
+    _check_part(part, frame)
+    cloud = validate_cloud(points)
+    w = np.ones(len(cloud)) if weights is None else np.asarray(weights, dtype=np.float64)
+    if w.shape != (len(cloud),) or not np.isfinite(w).all() or (w < 0).any():
+        raise InvalidInput(f"weights must be ({len(cloud)},) finite and >= 0")
+    timings: dict[str, float] = {}
+    t_start = time.perf_counter()
+    t = time.perf_counter()
+    try:
+        fit = _fit(part, cloud, w, p, p.register.kwargs(frame), frame=frame)
+    except InspectionError as exc:
+        timings["align"] = _ms(t)
+        return _unmeasured(f"alignment failed: {exc}", timings, t_start, frame=frame)
+    timings["align"] = _ms(t)
+    return _judge(part, cloud, fit, p, frame, timings, t_start, ())
+
+
+# --------------------------------------------------------------------------- stages
+
+
+def validate_cloud(points: object) -> np.ndarray:
+    """``points`` as a C-contiguous (N, 3) float64 array, or raise InvalidInput.
+
+    Refuses wrong shapes, fewer than :data:`MIN_POINTS` points, more than
+    :data:`MAX_POINTS`, and any non-finite coordinate (a NaN would silently
+    poison the fit).
+    """
+    a = np.asarray(points)
+    if a.dtype.kind not in "fiu":
+        raise InvalidInput(f"point coordinates must be numbers, got dtype {a.dtype}")
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise InvalidInput(f"a point cloud is an (N, 3) array, got shape {a.shape}")
+    if len(a) < MIN_POINTS:
+        raise InvalidInput(f"the cloud has {len(a)} points; at least {MIN_POINTS} are needed")
+    if len(a) > MAX_POINTS:
+        raise InvalidInput(f"the cloud has {len(a)} points; at most {MAX_POINTS} are accepted")
+    a = np.ascontiguousarray(a, dtype=np.float64)
+    finite = np.isfinite(a).all(axis=1)
+    if not finite.all():
+        raise InvalidInput(
+            f"{int((~finite).sum())} of {len(a)} points have non-finite coordinates (NaN or inf)"
+        )
+    return a
+
+
+def subsample(points: np.ndarray, max_points: int) -> np.ndarray:
+    """At most ``max_points`` of ``points``, evenly strided (deterministic, order kept)."""
+    if len(points) <= max_points:
+        return points
+    return points[_stride(len(points), max_points)]
+
+
+def _stride(n: int, k: int) -> np.ndarray:
+    return np.linspace(0, n - 1, k).round().astype(np.int64)
+
+
+def _pass(name: str, cloud: Cloud) -> Pass:
+    """A pass of ``cloud``'s finite points and their weights."""
+    points = np.asarray(cloud.points, dtype=np.float64)
+    weights = np.asarray(cloud.weights, dtype=np.float64)
+    finite = np.isfinite(points).all(axis=1)
+    if not finite.all():
+        log.debug("dropping %d non-finite points", int((~finite).sum()))
+        points, weights = points[finite], weights[finite]
+    return Pass(name, points, weights)
+
+
+def _fit_inputs(
+    points: np.ndarray, weights: np.ndarray, p: MeasureParams
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """The points a fit uses (subsampled to ``max_points``) and their weights, if used."""
+    if len(points) > p.max_points:
+        idx = _stride(len(points), p.max_points)
+        points, weights = points[idx], weights[idx]
+    return points, (weights if p.use_weights else None)
+
+
+def _fit(
+    part: PartModel,
+    points: np.ndarray,
+    weights: np.ndarray,
+    p: MeasureParams,
+    kw: dict[str, object],
+    *,
+    frame: Frame = "rig",
+    start: np.ndarray | None = None,
+) -> Registration:
+    """The fit of a cloud: from ``start`` (no escape scan: the turn was searched),
+    from the identity (``frame="cad"``), or by the global search."""
+    pts, w = _fit_inputs(points, weights, p)
+    if start is not None:
+        return register(part.tree, pts, init=start, weights=w, escape_deg=None, **kw)  # type: ignore[arg-type]
+    if frame == "cad":
+        return register(part.tree, pts, init=np.eye(4), weights=w, **kw)  # type: ignore[arg-type]
+    return align(part.tree, pts, model=part.alignment, cad=part.cad, weights=w, **kw)  # type: ignore[arg-type]
+
+
+def _try_align(
+    part: PartModel, first: Pass, p: MeasureParams, kw: dict[str, object]
+) -> Registration | None:
+    try:
+        return _fit(part, first.points, first.weights, p, kw)
+    except InspectionError as exc:
+        log.debug("no guided pass: the first alignment failed: %s", exc)
+        return None
+
+
+def _trusted(fit: Registration, p: MeasureParams) -> bool:
+    """Whether a first fit is good enough to guide the matching.
+
+    An ambiguous pose guides too: the guide is the CAD at the pose the part
+    is measured at either way, and the ambiguity is reported from the search.
+    """
+    return bool(
+        np.isfinite(fit.transform).all()
+        and fit.inlier_fraction >= p.min_inlier_fraction
+        and fit.rms_mm <= p.max_rms_mm
+    )
+
+
+def _bends(
+    part: PartModel,
+    rec: Reconstructor,
+    guided: Cloud,
+    start: np.ndarray,
+    p: MeasureParams,
+    kw: dict[str, object],
+) -> list[Pass]:
+    """The guided pass, fitted from ``start``, and the windows on bends matched once
+    more with the CAD where that fit puts it; the guided pass alone when it cannot be fitted.
+
+    A guided window takes its shape from the guide: placed off, it pulls the
+    bends towards it, so they are matched again from the better pose.
+    """
+    g = _pass("guided", guided)
+    if len(g.points) == 0:
+        return [g]
+    try:
+        # Every guided point, not a subsample: the bends' guide is only as good as this fit.
+        fit = register(
+            part.tree, g.points, init=start, escape_deg=None,
+            weights=g.weights if p.use_weights else None, **kw,  # type: ignore[arg-type]
+        )  # fmt: skip
+    except InspectionError as exc:
+        log.debug("bends not matched again: the guided cloud did not fit: %s", exc)
+        return [g]
+    g = dataclasses.replace(g, fit=fit)
+    bends = rec.rematch_bends(guided, Guide.from_cad(part.cad, np.linalg.inv(fit.transform)))
+    return [g, _pass("bends", bends)]
+
+
+def _judge(
+    part: PartModel,
+    points: np.ndarray,
+    fit: Registration,
+    p: MeasureParams,
+    frame: Frame,
+    timings: dict[str, float],
+    t_start: float,
+    passes: tuple[Pass, ...],
+    search: Registration | None = None,
+) -> Measurement:
+    """5.-7.: the fit's quality, the deviations, and the verdict.
+
+    ``search`` is the global search's fit when the final fit started from
+    it (the guided passes): its ambiguity is the part's."""
+    T = np.asarray(fit.transform, dtype=np.float64)
+    quality = fit_quality(fit, search)
+    if not np.isfinite(T).all():
+        return _unmeasured("registration gave a non-finite transform", timings, t_start,
+                           *passes, frame=frame)  # fmt: skip
+    problem = _fit_problem(fit, quality, p)
+    if problem is not None:
+        return dataclasses.replace(
+            _unmeasured(problem, timings, t_start, *passes, frame=frame),
+            transform=T, registration=fit, quality=quality, points=points,
+        )  # fmt: skip
+    note = None
+    if quality.ambiguous:
+        note = (
+            "pose ambiguous: another pose fits almost as well "
+            f"(score {quality.runner_up_score:.2f} of the chosen one's; a symmetric-looking part)"
+        )
+
+    t = time.perf_counter()
+    devs = deviations(
+        part.tree,
+        _apply(T, points),
+        part.comparison_points,
+        min_support=p.min_support,
+        max_distance_mm=p.register.max_distance_mm,
+    )
+    devs = _held_to_the_pose(devs, part.comparison_points, fit, p)
+    timings["deviations"] = _ms(t)
+    timings["total"] = _ms(t_start)
+    return Measurement(
+        verdict=devs.verdict,
+        reason=_reason(devs, note),
+        frame=frame,
+        transform=T,
+        registration=fit,
+        quality=quality,
+        deviations=devs,
+        points=points,
+        passes=passes,
+        timings_ms=timings,
+    )
+
+
+def _unmeasured(
+    reason: str, timings: dict[str, float], t_start: float, *passes: Pass, frame: Frame = "rig"
+) -> Measurement:
+    timings["total"] = _ms(t_start)
+    log.debug("not measured: %s", reason)
+    return Measurement(
+        verdict=None,
+        reason=reason,
+        frame=frame,
+        points=passes[-1].points if passes else np.empty((0, 3)),
+        passes=passes,
+        timings_ms=timings,
+    )
+
+
+def _check_part(part: PartModel, frame: Frame) -> None:
+    if not isinstance(part, PartModel):
+        raise InvalidInput(f"part must be a PartModel, got {type(part).__name__}")
+    if frame != "cad" and part.alignment is None:
+        raise InvalidInput(
+            f"part {part.cad.name!r} has no alignment model: build it with alignment=True "
+            "to measure clouds that lie anywhere"
+        )
+
+
+def _ms(t0: float) -> float:
+    return (time.perf_counter() - t0) * 1e3
