@@ -262,7 +262,7 @@ def main() -> int:
     print(
         f"GridTree near answers off by more than 1 um: {int(off.sum())} of {len(e_near)} "
         f"({off.mean():.2%}), at most {e_near.max() * 1e3:.1f} um (faces of a finely meshed "
-        "bend closest at none of a cell's corners: see the accuracy notes of inspection/grid.py)"
+        "bend closest at none of a cell's corners: see the accuracy notes of inspection.grid)"
     )
     # Accuracy decides the exit status; speed and build figures depend on
     # the machine and its load, so they are reported beside their goals.

@@ -6,11 +6,11 @@ On the generated sheet-metal panel scaled to 300 x 200 mm, in one run:
   sensor (faces turned up), Gaussian noise 0.02 mm, 5 % of the points moved
   1-5 mm off the surface in clustered blobs, the start 5 degrees and 10 mm
   off (about the cloud's centroid); ``TRIALS`` seeded clouds.
-  * ours: ``inspection.register`` (Tukey loss) on the CAD tree (built once,
-    outside the timing, like the line preloads it), with the tree's default
-    parameters and with a band wide enough for the start offset; and once
-    more asking for the per-point weights, which ``register`` computes on
-    first access (one query of every point at the final pose);
+  * ours: ``inspection.register`` (Tukey loss) on the CAD tree and its
+    faces (built once, outside the timing, like the line preloads them),
+    with the tree's default parameters and with a band wide enough for the
+    start offset; every fit ends with the weights and residuals of every
+    point (one query of the points it did not use);
   * Open3D ``registration_icp`` point-to-plane, plain and with TukeyLoss
     (k = 1 mm, the best of 0.05 / 0.2 / 1 / 3 mm on this data), target 200,000
     points sampled from the CAD with their face normals, correspondences up
@@ -67,6 +67,8 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
+
+from inspection.transforms import apply  # noqa: E402
 
 N_POINTS = 50_000
 N_TARGET = 200_000
@@ -142,8 +144,8 @@ def _start(rng, center, deg=START_DEG, mm=START_MM):
 def _errors(T_est, T_true, pts):
     dR = T_est[:3, :3] @ T_true[:3, :3].T
     rot = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1.0) / 2.0, -1.0, 1.0))))
-    a = pts @ T_est[:3, :3].T + T_est[:3, 3]
-    b = pts @ T_true[:3, :3].T + T_true[:3, 3]
+    a = apply(T_est, pts)
+    b = apply(T_true, pts)
     return rot, float(np.sqrt(np.mean(np.sum((a - b) ** 2, axis=1))))
 
 
@@ -238,14 +240,13 @@ def _peers(cad):
 
 
 def bench_fine(cad, tree, wide_tree) -> bool:
-    from inspection.registration import register
+    from inspection.registration import CadFaces, register
 
     peers = _peers(cad)
+    faces = CadFaces.of(cad)
     ours_wide = f"ours, tree band {WIDE_BAND_MM:g} mm"
-    ours_all = "ours + per-point figures"
     rows: dict[str, list[tuple[float, float, float, float]]] = {
         "ours (tukey)": [],
-        ours_all: [],
         ours_wide: [],
     }
     for name in peers:
@@ -255,32 +256,25 @@ def bench_fine(cad, tree, wide_tree) -> bool:
     for trial in range(TRIALS):
         pts, normals = _facing(cad, np.eye(4), N_POINTS, seed=trial)
         T_data_cad = _start(np.random.default_rng(trial), pts.mean(axis=0))
-        data = pts @ T_data_cad[:3, :3].T + T_data_cad[:3, 3]
+        data = apply(T_data_cad, pts)
         data = _blobs(data, normals @ T_data_cad[:3, :3].T, OUTLIERS, seed=trial)
         T_true = np.linalg.inv(T_data_cad)
 
         def ours(data=data):
-            return register(tree, data).transform
+            return register(tree, data, faces=faces).transform
 
         t, ct, T = _median_time(ours, REPEATS)
         deterministic &= T.tobytes() == ours().tobytes()
         rows["ours (tukey)"].append((t, *_errors(T, T_true, pts), ct))
 
-        def ours_all_points(data=data):
-            # The weights, residuals, RMS and inlier fraction of every point
-            # are computed when first asked for: ask, to time them too.
-            reg = register(tree, data)
-            _ = reg.weights
-            return reg.transform
-
-        t, ct, T = _median_time(ours_all_points, REPEATS)
-        rows[ours_all].append((t, *_errors(T, T_true, pts), ct))
-        t, ct, T = _median_time(lambda data=data: register(wide_tree, data).transform, REPEATS)
+        t, ct, T = _median_time(
+            lambda data=data: register(wide_tree, data, faces=faces).transform, REPEATS
+        )
         rows[ours_wide].append((t, *_errors(T, T_true, pts), ct))
         # A yardstick that moves with the machine's load: one closest-point
         # query of REFERENCE_QUERY points at the true pose (a fit of 50k
         # points queries about that many).
-        X = data[:REFERENCE_QUERY] @ T_true[:3, :3].T + T_true[:3, 3]
+        X = apply(T_true, data[:REFERENCE_QUERY])
         t, ct, _ = _median_time(lambda X=X: tree.query(X).distances, REPEATS)
         reference.append((t, ct))
         for name, make in peers.items():
@@ -329,6 +323,9 @@ def bench_fine(cad, tree, wide_tree) -> bool:
 
 def bench_align(cad, tree, trials: int) -> bool:
     from inspection.alignment import align, alignment_model
+    from inspection.registration import CadFaces
+
+    faces = CadFaces.of(cad)
 
     t0 = time.perf_counter()
     model = alignment_model(cad)
@@ -347,7 +344,7 @@ def bench_align(cad, tree, trials: int) -> bool:
         T_data_cad = T @ pose.transform
         data, _ = _facing(cad, T_data_cad, N_POINTS, seed=seed)
         t, c = time.perf_counter(), time.process_time()
-        res = align(tree, data, model=model)
+        res = align(tree, data, model=model, faces=faces)
         times.append(time.perf_counter() - t)
         cpu.append(time.process_time() - c)
         rot, disp = _errors(res.transform, np.linalg.inv(T_data_cad), data)
@@ -373,9 +370,11 @@ def bench_thin_solid(trials: int) -> bool:
     from inspection.alignment import align, alignment_model
     from inspection.grid import GridTree
     from inspection.panel import PanelSpec, sheet_metal_panel
+    from inspection.registration import CadFaces
 
     cad = sheet_metal_panel(PanelSpec(thickness_mm=THIN_MM).scaled(300.0, 200.0))
     tree = GridTree.build(cad)
+    faces = CadFaces.of(cad)
     model = alignment_model(cad)
     flat = max(model.poses, key=lambda p: p.transform[2, 2])
     print(f"\nglobal alignment of a {THIN_MM:g} mm solid sheet, 300 x 200 mm, lying flat:")
@@ -390,7 +389,7 @@ def bench_thin_solid(trials: int) -> bool:
             T_data_cad = T @ flat.transform
             data, _ = _facing(cad, T_data_cad, N_POINTS, seed, min_cos=0.5)
             t = time.perf_counter()
-            res = align(tree, data, model=model, view_direction=view)
+            res = align(tree, data, model=model, faces=faces, view_direction=view)
             times.append(time.perf_counter() - t)
             rot, disp = _errors(res.transform, np.linalg.inv(T_data_cad), data)
             ok = rot <= 0.005 and disp <= 0.005 and not res.ambiguous
@@ -423,7 +422,7 @@ def bench_meshes(seeds: list[int]) -> None:
     from inspection.cad import load_cad
     from inspection.grid import GridTree
     from inspection.panel import PanelSpec, sheet_metal_panel
-    from inspection.registration import register
+    from inspection.registration import CadFaces, register
 
     env = os.environ.get("INSPECTION_SHARED_CAD")
     shared = Path(env) if env else Path(__file__).resolve().parents[1].parent / "shared/data/cad"
@@ -447,15 +446,16 @@ def bench_meshes(seeds: list[int]) -> None:
             print(f"{name:<22} (not found at {path.parent})")
             continue
         tree = GridTree.build(cad)
+        faces = CadFaces.of(cad)
         for sensor, views in sensors.items():
             for seed in seeds:
                 pts, _ = _facing(cad, np.eye(4), N_POINTS, seed=seed, views=views)
                 T_data_cad = _start(np.random.default_rng(seed), pts.mean(axis=0), 10.0, 20.0)
-                data = pts @ T_data_cad[:3, :3].T + T_data_cad[:3, 3]
+                data = apply(T_data_cad, pts)
                 T_true = np.linalg.inv(T_data_cad)
                 for view in (None, (0.0, 0.0, 1.0)):
                     c0 = time.process_time()
-                    reg = register(tree, data, view_direction=view)
+                    reg = register(tree, data, view_direction=view, faces=faces)
                     ct = time.process_time() - c0
                     rot, disp = _errors(reg.transform, T_true, data)
                     # What the noise leaves: NOISE sqrt(trace(H^-1) / N).

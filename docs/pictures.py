@@ -11,14 +11,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import trimesh
 
 import inspection
+from inspection.defects import Dent, press
 from inspection.panel import panel_height
 from inspection.pictures import write_rig_pictures
 from service.api.colormap import render_top_view
-from service.ingest import dent
-from service.protocol import Defect
 
 OUT = Path(__file__).parent / "images"
 
@@ -26,15 +24,11 @@ OUT = Path(__file__).parent / "images"
 def deviation_map(path: Path) -> None:
     spec = inspection.PanelSpec().scaled(400.0, 260.0)
     cad = inspection.sheet_metal_panel(spec, name="panel")
-    mesh = cad.to_trimesh()
     # A 1 mm dent, 15 mm in radius, pressed into the top near one corner, as the
     # line's simulator presses its defects.
     x, y = 110.0, -60.0
     z = float(panel_height(spec, np.array([x]), np.array([y]))[0])
-    defect = Defect(center_mm=(x, y, z), normal=(0.0, 0.0, 1.0), depth_mm=1.0, radius_mm=15.0)
-    dented = trimesh.Trimesh(
-        dent(mesh.vertices, mesh.vertex_normals, defect), mesh.faces, process=False
-    )
+    dented = press(cad, [Dent((x, y, z), (0.0, 0.0, 1.0), depth_mm=1.0, radius_mm=15.0)])
 
     a = np.deg2rad(20.0)
     T_rig_part = np.eye(4)

@@ -21,7 +21,6 @@ from .errors import (
     InspectionError,
     InsufficientOverlap,
     InvalidInput,
-    ReconstructionError,
     TreeMismatch,
 )
 from .grid import Closest, GridTree, warmup
@@ -31,19 +30,19 @@ from .measure import (
     MeasureParams,
     PartModel,
     Pass,
-    RegisterParams,
     measure_cloud,
     measure_frames,
 )
 from .panel import PanelSpec, sheet_metal_panel
 from .reconstruct import Cloud, Guide, Prior, Reconstructor, ReconstructParams, reconstruct
-from .registration import Registration, StopReason, register
+from .registration import CadFaces, RegisterParams, Registration, StopReason, register
 from .rig import Camera, Conveyor, Projector, Rig, belt_pose
 from .simulate import RenderOptions, Simulator, simulate, simulate_board
 
 __all__ = [
     "Alignment",
     "CadLoadError",
+    "CadFaces",
     "CadModel",
     "CadReport",
     "CalibrationError",
@@ -69,7 +68,6 @@ __all__ = [
     "Projector",
     "ReconstructParams",
     "RegisterParams",
-    "ReconstructionError",
     "Reconstructor",
     "Registration",
     "RenderOptions",

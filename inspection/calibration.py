@@ -48,6 +48,7 @@ from .arrays import Image, Transform
 from .board import CharucoSpec, board_lying_flat
 from .errors import CalibrationError, InvalidInput
 from .rig import Camera, Rig, distort_normalized
+from .transforms import apply
 
 log = logging.getLogger(__name__)
 
@@ -211,10 +212,10 @@ def calibration_poses(
         T = np.eye(4)
         T[:3, :3] = R_tilt @ base[:3, :3]
         T[:3, 3] = R_tilt @ base[:3, 3]
-        corners = outline @ T[:3, :3].T + T[:3, 3]
+        corners = apply(T, outline)
         lift = rng.uniform(5, 90) - corners[:, 2].min()
         T[:3, 3] += centre + np.array([0.0, 0.0, lift])
-        corners = outline @ T[:3, :3].T + T[:3, 3]
+        corners = apply(T, outline)
         if corners[:, 2].max() > 260:  # keep the board within the cameras' depth of field
             continue
         poses.append(T)
@@ -606,7 +607,7 @@ def centre_errors(estimated: Rig, truth: Rig) -> npt.NDArray[np.float64]:
     est = np.array([c.centre for c in estimated.cameras])
     tru = np.array([c.centre for c in truth.cameras])
     T = rigid_align(est, tru)
-    return np.linalg.norm(est @ T[:3, :3].T + T[:3, 3] - tru, axis=1)
+    return np.linalg.norm(apply(T, est) - tru, axis=1)
 
 
 def stereo_errors(
@@ -650,6 +651,6 @@ def stereo_errors(
         t = (aa * ee - bb * dd) / den
         X = 0.5 * ((oa + s[:, None] * da) + (ob + t[:, None] * db))
         T = rigid_align(X, grid)
-        err = np.linalg.norm(X @ T[:3, :3].T + T[:3, 3] - grid, axis=1)
+        err = np.linalg.norm(apply(T, X) - grid, axis=1)
         out[(a, b)] = (float(np.sqrt(np.mean(err**2))), float(err.max()))
     return out

@@ -17,7 +17,7 @@ import json
 import logging
 import math
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +25,8 @@ from numba import njit
 
 from .arrays import Points, Scalars
 from .errors import InvalidInput
-from .registration import ClosestPointQuery, validate_points
+from .protocols import ClosestPointQuery
+from .validate import validate_points
 
 log = logging.getLogger(__name__)
 
@@ -133,7 +134,7 @@ class ComparisonPoint:
         """Build from a mapping with the field names (as in a JSON or TOML spec)."""
         if not isinstance(d, Mapping):
             raise InvalidInput(f"a comparison point must be a mapping, got {type(d).__name__}")
-        known = set(cls.__dataclass_fields__)
+        known = {f.name for f in fields(cls)}
         extra = set(d) - known
         if extra:
             raise InvalidInput(f"comparison point: unknown keys {sorted(extra)}")

@@ -7,7 +7,6 @@
      ├── CadLoadError                        a CAD file that cannot be read
      ├── TreeMismatch                        a saved tree for another CAD / build / format
      ├── InsufficientOverlap                 too few points near the CAD to fit
-     ├── ReconstructionError                 frames that cannot give a cloud
      └── CalibrationError                    board images that cannot give a rig
 
 Non-convergence of an optimisation is data (``converged``, ``stop_reason``),
@@ -35,10 +34,6 @@ class TreeMismatch(InspectionError):
 
 class InsufficientOverlap(InspectionError):
     """Too few measured points lie near the CAD surface to fit or measure."""
-
-
-class ReconstructionError(InspectionError):
-    """The camera frames cannot be turned into a point cloud."""
 
 
 class CalibrationError(InspectionError):

@@ -15,9 +15,8 @@ rests on the plane z = 0 (on its flange) when placed flat on the conveyor.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -25,7 +24,7 @@ from .cad import CadModel
 from .errors import InvalidInput
 
 if TYPE_CHECKING:
-    import trimesh
+    pass
 
 
 @dataclass(frozen=True)
@@ -126,70 +125,6 @@ def sheet_metal_panel(spec: PanelSpec | None = None, *, name: str = "panel") -> 
     # Thickened from the cleaned skin (the grid's seams merged, slivers dropped).
     vertices, faces = _solid_sheet(skin.vertices, skin.faces, spec.thickness_mm)
     return CadModel.from_arrays(vertices, faces, name=name, source=f"<generated {name}>")
-
-
-def press_dents(
-    mesh: Any,
-    dents: Sequence[tuple[float, float, float]],
-    *,
-    flat_mm: float = 16.0,
-    outer_mm: float = 30.0,
-    above_z_mm: float = 5.0,
-) -> trimesh.Trimesh:
-    """A copy of a part with round dents pressed into its top: a known truth
-    to check the line's measurement against.
-
-    Each dent is flat-bottomed out to ``flat_mm`` from its centre (so that
-    its depth is the deviation over any support radius within that) and
-    blends smoothly (smoothstep) back to the surface at ``outer_mm``. The
-    mesh is refined around the dents first (edges of ~1 mm there) so that
-    the dent's shape is resolved.
-
-    Parameters
-    ----------
-    mesh : trimesh.Trimesh or CadModel
-        The part in its own frame, mm (e.g. ``sheet_metal_panel(...)``).
-    dents : sequence of (x_mm, y_mm, depth_mm)
-        Centres in the part's xy plane and depths (> 0: pressed in, along
-        the vertex normals).
-    flat_mm, outer_mm : float
-        Radius of the flat bottom and of the dent's edge.
-    above_z_mm : float
-        Only vertices above this height move (a panel's top, not its flange).
-
-    Returns
-    -------
-    trimesh.Trimesh
-    """
-    import trimesh
-
-    if not 0.0 < flat_mm < outer_mm:
-        raise InvalidInput("press_dents needs 0 < flat_mm < outer_mm")
-    dents = [(float(x), float(y), float(d)) for x, y, d in dents]
-    if any(not np.isfinite(v) for dent in dents for v in dent):
-        raise InvalidInput("dents must be finite (x_mm, y_mm, depth_mm) triples")
-    if isinstance(mesh, CadModel):
-        out = mesh.to_trimesh()
-    else:
-        out = trimesh.Trimesh(np.asarray(mesh.vertices), np.asarray(mesh.faces), process=False)
-    dents = [d for d in dents if d[2] != 0.0]
-    if not dents:
-        return out
-    centres = np.array([(x, y) for x, y, _ in dents])
-    for _ in range(2):  # 4 mm -> 1 mm edges around the dents
-        fc = out.triangles_center[:, :2]
-        near = np.min(np.linalg.norm(fc[:, None, :] - centres[None], axis=2), axis=1) < outer_mm + 6
-        v, f = trimesh.remesh.subdivide(out.vertices, out.faces, face_index=np.nonzero(near)[0])
-        out = trimesh.Trimesh(v, f, process=False)
-    v = out.vertices.copy()
-    normals = out.vertex_normals
-    top = v[:, 2] > above_z_mm
-    for x, y, depth in dents:
-        r = np.hypot(v[:, 0] - x, v[:, 1] - y)
-        t = np.clip((r - flat_mm) / (outer_mm - flat_mm), 0.0, 1.0)
-        profile = 1.0 - t * t * (3.0 - 2.0 * t)
-        v -= (depth * profile * top)[:, None] * normals
-    return trimesh.Trimesh(v, out.faces, process=False)
 
 
 def panel_height(spec: PanelSpec, x: np.ndarray, y: np.ndarray) -> np.ndarray:

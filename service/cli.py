@@ -47,13 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for module in dict.fromkeys(COMMANDS.values()):
-        try:
-            mod = importlib.import_module(f"service.commands.{module}")
-        except ModuleNotFoundError as exc:
-            if exc.name != f"service.commands.{module}":
-                raise
-            continue
-        mod.register(sub)
+        importlib.import_module(f"service.commands.{module}").register(sub)
     return parser
 
 

@@ -228,7 +228,12 @@ class PartSpec(PartSpecBase):
 
 class LineSection(_Strict):
     name: Name = "line1"
-    conveyor_speed_mm_s: float = Field(default=1000.0, gt=0, le=10_000)
+    conveyor_speed_mm_s: float = Field(
+        default=1000.0,
+        gt=0,
+        le=10_000,
+        description="Belt speed along +x; the simulated frames smear by it times the flash.",
+    )
     trigger_period_s: float = Field(
         default=2.0, ge=0.05, le=3600, description="Time between triggers."
     )
@@ -264,8 +269,21 @@ class StationSection(_Strict):
 
 
 class ProjectorSection(_Strict):
-    flash_ms: float = Field(default=2.0, gt=0, le=1000, description="Flash (exposure) duration.")
-    pattern_seed: int = Field(default=0, ge=0)
+    """The flash: how long it lasts and which speckle slide it projects (simulated line)."""
+
+    flash_us: float = Field(
+        default=50.0,
+        gt=0,
+        le=10_000,
+        description="Flash (exposure) duration, microseconds: a flash rig's tens of µs "
+        "(at 1 m/s, 50 µs moves the part 0.05 mm, under a tenth of a pixel; 2 ms, 2 mm).",
+    )
+    pattern_seed: int = Field(
+        default=7,
+        ge=0,
+        le=2**32 - 1,
+        description="Seed of the projected speckle slide (7: the slide of Rig.nominal()).",
+    )
 
 
 class ZenohMode(StrEnum):
@@ -355,6 +373,12 @@ class SimulatorSection(_Strict):
     dent_radius_mm: float = Field(
         default=15.0, ge=1, le=200, description="Radius of an injected dent, mm."
     )
+    dent_flat_mm: float = Field(
+        default=0.0,
+        ge=0,
+        le=200,
+        description="Radius of the dent's flat bottom, mm (0: a smooth bowl); below the radius.",
+    )
     position_range_x_mm: float = Field(
         default=60.0, ge=0, le=400, description="Half-range of the part's x on the belt, mm."
     )
@@ -366,6 +390,15 @@ class SimulatorSection(_Strict):
     )
     flip: bool = Field(default=False, description="Half of the parts arrive turned by 180 deg.")
     seed: int = Field(default=0, ge=0)
+
+    @model_validator(mode="after")
+    def _flat_within_the_dent(self) -> SimulatorSection:
+        if not self.dent_flat_mm < self.dent_radius_mm:
+            raise ValueError(
+                f"dent_flat_mm ({self.dent_flat_mm}) must be below dent_radius_mm "
+                f"({self.dent_radius_mm})"
+            )
+        return self
 
 
 class HttpSection(_Strict):

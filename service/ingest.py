@@ -3,9 +3,11 @@
 A :class:`FrameSource` turns one trigger into one :class:`FrameSet`. The
 default is :class:`SimulatedRig`: it places the station's part on the
 conveyor in a resting pose with a random in-plane rotation and position,
-gives it a random serial, now and then presses a dent into it (the truth goes
-into the FrameSet header), and renders the rig's images. A real-camera
-source implements the same one-method protocol.
+gives it a random serial, now and then presses a dent into it
+(:mod:`inspection.defects`; the truth goes into the FrameSet header), and
+renders the rig's images. A real-camera source implements the same
+one-method protocol. :func:`line_rig` and :class:`FlashRender` make the
+simulator render the line as configured: its belt speed, flash and slide.
 
 :class:`Ingest` fires the trigger every ``trigger_period_s`` (on an absolute
 schedule, so a slow capture does not make the line drift), numbers the
@@ -18,17 +20,22 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
 from typing import Protocol
 
 import numpy as np
 import trimesh
 
+from inspection.arrays import Image
 from inspection.cad import CadModel
+from inspection.defects import Dent, press
+from inspection.rig import Rig
+from inspection.simulate import RenderOptions, simulate
+from inspection.transforms import apply
 
 from .pipeline import Stages
-from .protocol import Defect, FrameSet, Truth, encode_frameset
+from .protocol import FrameSet, Truth, encode_frameset
 
 log = logging.getLogger(__name__)
 
@@ -48,8 +55,8 @@ class SimulationSettings:
     ----------
     defect_rate : float
         Fraction of parts that get a dent, 0..1.
-    dent_depth_mm, dent_radius_mm : float
-        Size of an injected dent.
+    dent_depth_mm, dent_radius_mm, dent_flat_mm : float
+        Size of an injected dent (:class:`inspection.defects.Dent`).
     position_range_mm : (float, float)
         Half-ranges of the random x, y position of the part's centre on the conveyor.
     yaw_range_deg : float
@@ -67,6 +74,7 @@ class SimulationSettings:
     defect_rate: float = 0.1
     dent_depth_mm: float = 1.5
     dent_radius_mm: float = 15.0
+    dent_flat_mm: float = 0.0
     position_range_mm: tuple[float, float] = (60.0, 10.0)
     yaw_range_deg: float = 180.0
     flip: bool = False
@@ -75,25 +83,28 @@ class SimulationSettings:
     def __post_init__(self) -> None:
         if not 0 <= self.defect_rate <= 1:
             raise ValueError("defect_rate must lie in [0, 1]")
-        if self.dent_depth_mm <= 0 or self.dent_radius_mm <= 0:
-            raise ValueError("dent depth and radius must be positive")
+        if self.dent_depth_mm <= 0 or not 0 <= self.dent_flat_mm < self.dent_radius_mm:
+            raise ValueError("a dent needs a positive depth and 0 <= flat < radius")
 
 
-def dent(vertices: np.ndarray, vertex_normals: np.ndarray, defect: Defect) -> np.ndarray:
-    """Press a smooth dent into a mesh: vertices near ``center_mm`` move along ``-normal``.
+def line_rig(rig: Rig, *, conveyor_speed_mm_s: float, pattern_seed: int) -> Rig:
+    """The rig as built (``rig``, e.g. ``Rig.nominal()``) running on a line: its belt at
+    ``conveyor_speed_mm_s`` and its projector's speckle slide drawn with ``pattern_seed``."""
+    projector = replace(rig.projector, pattern=replace(rig.projector.pattern, seed=pattern_seed))
+    conveyor = replace(rig.conveyor, speed_mm_s=conveyor_speed_mm_s)
+    return replace(rig, projector=projector, conveyor=conveyor)
 
-    The profile is ``depth * (1 - (r / radius)^2)^2`` for ``r < radius``
-    (smooth at the rim), r the distance to the centre. Returns new vertices.
-    """
-    c = np.asarray(defect.center_mm)
-    r = np.linalg.norm(vertices - c, axis=1)
-    inside = r < defect.radius_mm
-    # Only the side the camera sees: vertices whose normal agrees with the dent's.
-    inside &= vertex_normals @ np.asarray(defect.normal) > 0.5
-    w = (1 - (r[inside] / defect.radius_mm) ** 2) ** 2
-    out = vertices.copy()
-    out[inside] -= (defect.depth_mm * w)[:, None] * np.asarray(defect.normal)[None, :]
-    return out
+
+@dataclass(frozen=True)
+class FlashRender:
+    """A :attr:`Stages.render`: the simulator with the line's render options (the flash)."""
+
+    options: RenderOptions
+
+    def __call__(
+        self, rig: Rig, mesh: trimesh.Trimesh, T_rig_part: np.ndarray, seed: int
+    ) -> list[Image]:
+        return simulate(rig, mesh, T_rig_part, seed=seed, options=self.options)
 
 
 @dataclass(frozen=True, eq=False)
@@ -123,7 +134,7 @@ class SimPart:
             poses, probs = mesh.convex_hull.compute_stable_poses(n_samples=1)
             poses, probs = np.asarray(poses)[:6], np.asarray(probs)[:6]
             for T in poses:
-                v = trimesh.transform_points(cad.vertices, T)
+                v = apply(T, cad.vertices)
                 centre = (v.min(axis=0) + v.max(axis=0)) / 2
                 T[:2, 3] -= centre[:2]
         return cls(name, cad, mesh, poses, probs / probs.sum())
@@ -158,7 +169,6 @@ class SimulatedRig:
         self.line = line
         self.station = station
         self.settings = settings or SimulationSettings()
-        self._normals = {p.name: p.mesh.vertex_normals.copy() for p in self.parts}
 
     def capture(self, seq: int, triggered_ns: int) -> FrameSet:
         s = self.settings
@@ -174,15 +184,11 @@ class SimulatedRig:
         place[:2, 3] = rng.uniform(-1, 1, 2) * np.asarray(s.position_range_mm)
         T_rig_part = place @ rest
         serial = f"{part.name[:8].upper()}-{seq:06d}-{rng.integers(16**4):04x}"
-        defect = None
+        defects: tuple[Dent, ...] = ()
         mesh = part.mesh
         if rng.random() < s.defect_rate:
-            defect = self._random_defect(part, T_rig_part, rng)
-            mesh = trimesh.Trimesh(
-                dent(part.cad.vertices, self._normals[part.name], defect),
-                part.cad.faces,
-                process=False,
-            )
+            defects = (self._random_dent(part, T_rig_part, rng),)
+            mesh = press(part.mesh, defects)
         images = self.stages.render(self.stages.rig, mesh, T_rig_part, int(rng.integers(2**31)))
         return FrameSet(
             line=self.line,
@@ -194,12 +200,10 @@ class SimulatedRig:
             calibration_id=self.stages.calibration_id,
             images=images,
             cameras=[f"cam{i}" for i in range(len(images))],
-            truth=Truth(T_rig_part, defect),
+            truth=Truth(T_rig_part, defects),
         )
 
-    def _random_defect(
-        self, part: SimPart, T_rig_part: np.ndarray, rng: np.random.Generator
-    ) -> Defect:
+    def _random_dent(self, part: SimPart, T_rig_part: np.ndarray, rng: np.random.Generator) -> Dent:
         """A dent at a random point of the surface the cameras see (normal up in the rig)."""
         mesh = part.mesh
         up_in_part = T_rig_part[:3, :3].T @ np.array([0.0, 0.0, 1.0])
@@ -212,11 +216,13 @@ class SimulatedRig:
         tri = mesh.triangles[face]
         centre = tri[0] + a * (tri[1] - tri[0]) + b * (tri[2] - tri[0])
         n = mesh.face_normals[face]
-        return Defect(
+        s = self.settings
+        return Dent(
             tuple(float(v) for v in centre),  # type: ignore[arg-type]
             tuple(float(v) for v in n),  # type: ignore[arg-type]
-            self.settings.dent_depth_mm,
-            self.settings.dent_radius_mm,
+            s.dent_depth_mm,
+            s.dent_radius_mm,
+            s.dent_flat_mm,
         )
 
 
@@ -300,8 +306,3 @@ class Ingest:
         self.stop_event.set()
         if self._thread is not None:
             self._thread.join(timeout_s)
-
-
-def sim_parts(parts: Mapping[str, CadModel], generated: set[str]) -> list[SimPart]:
-    """SimParts for a station: generated panels rest flat, other CAD on stable poses."""
-    return [SimPart.from_cad(n, cad, flat=n in generated) for n, cad in parts.items()]

@@ -14,11 +14,12 @@ otherwise keep the process from exiting.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import logging
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -27,11 +28,14 @@ import numpy as np
 import zenoh
 
 from inspection.cad import CadModel
+from inspection.simulate import RenderOptions
+from inspection.transforms import apply
 
 from . import bus
+from .api import ResultHub, create_app
 from .config import LineConfig, PartSpec, load_part_spec
-from .ingest import Ingest, SimPart, SimulatedRig, SimulationSettings
-from .models import InspectionResult, software_version
+from .ingest import FlashRender, Ingest, SimPart, SimulatedRig, SimulationSettings, line_rig
+from .models import software_version
 from .parts import LoadedPart, PartRegistry, load_part_cad
 from .pipeline import Outcome, Pipeline, Stages, flash_stages
 from .protocol import FrameSet, Keys
@@ -43,10 +47,6 @@ log = logging.getLogger(__name__)
 
 
 # --------------------------------------------------------------------------- set-up
-
-
-load_cad_for = load_part_cad
-"""The CAD model of a part spec: the generated panel or the mesh file."""
 
 
 @dataclass
@@ -157,6 +157,7 @@ class Station:
                 defect_rate=sim.defect_rate,
                 dent_depth_mm=sim.dent_depth_mm,
                 dent_radius_mm=sim.dent_radius_mm,
+                dent_flat_mm=sim.dent_flat_mm,
                 position_range_mm=(sim.position_range_x_mm, sim.position_range_y_mm),
                 yaw_range_deg=sim.yaw_range_deg,
                 flip=sim.flip,
@@ -205,8 +206,16 @@ class Station:
 
 
 def stages_for(cfg: LineConfig) -> Stages:
-    """The line's measuring stages: the four-camera flash rig, calibrated as configured."""
-    return flash_stages(cfg.rig_calibration_path(), guided=cfg.station.guided_matching)
+    """The line's stages: the four-camera flash rig, calibrated as configured, whose
+    simulator renders the line as configured (belt speed, flash duration, slide)."""
+    stages = flash_stages(cfg.rig_calibration_path(), guided=cfg.station.guided_matching)
+    truth = line_rig(
+        stages.rig,
+        conveyor_speed_mm_s=cfg.line.conveyor_speed_mm_s,
+        pattern_seed=cfg.projector.pattern_seed,
+    )
+    render = FlashRender(RenderOptions(flash_us=cfg.projector.flash_us))
+    return dataclasses.replace(stages, rig=truth, render=render)
 
 
 def bus_settings(cfg: LineConfig, mode: str | None = None) -> bus.BusSettings:
@@ -242,7 +251,7 @@ def archive_sink(
             keep = np.linspace(0, len(points) - 1, max_points).round().astype(np.int64)
             points, d = points[keep], d[keep]
         try:
-            archive.save(outcome.result.id, points @ T[:3, :3].T + T[:3, 3], d)
+            archive.save(outcome.result.id, apply(T, points), d)
         except OSError as exc:  # a full disk must not lose the result itself
             log.error("deviations of %s not kept: %s", outcome.result.id, exc)
 
@@ -338,21 +347,16 @@ def make_app(
     cfg: LineConfig,
     *,
     store: ResultStore,
-    hub: Any,
+    hub: ResultHub,
     checks: dict[str, Callable[[], bool]],
     registry: PartRegistry | None = None,
 ) -> Api | None:
-    """The app of :func:`service.api.create_app`, or None when the API is not installed.
+    """The app of :func:`service.api.create_app`, or None when it could not be built.
 
     ``registry``: the station's (already loaded) part registry, shared with the
     worker. Without one (the API as its own process) a registry is made and
     its trees are built in the background; readiness waits for them.
     """
-    try:
-        from .api import create_app
-    except ImportError as exc:
-        log.warning("REST API not available (%s); running without it", exc)
-        return None
     own = registry is None
     reg = PartRegistry.from_config(cfg) if registry is None else registry
     try:
@@ -368,15 +372,7 @@ def make_app(
     return Api(app, reg, owns_registry=own)
 
 
-def make_hub() -> Any:
-    try:
-        from .api.events import ResultHub
-    except ImportError:
-        return None
-    return ResultHub()
-
-
-def hub_sink(hub: Any) -> Callable[[Outcome, FrameSet | None], None]:
+def hub_sink(hub: ResultHub) -> Callable[[Outcome, FrameSet | None], None]:
     def sink(outcome: Outcome, fs: FrameSet | None) -> None:
         hub.publish(outcome.result)
 
@@ -398,7 +394,7 @@ class LineHandles:
     ingest: Ingest
     counter: ResultCounter
     api: ApiServer | None
-    hub: Any
+    hub: ResultHub
     app: Api | None = None
 
     def close(self) -> None:
@@ -414,8 +410,7 @@ class LineHandles:
         if self.app is not None:
             self.app.close()
         self.store.close()
-        if self.hub is not None and hasattr(self.hub, "close"):
-            self.hub.close()
+        self.hub.close()
         self.station.close()
         bus.close_all([self.session])
 
@@ -443,11 +438,9 @@ def start_line(
         recorder = station.recorder()
         opened.append(recorder)
         counter = ResultCounter(parts_limit)
-        hub = make_hub()
+        hub = ResultHub()
         archive = DeviationArchive(cfg.storage.deviations_path())
-        sinks = [archive_sink(archive), store_sink(store), *extra_sinks]
-        if hub is not None:
-            sinks.append(hub_sink(hub))
+        sinks = [archive_sink(archive), store_sink(store), *extra_sinks, hub_sink(hub)]
         worker = ZenohWorker(
             session,
             station.keys,
@@ -570,13 +563,11 @@ def run_api(cfg: LineConfig, stop: threading.Event) -> int:
     """The REST API alone: serves the store, streams results it receives on the bus."""
     with contextlib.closing(bus.open_session(bus_settings(cfg))) as session:
         store = ResultStore(cfg.storage.database_path())
-        hub = make_hub()
+        hub = ResultHub()
         keys = Keys(cfg.line.name, cfg.zenoh.prefix)
 
         def on_result(sample: zenoh.Sample) -> None:
-            result = result_from_json(sample.payload.to_bytes())
-            if hub is not None:
-                hub.publish(result)
+            hub.publish(result_from_json(sample.payload.to_bytes()))
 
         sub = bus.RingSubscriber(
             session, keys.results(), on_result, capacity=256, name="results-rx"
@@ -597,16 +588,3 @@ def run_api(cfg: LineConfig, stop: threading.Event) -> int:
             sub.close()
             store.close()
     return 0
-
-
-@contextlib.contextmanager
-def result_listener(session: zenoh.Session, key: str) -> Iterator[list[InspectionResult]]:
-    """Collect results published under ``key`` (tests, tools) until the block ends."""
-    got: list[InspectionResult] = []
-    sub = bus.RingSubscriber(
-        session, key, lambda s: got.append(result_from_json(s.payload.to_bytes())), capacity=1024
-    )
-    try:
-        yield got
-    finally:
-        sub.close()

@@ -157,11 +157,6 @@ class InspectionResult(_Model):
             raise ValueError("the last row of a homogeneous transform must be [0, 0, 0, 1]")
         return v
 
-    @property
-    def key_suffix(self) -> str:
-        """``result/<part>/<serial>``: the tail of the zenoh key this result is published on."""
-        return f"result/{self.part}/{self.serial}"
-
 
 def make_result_id(line: str, station: str, seq: int, triggered_ns: int) -> str:
     """The id of the result of one trigger: unique per line, station, sequence number and time.

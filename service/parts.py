@@ -20,13 +20,12 @@ Errors::
 
 from __future__ import annotations
 
-import json
 import logging
 import shutil
 import tempfile
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, MutableMapping
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,9 +33,10 @@ from typing import Any
 
 import numpy as np
 
+from inspection.alignment import MODEL_FORMAT_VERSION, AlignmentModel, alignment_model
 from inspection.cad import CadModel, load_cad
 from inspection.deviations import ComparisonPoint
-from inspection.errors import CadLoadError, InspectionError
+from inspection.errors import CadLoadError, InspectionError, InvalidInput, TreeMismatch
 from inspection.measure import Frame, MeasureParams, PartModel, RegisterParams, measure_cloud
 
 from .config import PartSpec, PartSpecBase, canonical_hash, load_part_spec
@@ -177,12 +177,6 @@ def load_part_cad(spec: PartSpec, base_dir: Path) -> CadModel:
     return load_cad(spec.cad_path(base_dir), scale=spec.scale, name=spec.name)
 
 
-def _grid_tree_class() -> Any:
-    from inspection.grid import GridTree
-
-    return GridTree
-
-
 def tree_format_version() -> int:
     """The tree file format version of the installed :mod:`inspection.grid`."""
     from inspection.grid import FORMAT_VERSION
@@ -213,7 +207,6 @@ def build_or_load_tree(
     GridTree
         Its ``hash`` identifies it (recorded in every result as ``tree_hash``).
     """
-    from inspection.errors import InvalidInput, TreeMismatch
     from inspection.grid import GridTree
 
     report = progress or (lambda f, m: None)
@@ -258,14 +251,25 @@ def load_part(
     progress: Callable[[float, str], None] | None = None,
     *,
     alignment: bool = True,
+    models: MutableMapping[str, AlignmentModel] | None = None,
 ) -> LoadedPart:
-    """Load the CAD of a spec, build or load its tree and (``alignment``) its resting poses."""
+    """Load the CAD of a spec, build or load its tree and (``alignment``) its alignment model.
+
+    ``models``: alignment models the caller keeps in memory, by CAD hash (a
+    registry's own); consulted first and given the model loaded or computed.
+    """
     report = progress or (lambda f, m: None)
     report(0.05, "loading CAD")
     cad = load_part_cad(spec, base_dir)
     tree = build_or_load_tree(cad, spec, trees_dir, report)
-    report(0.95, "computing resting poses")
-    model = _alignment_model(cad, trees_dir) if alignment else None
+    model = None
+    if alignment:
+        report(0.95, "computing resting poses")
+        model = models.get(cad.hash) if models is not None else None
+        if model is None:
+            model = load_alignment_model(cad, trees_dir)
+        if models is not None:
+            models[cad.hash] = model
     report(1.0, "ready")
     return LoadedPart(
         spec=spec,
@@ -275,61 +279,37 @@ def load_part(
     )
 
 
-_models: dict[str, Any] = {}
-_models_lock = threading.Lock()
-
-
-def alignment_model_path(trees_dir: Path, cad: CadModel) -> Path | None:
-    """Where the alignment model of ``cad`` is cached, beside its trees (None if not installed).
+def alignment_model_path(trees_dir: Path, cad: CadModel) -> Path:
+    """Where the alignment model of ``cad`` is cached, beside its trees.
 
     The name holds the CAD hash and the model's format version.
     """
-    try:
-        from inspection.alignment import MODEL_FORMAT_VERSION
-    except ImportError:
-        return None
     return trees_dir / f"{cad.hash[:24]}-align-v{int(MODEL_FORMAT_VERSION)}.npz"
 
 
-def _alignment_model(cad: CadModel, trees_dir: Path | None = None) -> Any:
-    """The global alignment's per-part model (resting poses, templates); None if not installed.
+def load_alignment_model(cad: CadModel, trees_dir: Path) -> AlignmentModel:
+    """The global alignment's per-part model (resting poses, templates) of ``cad``.
 
     Computed once per CAD geometry (seconds of work) and cached on disk beside
-    the trees (``trees_dir``), so a worker, a replay or the API started later
-    reads it instead; in a process, a part deleted and created again reuses it.
+    the trees, so a worker, a replay or the API started later reads it
+    instead; a cached file that does not load is recomputed.
     """
-    try:
-        from inspection.alignment import AlignmentModel, alignment_model
-    except ModuleNotFoundError:
-        log.warning("inspection.alignment is not installed: parts can be listed, not inspected")
-        return None
-    from inspection.errors import InvalidInput
-
-    with _models_lock:
-        model = _models.get(cad.hash)
-        if model is not None:
+    path = alignment_model_path(trees_dir, cad)
+    if path.is_file():
+        try:
+            model = AlignmentModel.load(path, key=cad.hash)
+            log.info("%s: %d resting poses loaded from %s", cad.name, len(model.poses), path)
             return model
-        path = alignment_model_path(trees_dir, cad) if trees_dir is not None else None
-        if path is not None and path.is_file():
-            try:
-                model = AlignmentModel.load(path, key=cad.hash)
-                log.info("%s: %d resting poses loaded from %s", cad.name, len(model.poses), path)
-            except InvalidInput as exc:
-                log.warning("%s: cached alignment model unusable (%s); recomputing", cad.name, exc)
-        if model is None:
-            t0 = time.perf_counter()
-            model = alignment_model(cad)
-            log.info(
-                "%s: %d resting poses in %.1f s",
-                cad.name, len(model.poses), time.perf_counter() - t0,
-            )  # fmt: skip
-            if path is not None:
-                try:
-                    model.save(path, key=cad.hash)
-                except OSError as exc:  # a read-only cache still lets the part load
-                    log.warning("%s: alignment model not cached: %s", cad.name, exc)
-        _models[cad.hash] = model
-        return model
+        except InvalidInput as exc:
+            log.warning("%s: cached alignment model unusable (%s); recomputing", cad.name, exc)
+    t0 = time.perf_counter()
+    model = alignment_model(cad)
+    log.info("%s: %d resting poses in %.1f s", cad.name, len(model.poses), time.perf_counter() - t0)
+    try:
+        model.save(path, key=cad.hash)
+    except OSError as exc:  # a read-only cache still lets the part load
+        log.warning("%s: alignment model not cached: %s", cad.name, exc)
+    return model
 
 
 def warm_up(part: LoadedPart, *, points: int = 3000) -> float:
@@ -393,6 +373,9 @@ class PartRegistry:
         self._jobs: dict[str, Job] = {}
         self._futures: dict[str, Future[None]] = {}
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="tree-build")
+        # Alignment models by CAD hash: a part deleted and created again, or two parts of one
+        # geometry, reuse the model. Only the build thread (the pool's one worker) touches it.
+        self._alignment_models: dict[str, AlignmentModel] = {}
         self._job_counter = 0
 
     @classmethod
@@ -607,7 +590,12 @@ class PartRegistry:
 
         try:
             loaded = load_part(
-                entry.spec, entry.base_dir, self.trees_dir, progress, alignment=self.alignment
+                entry.spec,
+                entry.base_dir,
+                self.trees_dir,
+                progress,
+                alignment=self.alignment,
+                models=self._alignment_models,
             )
         except Exception as exc:
             log.exception("part %s: tree build failed", name)
@@ -618,7 +606,7 @@ class PartRegistry:
                 job_id, state=JobState.failed, message=entry.error, finished_ns=time.time_ns()
             )
             return
-        if self.alignment and loaded.model.alignment is not None:
+        if self.alignment:
             self._update_job(job_id, progress=0.98, message="warming up")
             from inspection.deviations import warmup as deviations_warmup
             from inspection.grid import warmup
@@ -723,11 +711,3 @@ class PartRegistry:
     def states(self) -> dict[str, str]:
         with self._lock:
             return {n: e.state.value for n, e in sorted(self._entries.items())}
-
-    def spec_hashes(self) -> dict[str, str]:
-        """A hash of each part's spec (for the recorded configuration)."""
-        with self._lock:
-            return {
-                n: canonical_hash(json.loads(e.spec.model_dump_json()))
-                for n, e in self._entries.items()
-            }

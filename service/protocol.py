@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import json
 import struct
-from collections.abc import Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -34,6 +34,7 @@ import cv2
 import numpy as np
 
 from inspection.arrays import Image
+from inspection.defects import Defect, Dent
 
 from .names import NAME_MAX_LEN, NAME_RULE, is_valid_name
 
@@ -155,46 +156,36 @@ def parse_result_key(key: str, prefix: str = DEFAULT_PREFIX) -> tuple[str, str, 
 # --------------------------------------------------------------------------- FrameSet
 
 
-@dataclass(frozen=True, eq=False)
-class Defect:
-    """A dent injected into a simulated part: the truth kept with its frames.
+def _vec3(obj: Any, what: str) -> tuple[float, float, float]:
+    v = [float(c) for c in obj]
+    if len(v) != 3:
+        raise ProtocolError(f"{what} needs three numbers")
+    return v[0], v[1], v[2]
 
-    Attributes
-    ----------
-    center_mm : (3,) float, part (CAD) frame, mm
-        A point on the surface at the middle of the dent.
-    normal : (3,) float, part frame
-        Outward surface normal there; the dent pushes the surface along ``-normal``.
-    depth_mm : float
-        Depth at the centre, mm (positive: into the material).
-    radius_mm : float
-        Radius of the dent, mm.
-    """
 
-    center_mm: tuple[float, float, float]
-    normal: tuple[float, float, float]
-    depth_mm: float
-    radius_mm: float
+def _dent_from_json(obj: dict[str, Any]) -> Dent:
+    return Dent(
+        _vec3(obj["center_mm"], "dent center_mm"),
+        _vec3(obj["normal"], "dent normal"),
+        float(obj["depth_mm"]),
+        float(obj["radius_mm"]),
+        float(obj.get("flat_mm", 0.0)),
+    )
 
-    def to_json(self) -> dict[str, Any]:
-        return {
-            "center_mm": [float(v) for v in self.center_mm],
-            "normal": [float(v) for v in self.normal],
-            "depth_mm": float(self.depth_mm),
-            "radius_mm": float(self.radius_mm),
-        }
 
-    @classmethod
-    def from_json(cls, obj: Any) -> Defect:
-        try:
-            c = tuple(float(v) for v in obj["center_mm"])
-            n = tuple(float(v) for v in obj["normal"])
-            d = cls(c, n, float(obj["depth_mm"]), float(obj["radius_mm"]))  # type: ignore[arg-type]
-        except (KeyError, TypeError, ValueError) as exc:
-            raise ProtocolError(f"bad defect in truth: {exc}") from exc
-        if len(c) != 3 or len(n) != 3:
-            raise ProtocolError("defect center_mm and normal need three numbers")
-        return d
+def _defect_to_json(defect: Defect) -> dict[str, Any]:
+    return {
+        "kind": defect.kind,
+        "center_mm": list(defect.center_mm),
+        "normal": list(defect.normal),
+        "depth_mm": defect.depth_mm,
+        "radius_mm": defect.radius_mm,
+        "flat_mm": defect.flat_mm,
+    }
+
+
+_DEFECT_READERS: dict[str, Callable[[dict[str, Any]], Defect]] = {"dent": _dent_from_json}
+"""Defect kind -> its reader; kinds not listed are skipped (written by a newer line)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -205,20 +196,24 @@ class Truth:
     ----------
     T_rig_part : (4, 4) float64
         Pose of the part in the nominal rig's frame (maps part points to rig points).
-    defect : Defect or None
+    defects : tuple of inspection.defects.Defect
+        Every defect injected into the part (part frame), in the order pressed;
+        empty for a good part. Later kinds extend this list.
     """
 
     T_rig_part: np.ndarray
-    defect: Defect | None = None
+    defects: tuple[Defect, ...] = ()
 
     def to_json(self) -> dict[str, Any]:
         return {
             "T_rig_part": np.asarray(self.T_rig_part, dtype=np.float64).tolist(),
-            "defect": None if self.defect is None else self.defect.to_json(),
+            "defects": [_defect_to_json(d) for d in self.defects],
         }
 
     @classmethod
     def from_json(cls, obj: Any) -> Truth:
+        """Read a truth record; one written before ``defects`` existed has a single
+        ``defect`` (an object or null), read as a dent without a flat bottom."""
         if not isinstance(obj, dict):
             raise ProtocolError("truth must be a JSON object")
         try:
@@ -227,8 +222,25 @@ class Truth:
             raise ProtocolError(f"bad truth.T_rig_part: {exc}") from exc
         if T.shape != (4, 4) or not np.isfinite(T).all():
             raise ProtocolError("truth.T_rig_part must be a finite 4x4 matrix")
-        defect = obj.get("defect")
-        return cls(T, None if defect is None else Defect.from_json(defect))
+        if "defects" in obj:
+            records = obj["defects"]
+        else:
+            legacy = obj.get("defect")
+            records = [] if legacy is None else [{"kind": "dent", **legacy}]
+        if not isinstance(records, list):
+            raise ProtocolError("truth.defects must be a list")
+        defects = []
+        for i, rec in enumerate(records):
+            if not isinstance(rec, dict) or not isinstance(rec.get("kind"), str):
+                raise ProtocolError(f"truth.defects[{i}] must be an object with a kind")
+            reader = _DEFECT_READERS.get(rec["kind"])
+            if reader is None:
+                continue
+            try:
+                defects.append(reader(rec))
+            except (KeyError, TypeError, ValueError) as exc:
+                raise ProtocolError(f"bad truth.defects[{i}]: {exc}") from exc
+        return cls(T, tuple(defects))
 
 
 @dataclass(frozen=True, eq=False)
@@ -250,7 +262,7 @@ class FrameSet:
     cameras : list of str
         Camera names, one per image.
     truth : Truth or None
-        Pose and injected defect of a simulated part.
+        Pose and injected defects of a simulated part.
     """
 
     line: str
@@ -468,10 +480,3 @@ def peek_identity(data: bytes | bytearray | memoryview) -> dict[str, Any]:
     if isinstance(header.get("calibration_id"), str):
         out["calibration_id"] = header["calibration_id"]
     return out
-
-
-def images_equal(a: Sequence[np.ndarray], b: Sequence[np.ndarray]) -> bool:
-    """True when two image lists are identical, pixel for pixel."""
-    return len(a) == len(b) and all(
-        x.shape == y.shape and np.array_equal(x, y) for x, y in zip(a, b, strict=False)
-    )

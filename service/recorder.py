@@ -58,6 +58,7 @@ from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 from mcap_protobuf.schema import build_file_descriptor_set
 
+from .config import RetentionSection
 from .models import InspectionResult, Status
 from .pipeline import Outcome
 from .protocol import FrameSet
@@ -93,10 +94,10 @@ class Retention:
             raise ValueError("every_nth must be at least 1")
 
     @classmethod
-    def from_config(cls, section: Any) -> Retention:
+    def from_config(cls, section: RetentionSection) -> Retention:
         """From the line config's ``[retention]`` section."""
         return cls(
-            record=str(getattr(section.record, "value", section.record)),
+            record=section.record.value,
             every_nth=section.every_nth,
             max_total_bytes=None
             if section.max_total_mb is None

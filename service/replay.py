@@ -14,7 +14,6 @@ compares with the logged result:
 
 from __future__ import annotations
 
-import json
 import logging
 import tempfile
 import threading
@@ -22,13 +21,12 @@ import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from .config import PartSpec
 from .models import InspectionResult
-from .parts import LoadedPart, load_part
+from .parts import LoadedPart, load_part, load_part_cad
 from .pipeline import Pipeline, Stages, flash_stages
 from .protocol import FrameSet, encode_frameset
 from .recorder import RecordedTrigger, read_recording
@@ -90,8 +88,6 @@ def parts_from_metadata(
     ------
     ReplayError
     """
-    from .line import load_cad_for
-
     cad_meta = metadata.get("cad", {})
     specs = {k[: -len(".spec")]: v for k, v in cad_meta.items() if k.endswith(".spec")}
     if not specs:
@@ -104,7 +100,7 @@ def parts_from_metadata(
     parts = {}
     for name, spec_json in specs.items():
         spec = PartSpec.model_validate_json(spec_json)
-        cad = load_cad_for(spec, parts_dir)
+        cad = load_part_cad(spec, parts_dir)
         want = cad_meta.get(f"{name}.cad_hash")
         if want and cad.hash != want:
             raise ReplayError(
@@ -178,9 +174,8 @@ def compare(
             dev_diff = max(dev_diff, d)
             if d > tol.deviation_mm:
                 diffs.append(f"{c.name}: deviation differs by {d:.3g} mm")
-    for name in ("mean_mm", "rms_mm", "min_mm", "max_mm"):
-        a = getattr(new.field, name, None) if new.field else None
-        b = getattr(old.field, name, None) if old.field else None
+    for name in ("mean_mm", "rms_mm", "min_mm", "max_mm") if new.field and old.field else ():
+        a, b = getattr(new.field, name), getattr(old.field, name)
         if a is not None and b is not None:
             dev_diff = max(dev_diff, abs(a - b))
             if abs(a - b) > tol.deviation_mm:
@@ -265,19 +260,3 @@ def recording_files(path: str | Path) -> list[Path]:
     if p.is_dir():
         return sorted(p.glob("*.mcap"))
     return [p]
-
-
-def report_json(report: ReplayReport) -> dict[str, Any]:
-    return json.loads(
-        json.dumps(
-            {
-                "triggers": report.triggers,
-                "replayed": report.replayed,
-                "not_replayable": report.not_replayable,
-                "same": report.same,
-                "differences": [d.__dict__ for d in report.differences],
-                "max_transform_diff": report.max_transform_diff,
-                "max_deviation_diff_mm": report.max_deviation_diff_mm,
-            }
-        )
-    )

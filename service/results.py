@@ -16,6 +16,7 @@ import numpy as np
 
 from inspection.deviations import Deviations, Verdict
 from inspection.measure import Frame, Measurement, measure_cloud
+from inspection.transforms import apply
 
 from .models import (
     FieldStats,
@@ -74,8 +75,7 @@ class Outcome:
         """``points`` in the CAD frame (None without a fit)."""
         if self.points is None or self.transform is None:
             return None
-        T = self.transform
-        return self.points @ T[:3, :3].T + T[:3, 3]
+        return apply(self.transform, self.points)
 
 
 def upload_trigger(

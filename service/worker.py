@@ -58,10 +58,16 @@ class Dropped:
 
 
 class JobSource(Protocol):
-    """Where a worker's jobs come from."""
+    """Where a worker's jobs come from: a bounded queue of them."""
+
+    capacity: int
+    """Jobs that may wait."""
 
     def get(self, timeout_s: float) -> Job | Dropped | None:
         """The next job, a drop marker, or None when nothing came within ``timeout_s``."""
+
+    def depth(self) -> int:
+        """Jobs waiting now."""
 
     def close(self) -> None:
         """Stop receiving."""
@@ -134,6 +140,7 @@ class ZenohFrameSource:
 
     def __init__(self, session: zenoh.Session, key: str, capacity: int) -> None:
         self.queue = JobQueue(capacity)
+        self.capacity = capacity
         self._sub = bus.RingSubscriber(
             session, key, self._on_sample, capacity=capacity, name="frames-rx"
         )
@@ -143,6 +150,9 @@ class ZenohFrameSource:
 
     def get(self, timeout_s: float) -> Job | Dropped | None:
         return self.queue.get(timeout_s)
+
+    def depth(self) -> int:
+        return self.queue.depth()
 
     def close(self) -> None:
         self._sub.close()
@@ -334,15 +344,13 @@ class Worker:
                 log.exception("result sink %r failed for %s", sink, r.id)
 
     def status(self, worker_id: str, state: str) -> dict[str, Any]:
-        depth = getattr(getattr(self.source, "queue", None), "depth", lambda: None)()
-        cap = getattr(getattr(self.source, "queue", None), "capacity", None)
         return {
             "worker": worker_id,
             "station": self.station,
             "state": state,
             "ready": state == "ready",
-            "queue_depth": depth,
-            "queue_capacity": cap,
+            "queue_depth": self.source.depth(),
+            "queue_capacity": self.source.capacity,
             "processed": self.stats.processed,
             "missed": self.stats.missed,
             "errors": self.stats.errors,

@@ -8,8 +8,9 @@ its points are judged.
 
 from __future__ import annotations
 
+from ..registration import RegisterParams
 from .judging import fit_quality, pose_sigma_mm
-from .params import Frame, MeasureParams, RegisterParams
+from .params import LINE_REGISTER, Frame, MeasureParams
 from .part import PartModel
 from .result import FitQuality, Measurement, Pass
 from .sequence import (
@@ -22,6 +23,7 @@ from .sequence import (
 )
 
 __all__ = [
+    "LINE_REGISTER",
     "MAX_POINTS",
     "MIN_POINTS",
     "FitQuality",

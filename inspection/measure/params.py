@@ -2,14 +2,12 @@
 
 from __future__ import annotations
 
-import math
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Literal
 
-import numpy as np
-
 from ..errors import InvalidInput
-from ..registration import LOSSES, validate_view
+from ..registration import RegisterParams
 
 Frame = Literal["rig", "cad", "data"]
 """The frame a cloud is given in: ``rig`` (seen from above, anywhere on the
@@ -17,55 +15,11 @@ belt), ``data`` (any frame, anywhere), ``cad`` (already near the CAD frame:
 only the fine registration runs)."""
 
 
-@dataclass(frozen=True)
-class RegisterParams:
-    """How a cloud is fitted to the CAD (the arguments of :func:`~inspection.register`).
-
-    Attributes
-    ----------
-    loss : str
-        M-estimator of the residuals (see :func:`~inspection.register`).
-    max_iterations : int
-    max_distance_mm : float
-        Points farther than this from the CAD are outliers.
-    seed : int
-        Seeds the random subsets.
-    view_direction : (3,) tuple of float or None
-        Direction towards the sensor in the rig frame (+z for a rig looking
-        down): a point is not fitted onto a face turned away from it. Used for
-        clouds in the rig frame only. Needs ``loss`` tukey or welsch.
-    """
-
-    loss: str = "tukey"
-    max_iterations: int = 50
-    max_distance_mm: float = 10.0
-    seed: int = 0
-    view_direction: tuple[float, float, float] | None = (0.0, 0.0, 1.0)
-
-    def __post_init__(self) -> None:
-        if self.loss not in LOSSES:
-            raise InvalidInput(f"loss must be one of {sorted(LOSSES)}, got {self.loss!r}")
-        if not (isinstance(self.max_iterations, int) and self.max_iterations >= 1):
-            raise InvalidInput(f"max_iterations must be an integer >= 1, got {self.max_iterations}")
-        if not (math.isfinite(self.max_distance_mm) and self.max_distance_mm > 0):
-            raise InvalidInput(f"max_distance_mm must be positive, got {self.max_distance_mm}")
-        if self.view_direction is not None:
-            view = validate_view(np.asarray(self.view_direction, dtype=np.float64), self.loss)
-            assert view is not None
-            object.__setattr__(self, "view_direction", tuple(float(c) for c in view))
-
-    def kwargs(self, frame: Frame) -> dict[str, object]:
-        """Keyword arguments of ``align`` / ``register`` for a cloud in ``frame``."""
-        out: dict[str, object] = {
-            "loss": self.loss,
-            "max_iterations": self.max_iterations,
-            "max_distance_mm": self.max_distance_mm,
-        }
-        if self.seed:
-            out["seed"] = self.seed
-        if frame == "rig" and self.view_direction is not None:
-            out["view_direction"] = self.view_direction
-        return out
+LINE_REGISTER = RegisterParams(
+    max_iterations=50, max_distance_mm=10.0, view_direction=(0.0, 0.0, 1.0)
+)
+"""The line's fit: fewer iterations and a tighter gate than :func:`~inspection.register`'s
+defaults (the global search has placed the part), seen from above (+z of the rig)."""
 
 
 @dataclass(frozen=True)
@@ -97,6 +51,8 @@ class MeasureParams:
         than this fraction of its tolerance band (3 sigma along its normal)
         is not measurable.
     register : RegisterParams
+        The fit (default :data:`LINE_REGISTER`); its view direction applies to
+        clouds in the rig frame only (:meth:`fit_params`).
     """
 
     path: Literal["cloud", "comparison_points"] = "cloud"
@@ -108,7 +64,7 @@ class MeasureParams:
     ambiguous_is_error: bool = False
     min_support: int = 10
     uncertainty_fraction: float = 0.1
-    register: RegisterParams = field(default_factory=RegisterParams)
+    register: RegisterParams = field(default_factory=lambda: LINE_REGISTER)
 
     def __post_init__(self) -> None:
         if self.path == "comparison_points":
@@ -136,3 +92,10 @@ class MeasureParams:
             raise InvalidInput(
                 f"register must be RegisterParams, got {type(self.register).__name__}"
             )
+
+    def fit_params(self, frame: Frame) -> RegisterParams:
+        """The fit's parameters for a cloud in ``frame``: the view direction (the
+        sensor above the belt) applies to clouds in the rig frame only."""
+        if frame == "rig" or self.register.view_direction is None:
+            return self.register
+        return dataclasses.replace(self.register, view_direction=None)

@@ -1,4 +1,4 @@
-"""What a part is measured against: its CAD, closest-point tree, alignment model and points."""
+"""What a part is measured against: its CAD, tree, face planes, alignment model and points."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from ..cad import CadModel
 from ..deviations import ComparisonPoint, check_comparison_points, load_comparison_points
 from ..errors import InvalidInput
 from ..grid import GridTree
+from ..registration import CadFaces
 
 
 @dataclass(frozen=True, eq=False)
@@ -27,12 +28,16 @@ class PartModel:
         Resting poses and templates of the global search; None: clouds can
         only be measured near the CAD frame (``frame="cad"``).
     comparison_points : tuple of ComparisonPoint
+    faces : CadFaces
+        The CAD's face planes and bounding box, as every fit against ``tree``
+        uses them (computed from ``tree`` when not given).
     """
 
     cad: CadModel
     tree: GridTree
     alignment: AlignmentModel | None
     comparison_points: tuple[ComparisonPoint, ...] = ()
+    faces: CadFaces | None = None
 
     @classmethod
     def build(
@@ -70,6 +75,8 @@ class PartModel:
         object.__setattr__(
             self, "comparison_points", check_comparison_points(self.comparison_points)
         )
+        if self.faces is None:
+            object.__setattr__(self, "faces", CadFaces.of(self.tree))
 
     def save(self, directory: str | Path) -> Path:
         """Write the tree, the alignment model and the comparison points into ``directory``."""

@@ -8,6 +8,7 @@ import numpy as np
 
 from ..deviations import Deviations, Verdict
 from ..registration import Registration
+from ..transforms import apply
 from .params import Frame
 
 
@@ -109,8 +110,4 @@ class Measurement:
         """``points`` mapped into the CAD frame (None without a transform)."""
         if self.transform is None:
             return None
-        return _apply(self.transform, self.points)
-
-
-def _apply(T: np.ndarray, points: np.ndarray) -> np.ndarray:
-    return points @ T[:3, :3].T + T[:3, 3]
+        return apply(self.transform, self.points)

@@ -35,13 +35,14 @@ import numpy.typing as npt
 from ..alignment import align
 from ..deviations import deviations
 from ..errors import InspectionError, InvalidInput
-from ..reconstruct import Cloud, Guide, Reconstructor
+from ..reconstruct import Cloud, Guide, Matching, Reconstructor
 from ..registration import Registration, register
 from ..rig import Rig
+from ..transforms import apply
 from .judging import _fit_problem, _held_to_the_pose, _reason, fit_quality
 from .params import Frame, MeasureParams
 from .part import PartModel
-from .result import Measurement, Pass, _apply
+from .result import Measurement, Pass
 
 log = logging.getLogger(__name__)
 
@@ -85,11 +86,10 @@ def measure_frames(
     rec = rig if isinstance(rig, Reconstructor) else Reconstructor.build(rig)
     timings: dict[str, float] = {}
     t_start = time.perf_counter()
-    kw = p.register.kwargs("rig")
 
-    # 1. The cloud.
+    # 1. The cloud, and (guided) what its matching found: where the guided pass starts.
     t = time.perf_counter()
-    cloud = rec(frames, keep_matching=p.guided)
+    cloud, matching = rec.match(frames) if p.guided else (rec(frames), None)
     timings["reconstruct"] = _ms(t)
     first = _pass("first", cloud)
     if len(first.points) == 0:
@@ -99,14 +99,15 @@ def measure_frames(
     passes = [first]
     start: np.ndarray | None = None
     final: Registration | None = None
-    if p.guided:
+    if matching is not None:  # p.guided
         t = time.perf_counter()
-        fit = _try_align(part, first, p, kw)
+        fit = _try_align(part, first, p)
         passes[0] = dataclasses.replace(first, fit=fit)
         if fit is not None and _trusted(fit, p):
             start = fit.transform
-            guided = rec.guided(cloud, Guide.from_cad(part.cad, np.linalg.inv(start)))
-            passes += _bends(part, rec, guided, start, p, kw)
+            guide = Guide.from_cad(part.cad, np.linalg.inv(start))
+            guided, matching = rec.guided(matching, guide)
+            passes += _bends(part, rec, guided, matching, start, p)
             if len(passes[-1].points) == 0:
                 log.debug("no guided cloud: measured from the first pass")
                 passes, start = passes[:1], None
@@ -120,7 +121,7 @@ def measure_frames(
     t = time.perf_counter()
     try:
         if final is None:
-            final = _fit(part, last.points, last.weights, p, kw, start=start)
+            final = _fit(part, last.points, last.weights, p, start=start)
     except InspectionError as exc:
         timings["align"] = _ms(t)
         return _unmeasured(f"alignment failed: {exc}", timings, t_start, *passes)
@@ -177,7 +178,7 @@ def measure_cloud(
     t_start = time.perf_counter()
     t = time.perf_counter()
     try:
-        fit = _fit(part, cloud, w, p, p.register.kwargs(frame), frame=frame)
+        fit = _fit(part, cloud, w, p, frame=frame)
     except InspectionError as exc:
         timings["align"] = _ms(t)
         return _unmeasured(f"alignment failed: {exc}", timings, t_start, frame=frame)
@@ -250,26 +251,28 @@ def _fit(
     points: np.ndarray,
     weights: np.ndarray,
     p: MeasureParams,
-    kw: dict[str, object],
     *,
     frame: Frame = "rig",
     start: np.ndarray | None = None,
 ) -> Registration:
     """The fit of a cloud: from ``start`` (no escape scan: the turn was searched),
-    from the identity (``frame="cad"``), or by the global search."""
+    from the identity (``frame="cad"``), or by the global search (which searches the turn)."""
     pts, w = _fit_inputs(points, weights, p)
+    rp = p.fit_params(frame)
     if start is not None:
-        return register(part.tree, pts, init=start, weights=w, escape_deg=None, **kw)  # type: ignore[arg-type]
+        rp = dataclasses.replace(rp, escape_deg=None)
+        return register(part.tree, pts, rp, init=start, weights=w, faces=part.faces)
     if frame == "cad":
-        return register(part.tree, pts, init=np.eye(4), weights=w, **kw)  # type: ignore[arg-type]
-    return align(part.tree, pts, model=part.alignment, cad=part.cad, weights=w, **kw)  # type: ignore[arg-type]
+        return register(part.tree, pts, rp, init=np.eye(4), weights=w, faces=part.faces)
+    rp = dataclasses.replace(rp, escape_deg=None)
+    return align(
+        part.tree, pts, rp, model=part.alignment, cad=part.cad, weights=w, faces=part.faces
+    )
 
 
-def _try_align(
-    part: PartModel, first: Pass, p: MeasureParams, kw: dict[str, object]
-) -> Registration | None:
+def _try_align(part: PartModel, first: Pass, p: MeasureParams) -> Registration | None:
     try:
-        return _fit(part, first.points, first.weights, p, kw)
+        return _fit(part, first.points, first.weights, p)
     except InspectionError as exc:
         log.debug("no guided pass: the first alignment failed: %s", exc)
         return None
@@ -292,12 +295,13 @@ def _bends(
     part: PartModel,
     rec: Reconstructor,
     guided: Cloud,
+    matching: Matching,
     start: np.ndarray,
     p: MeasureParams,
-    kw: dict[str, object],
 ) -> list[Pass]:
-    """The guided pass, fitted from ``start``, and the windows on bends matched once
-    more with the CAD where that fit puts it; the guided pass alone when it cannot be fitted.
+    """The guided pass (``guided``, its ``matching``), fitted from ``start``, and the windows
+    on bends matched once more with the CAD where that fit puts it; the guided pass alone
+    when it cannot be fitted.
 
     A guided window takes its shape from the guide: placed off, it pulls the
     bends towards it, so they are matched again from the better pose.
@@ -308,14 +312,14 @@ def _bends(
     try:
         # Every guided point, not a subsample: the bends' guide is only as good as this fit.
         fit = register(
-            part.tree, g.points, init=start, escape_deg=None,
-            weights=g.weights if p.use_weights else None, **kw,  # type: ignore[arg-type]
+            part.tree, g.points, dataclasses.replace(p.fit_params("rig"), escape_deg=None),
+            init=start, weights=g.weights if p.use_weights else None, faces=part.faces,
         )  # fmt: skip
     except InspectionError as exc:
         log.debug("bends not matched again: the guided cloud did not fit: %s", exc)
         return [g]
     g = dataclasses.replace(g, fit=fit)
-    bends = rec.rematch_bends(guided, Guide.from_cad(part.cad, np.linalg.inv(fit.transform)))
+    bends, _ = rec.rematch_bends(matching, Guide.from_cad(part.cad, np.linalg.inv(fit.transform)))
     return [g, _pass("bends", bends)]
 
 
@@ -355,7 +359,7 @@ def _judge(
     t = time.perf_counter()
     devs = deviations(
         part.tree,
-        _apply(T, points),
+        apply(T, points),
         part.comparison_points,
         min_support=p.min_support,
         max_distance_mm=p.register.max_distance_mm,

@@ -2,8 +2,8 @@
 
 Points are drawn in the CAD frame seen from +z, the highest point of each
 pixel on top, coloured on a diverging scale: blue below the CAD, white on it,
-red above, saturated at ``limit_mm``; unmeasured points are grey. A colour bar
-with its scale is drawn on the right.
+red above, saturated at ``limit_mm`` (:func:`inspection.colours.deviation_colours`);
+unmeasured points are grey. A colour bar with its scale is drawn on the right.
 """
 
 from __future__ import annotations
@@ -11,19 +11,14 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-_GREY = np.array([150, 150, 150], dtype=np.uint8)  # BGR
+from inspection.colours import deviation_colours
+
 _BACKGROUND = 40
 
 
-def diverging_lut() -> np.ndarray:
-    """(256, 3) uint8 BGR: blue (0) -> white (128) -> red (255)."""
-    t = np.linspace(-1.0, 1.0, 256)
-    b = np.where(t < 0, 1.0, 1.0 - t)
-    r = np.where(t > 0, 1.0, 1.0 + t)
-    g = 1.0 - np.abs(t)
-    # Keep the ends saturated but not black: mix toward pure blue/red.
-    lut = np.stack([b, g, r], axis=1)
-    return (lut * 255).round().astype(np.uint8)
+def _bgr(deviations_mm: np.ndarray, limit_mm: float) -> np.ndarray:
+    """(N, 3) uint8 BGR colours of signed deviations (OpenCV's channel order)."""
+    return deviation_colours(deviations_mm, limit_mm)[:, ::-1]
 
 
 def render_top_view(
@@ -72,12 +67,7 @@ def render_top_view(
         u = ((pts[order, 0] - lo[0]) * scale).round().astype(np.int64) + margin
         # Image rows grow downwards; y grows upwards in the view from +z.
         v = ((hi[1] - pts[order, 1]) * scale).round().astype(np.int64) + margin
-        dd = d[order]
-        lut = diverging_lut()
-        idx = np.clip(((np.nan_to_num(dd) / limit_mm) + 1.0) * 127.5, 0, 255).astype(np.int64)
-        colours = lut[idx]
-        colours[~np.isfinite(dd)] = _GREY
-        img[v, u] = colours
+        img[v, u] = _bgr(d[order], limit_mm)
         drawn = np.zeros(img.shape[:2], dtype=bool)
         drawn[v, u] = True
         _fill_gaps(img, drawn, max_px=1.5 * dot_px)
@@ -112,9 +102,10 @@ def _colour_bar(img: np.ndarray, *, x0: int, y0: int, height: int, limit_mm: flo
     height = min(height, img.shape[0] - y0 - 1)
     if height < 20:
         return
-    lut = diverging_lut()
-    rows = np.linspace(255, 0, height).round().astype(np.int64)
-    img[y0 : y0 + height, x0 : x0 + 16] = lut[rows][:, None, :]
+    # Top row +limit, bottom row -limit.
+    img[y0 : y0 + height, x0 : x0 + 16] = _bgr(np.linspace(limit_mm, -limit_mm, height), limit_mm)[
+        :, None, :
+    ]
     font, colour = cv2.FONT_HERSHEY_SIMPLEX, (230, 230, 230)
     for frac, value in ((0.0, limit_mm), (0.5, 0.0), (1.0, -limit_mm)):
         y = y0 + int(frac * (height - 1))

@@ -44,6 +44,7 @@ be judged (not measurable); 2 bad input (message on stderr).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import sys
@@ -151,9 +152,10 @@ def measure_params(args: argparse.Namespace) -> MeasureParams:
     InvalidInput
         A view direction with a loss without a plateau, a bad minimum support.
     """
-    from inspection.measure import MeasureParams, RegisterParams
+    from inspection.measure import LINE_REGISTER, MeasureParams
 
-    register = RegisterParams(
+    register = dataclasses.replace(
+        LINE_REGISTER,
         loss=args.loss,
         seed=args.seed,
         view_direction=(0.0, 0.0, 1.0) if args.seen_from_above else None,

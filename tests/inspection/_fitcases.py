@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation
 from inspection.alignment import DEFAULT_MIN_COS, sample_facing
 from inspection.cad import CadModel
 from inspection.rig import Rig
+from inspection.transforms import apply
 
 
 def perturbation(rng: np.random.Generator, deg: float, mm: float, center: np.ndarray) -> np.ndarray:
@@ -104,13 +105,9 @@ def pose_errors(T_est: np.ndarray, T_true: np.ndarray, points: np.ndarray) -> tu
     """Rotation error (degrees) and RMS displacement error (mm) over ``points``."""
     dR = T_est[:3, :3] @ T_true[:3, :3].T
     angle = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1.0) / 2.0, -1.0, 1.0))))
-    a = points @ T_est[:3, :3].T + T_est[:3, 3]
-    b = points @ T_true[:3, :3].T + T_true[:3, 3]
+    a = apply(T_est, points)
+    b = apply(T_true, points)
     return angle, float(np.sqrt(np.mean(np.sum((a - b) ** 2, axis=1))))
-
-
-def apply(T: np.ndarray, points: np.ndarray) -> np.ndarray:
-    return points @ T[:3, :3].T + T[:3, 3]
 
 
 def holed_disc(

@@ -13,9 +13,10 @@ import pytest
 import trimesh
 
 from bench import bench_endtoend
+from inspection.defects import press
 from inspection.deviations import Verdict
 from inspection.measure import PartModel, measure_frames
-from inspection.panel import PanelSpec, press_dents, sheet_metal_panel
+from inspection.panel import PanelSpec, sheet_metal_panel
 from inspection.reconstruct import Reconstructor
 from inspection.rig import Rig, belt_pose
 from inspection.simulate import simulate
@@ -28,7 +29,7 @@ SITES = bench_endtoend.SITES
 
 def dented(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     """The mesh with the dents of SITES pressed in."""
-    return press_dents(mesh, list(SITES.values()))
+    return press(mesh, bench_endtoend.dents())
 
 
 # Where the part lies on the belt (x mm, y mm, turn deg). The first pose is a

@@ -143,7 +143,7 @@ def test_near_queries_exact_but_for_a_rare_face(panel_tree, small_panel):
     candidate list often has its closest face among none of the candidates
     (a third of them), and the walk or the sharp-edge check must still find
     it. Only the rare face closest at no corner of a finely meshed bend
-    (see the accuracy notes of inspection/grid.py) may be missed: here 4
+    (see the accuracy notes of inspection.grid) may be missed: here 4
     points of 3000 by 3-50 um."""
     rng = np.random.default_rng(5)
     q = offset_queries(small_panel, 3000, 0.0, 3.0, rng)

@@ -30,6 +30,7 @@ from inspection.measure import (
     subsample,
     validate_cloud,
 )
+from inspection.transforms import apply
 
 
 def cad_of(mesh: trimesh.Trimesh, name: str) -> CadModel:
@@ -135,12 +136,21 @@ def test_bad_parameters_fail_fast(kw, match):
 
 def test_a_view_direction_needs_a_loss_with_a_plateau():
     with pytest.raises(InvalidInput, match="plateau"):
-        RegisterParams(loss="l2")
-    assert RegisterParams(loss="l2", view_direction=None).kwargs("rig") == {
-        "loss": "l2", "max_iterations": 50, "max_distance_mm": 10.0,
-    }  # fmt: skip
-    assert RegisterParams().kwargs("rig")["view_direction"] == (0.0, 0.0, 1.0)
-    assert "view_direction" not in RegisterParams().kwargs("data")
+        dataclasses.replace(MeasureParams().register, loss="l2")
+    with pytest.raises(InvalidInput, match="plateau"):
+        RegisterParams(loss="l2", view_direction=(0.0, 0.0, 1.0))
+
+
+def test_the_line_fits_seen_from_above_in_the_rig_frame_only():
+    """The line's fit is register's with fewer iterations and a tighter gate;
+    its view direction applies to clouds in the rig frame only."""
+    p = MeasureParams()
+    assert p.register == RegisterParams(
+        max_iterations=50, max_distance_mm=10.0, view_direction=(0.0, 0.0, 1.0)
+    )
+    assert p.fit_params("rig") is p.register
+    for frame in ("data", "cad"):
+        assert p.fit_params(frame) == dataclasses.replace(p.register, view_direction=None)
 
 
 def test_a_cloud_anywhere_needs_the_alignment_model(plate):
@@ -248,10 +258,12 @@ def test_a_thin_solid_is_fitted_to_its_top_when_seen_from_above():
     cloud = noisy(pts, 0.02)
     corners = cad.bounds[[0, 1]]
     for view, on_top in (((0.0, 0.0, 1.0), True), (None, False)):
-        params = MeasureParams(register=RegisterParams(view_direction=view))
+        params = MeasureParams(
+            register=dataclasses.replace(MeasureParams().register, view_direction=view)
+        )
         m = measure_cloud(part, cloud, params, frame="rig")
         T = m.transform @ T_rig_cad  # identity when exact
-        off = np.abs(corners @ T[:3, :3].T + T[:3, 3] - corners).max()
+        off = np.abs(apply(T, corners) - corners).max()
         assert (off < 0.01) if on_top else (off > 0.5), (view, off)
 
 

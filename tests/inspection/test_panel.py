@@ -3,7 +3,7 @@ import pytest
 import trimesh
 
 from inspection import InvalidInput
-from inspection.panel import Hole, PanelSpec, panel_height, press_dents, sheet_metal_panel
+from inspection.panel import Hole, PanelSpec, panel_height, sheet_metal_panel
 
 
 @pytest.fixture(scope="module")
@@ -123,44 +123,3 @@ def test_thickness_makes_a_closed_solid_sheet(size):
     _, dist, _ = trimesh.proximity.closest_point(skin.to_trimesh(), inner[::25])
     assert np.median(np.abs(dist - 1.0)) < 1e-3
     assert np.all(np.abs(dist - 1.0) < 0.15)
-
-
-def test_pressed_dents_have_their_depth_and_leave_the_rest():
-    """A dent is ``depth`` deep across its flat bottom (measured against the
-    undented surface), blends back to it by ``outer_mm``, and nothing else moves."""
-    spec = PanelSpec().scaled(400.0, 260.0)
-    cad = sheet_metal_panel(spec)
-    dents = [(-60.0, 30.0, 0.3), (60.0, -70.0, 1.0)]
-    out = press_dents(cad, dents, flat_mm=16.0, outer_mm=30.0)
-    v = out.vertices
-    top = v[:, 2] > 5.0
-    near = top & (np.min([np.hypot(v[:, 0] - x, v[:, 1] - y) for x, y, _ in dents], axis=0) < 40)
-    gap = np.zeros(len(v))  # how far below the undented surface (exact closest points)
-    _, dist, _ = trimesh.proximity.closest_point(cad.to_trimesh(), v[near])
-    gap[near] = dist
-    for x, y, depth in dents:
-        r = np.hypot(v[:, 0] - x, v[:, 1] - y)
-        bottom = top & (r < 15.0)
-        assert bottom.sum() > 50
-        # Pressed along the normal: nearly vertical on this gently curved top.
-        np.testing.assert_allclose(gap[bottom], depth, rtol=0.01)
-        edge = top & (r > 30.5) & (r < 40.0)
-        np.testing.assert_allclose(gap[edge], 0.0, atol=1e-9)
-    far = np.min([np.hypot(v[:, 0] - x, v[:, 1] - y) for x, y, _ in dents], axis=0) > 31.0
-    # Vertices away from the dents stay where they were (the refinement only adds some).
-    kept = {tuple(p) for p in np.round(cad.vertices, 9)}
-    assert all(tuple(p) in kept for p in np.round(v[far & ~near], 9))
-    assert len(out.faces) > len(cad.faces)  # refined around the dents
-
-
-@pytest.mark.parametrize(
-    ("dents", "kwargs"),
-    [
-        ([(0.0, 0.0, float("nan"))], {}),
-        ([(0.0, 0.0, 0.5)], {"flat_mm": 20.0, "outer_mm": 10.0}),
-    ],
-)
-def test_bad_dents_are_refused(dents, kwargs):
-    cad = sheet_metal_panel(PanelSpec().scaled(400.0, 260.0))
-    with pytest.raises(InvalidInput):
-        press_dents(cad, dents, **kwargs)

@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
+import os
+import signal
+
 import cv2
 import numpy as np
 import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from inspection import _stereo
-from inspection.errors import InvalidInput
+from inspection.errors import InspectionError, InvalidInput
 from inspection.grid import GridTree
 from inspection.panel import PanelSpec, sheet_metal_panel
 from inspection.reconstruct import (
@@ -18,13 +20,14 @@ from inspection.reconstruct import (
     FLAG_TOO_DARK,
     Cloud,
     Guide,
+    Matching,
     Prior,
     Reconstructor,
     ReconstructParams,
-    deviation_colours,
+    kernels,
     reconstruct,
-    write_deviation_ply,
 )
+from inspection.reconstruct.matching import local_normalise, spline_rows
 from inspection.registration import register
 from inspection.rig import Rig, belt_pose
 from inspection.simulate import simulate
@@ -125,9 +128,40 @@ def test_deterministic(reconstructor: Reconstructor, plate_frames, plate_cloud: 
 def test_one_thread_gives_the_same_cloud(
     reconstructor: Reconstructor, plate_frames, plate_cloud: Cloud
 ) -> None:
-    one = Reconstructor.build(reconstructor.rig, ReconstructParams(threads=1))(plate_frames)
+    single = Reconstructor.build(reconstructor.rig, ReconstructParams(threads=1))
+    assert single.executor is None
+    one = single(plate_frames)
     np.testing.assert_array_equal(one.points, plate_cloud.points)
     np.testing.assert_array_equal(one.weights, plate_cloud.weights)
+
+
+def test_the_pool_lives_as_long_as_its_reconstructor(rig: Rig, plate_frames) -> None:
+    with Reconstructor.build(rig) as rec:
+        assert rec.executor is not None
+        assert len(rec(plate_frames)) > 0
+    with pytest.raises(RuntimeError, match="shutdown"):
+        rec(plate_frames)
+
+
+def test_a_reconstructor_refuses_to_run_after_a_fork(
+    reconstructor: Reconstructor, plate_frames
+) -> None:
+    # A forked child has the pool but not its threads: it would wait forever.
+    read, write = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover (the child)
+        signal.alarm(30)
+        try:
+            reconstructor(plate_frames)
+            os.write(write, b"ran")
+        except InspectionError as exc:
+            os.write(write, str(exc).encode())
+        finally:
+            os._exit(0)
+    os.close(write)
+    os.waitpid(pid, 0)
+    with os.fdopen(read) as fh:
+        assert "another process" in fh.read()
 
 
 def test_warped_windows_keep_the_plane(
@@ -241,9 +275,9 @@ def panel_scene(rig: Rig, reconstructor: Reconstructor):  # type: ignore[no-unty
 
 
 @pytest.fixture(scope="module")
-def panel_matching(reconstructor: Reconstructor, panel_scene) -> Cloud:
-    """The panel scene's unguided cloud, with its matching kept for the guided passes."""
-    return reconstructor(panel_scene[3], keep_matching=True)
+def panel_matching(reconstructor: Reconstructor, panel_scene) -> Matching:
+    """What the matching of the panel scene's unguided pass found, for the guided passes."""
+    return reconstructor.match(panel_scene[3])[1]
 
 
 def _surface_errors(tree: GridTree, T: np.ndarray, cloud: Cloud) -> tuple[np.ndarray, np.ndarray]:
@@ -276,20 +310,24 @@ def test_guide_follows_the_bends(reconstructor: Reconstructor, panel_scene) -> N
     assert {"guide0", "guide1"} <= set(guided.report.timings_ms)
 
 
-def test_guided_from_a_kept_matching_is_the_same_cloud(
+def test_guided_from_a_matching_is_the_same_cloud(
     rig: Rig, reconstructor: Reconstructor, panel_scene
 ) -> None:
     cad, _, T, frames, plain = panel_scene
     guide = Guide.from_cad(cad, T)
-    first = reconstructor(frames, keep_matching=True)
-    assert plain.matching is None and first.matching is not None
+    first, matching = reconstructor.match(frames)
+    assert isinstance(matching, Matching) and matching.reconstructor is reconstructor
     np.testing.assert_array_equal(first.points, plain.points)
-    again = reconstructor.guided(first, guide)
+    np.testing.assert_array_equal(first.weights, plain.weights)
+    again, guided = reconstructor.guided(matching, guide)
     once = reconstructor(frames, guide=guide)
     np.testing.assert_array_equal(again.points, once.points)
     np.testing.assert_array_equal(again.weights, once.weights)
     assert again.report.pairs == once.report.pairs
-    assert again.matching is not None
+    assert isinstance(guided, Matching) and guided is not matching
+    # A pass does not change the matching it starts from: it can start another.
+    twice, _ = reconstructor.guided(matching, guide)
+    np.testing.assert_array_equal(twice.points, again.points)
     # The stereo pairs ran only their warped passes again; the ring pairs are
     # matched in this pass alone, from the guide (no coarse search).
     ran = set(again.report.timings_ms)
@@ -297,12 +335,12 @@ def test_guided_from_a_kept_matching_is_the_same_cloud(
     assert not any(k.startswith(("sgbm", "rectify")) for k in ran)
     assert not {f"refine{k}" for k in range(n)} & ran
     assert {f"refine{k}" for k in range(n, n + len(reconstructor.guide_pairs))} <= ran
-    with pytest.raises(InvalidInput, match="keep_matching"):
-        reconstructor.guided(plain, guide)
-    with pytest.raises(InvalidInput, match="keep_matching"):
-        Reconstructor.build(rig).guided(first, guide)
+    with pytest.raises(InvalidInput, match="Matching"):
+        reconstructor.guided(plain, guide)  # type: ignore[arg-type]
+    with pytest.raises(InvalidInput, match="another reconstructor"):
+        Reconstructor.build(rig).guided(matching, guide)
     with pytest.raises(InvalidInput, match="Guide"):
-        reconstructor.guided(first, None)  # type: ignore[arg-type]
+        reconstructor.guided(matching, None)  # type: ignore[arg-type]
 
 
 def _in_plane_errors(T_cad_rig: np.ndarray, T_rig_part: np.ndarray) -> tuple[float, float]:
@@ -316,7 +354,7 @@ def _in_plane_errors(T_cad_rig: np.ndarray, T_rig_part: np.ndarray) -> tuple[flo
 def test_rematching_the_bends_undoes_the_pull_of_a_misplaced_guide(
     reconstructor: Reconstructor,
     panel_scene,
-    panel_matching: Cloud,
+    panel_matching: Matching,
     deg: float,
     shift: tuple[float, ...],
 ) -> None:
@@ -328,7 +366,7 @@ def test_rematching_the_bends_undoes_the_pull_of_a_misplaced_guide(
     D = np.eye(4)
     D[:3, :3] = Rotation.from_euler("z", deg, degrees=True).as_matrix()
     D[:3, 3] = T[:3, 3] - D[:3, :3] @ T[:3, 3] + np.asarray(shift)
-    pulled = reconstructor.guided(panel_matching, Guide.from_cad(cad, D @ T))
+    pulled, guided = reconstructor.guided(panel_matching, Guide.from_cad(cad, D @ T))
 
     def fit(cloud: Cloud) -> tuple[float, float]:
         reg = register(tree, cloud.points, init=np.linalg.inv(T), weights=cloud.weights)
@@ -336,7 +374,7 @@ def test_rematching_the_bends_undoes_the_pull_of_a_misplaced_guide(
 
     turn, moved = fit(pulled)
     assert turn > 0.008 and moved > 0.03
-    again = reconstructor.rematch_bends(pulled, Guide.from_cad(cad, T))
+    again, rematched = reconstructor.rematch_bends(guided, Guide.from_cad(cad, T))
     turn, moved = fit(again)
     assert turn < 0.004 and moved < 0.02
     # Only the windows on bends and at the outline were matched again: most
@@ -349,19 +387,20 @@ def test_rematching_the_bends_undoes_the_pull_of_a_misplaced_guide(
     assert {f"rematch{k}" for k in range(pairs)} <= ran
     assert not any(k.startswith(("sgbm", "refine", "warp")) for k in ran)
     # It can follow itself, with a guide still closer.
-    assert len(reconstructor.rematch_bends(again, Guide.from_cad(cad, T))) > 0
+    assert len(reconstructor.rematch_bends(rematched, Guide.from_cad(cad, T))[0]) > 0
 
 
-def test_rematch_bends_needs_a_guided_cloud(
-    rig: Rig, reconstructor: Reconstructor, panel_scene, panel_matching: Cloud
+def test_rematch_bends_needs_a_guided_matching(
+    rig: Rig, reconstructor: Reconstructor, panel_scene, panel_matching: Matching
 ) -> None:
     cad, _, T, _, plain = panel_scene
     guide = Guide.from_cad(cad, T)
-    for cloud in (plain, panel_matching):
-        with pytest.raises(InvalidInput, match="guided"):
-            reconstructor.rematch_bends(cloud, guide)
-    guided = reconstructor.guided(panel_matching, guide)
+    with pytest.raises(InvalidInput, match="Matching"):
+        reconstructor.rematch_bends(plain, guide)  # type: ignore[arg-type]
     with pytest.raises(InvalidInput, match="guided"):
+        reconstructor.rematch_bends(panel_matching, guide)
+    _, guided = reconstructor.guided(panel_matching, guide)
+    with pytest.raises(InvalidInput, match="another reconstructor"):
         Reconstructor.build(rig).rematch_bends(guided, guide)
     with pytest.raises(InvalidInput, match="Guide"):
         reconstructor.rematch_bends(guided, None)  # type: ignore[arg-type]
@@ -432,8 +471,8 @@ def _shifted_speckle(shift: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
     left = np.real(np.fft.ifft(spectrum, axis=1))
     right = np.real(np.fft.ifft(spectrum * np.exp(2j * np.pi * f * shift), axis=1))
     return (
-        _stereo.local_normalise(left.astype(np.float32), 15),
-        _stereo.local_normalise(right.astype(np.float32), 15),
+        local_normalise(left.astype(np.float32), 15),
+        local_normalise(right.astype(np.float32), 15),
     )
 
 
@@ -452,8 +491,8 @@ def test_sub_pixel_disparities_are_not_pulled_to_half_pixels() -> None:
             ones = np.ones_like(left)
             out = [np.empty(len(px), np.float32) for _ in range(3)]
             start = np.full(len(px), shift + 0.3, np.float32)
-            _stereo.refine_pixels(
-                left, _stereo.spline_rows(right), ones, ones, px, py, start, 4, 10, *out
+            kernels.refine_pixels(
+                left, spline_rows(right), ones, ones, px, py, start, 4, 10, *out
             )
             assert np.isfinite(out[0]).all()
             errors.append(out[0] - shift)
@@ -481,7 +520,7 @@ def _bend_pair(sheen_left: float, sheen_right: float, seed: int):  # type: ignor
 
     def image(u, sheen):  # type: ignore[no-untyped-def]
         rows = [np.interp(u, np.arange(up * w) / up, speckle[r]) for r in range(h)]
-        return _stereo.local_normalise(
+        return local_normalise(
             (np.array(rows) + sheen * (slope(u) / 0.25) ** 2).astype(np.float32), 15
         )
 
@@ -498,14 +537,14 @@ def _bend_errors(sheen_left: float, sheen_right: float, seed: int) -> tuple[floa
     """RMS disparity error across the bend of :func:`_bend_pair`, px: windows warped by
     the true field, fitted with a gain and offset, and with the light as well."""
     left, right, shape, su, px, py, truth = _bend_pair(sheen_left, sheen_right, seed)
-    right = _stereo.spline_rows(right)
+    right = spline_rows(right)
     ones = np.ones_like(shape)
     start = (truth + 0.3).astype(np.float32)
     errors = []
     for shaded in (False, True):
         out = [np.empty(len(px), np.float32) for _ in range(3)]
         if shaded:
-            _stereo.refine_warped_shaded(
+            kernels.refine_warped_shaded(
                 left,
                 right,
                 ones,
@@ -523,7 +562,7 @@ def _bend_errors(sheen_left: float, sheen_right: float, seed: int) -> tuple[floa
                 *out,
             )
         else:
-            _stereo.refine_warped(left, right, ones, ones, shape, ones, px, py, start, 4, 5, *out)
+            kernels.refine_warped(left, right, ones, ones, shape, ones, px, py, start, 4, 5, *out)
         errors.append(float(np.sqrt(np.mean((out[0] - truth) ** 2))))
     return errors[0], errors[1]
 
@@ -687,23 +726,3 @@ def test_other_image_size() -> None:
     top = cloud.points[np.abs(cloud.points[:, 2] - PLATE_TOP_MM) < 2.0]
     assert len(top) > 10_000
     assert abs(np.median(top[:, 2]) - PLATE_TOP_MM) < 0.1
-
-
-# -- pictures -----------------------------------------------------------------
-
-
-def test_deviation_colours() -> None:
-    rgb = deviation_colours(np.array([-1.0, 0.0, 1.0, np.nan]), 0.5)
-    assert rgb.tolist() == [[0, 0, 255], [255, 255, 255], [255, 0, 0], [128, 128, 128]]
-
-
-def test_write_ply_round_trip(tmp_path, plate_cloud: Cloud) -> None:
-    dev = plate_cloud.points[:, 2] - PLATE_TOP_MM
-    path = write_deviation_ply(tmp_path / "cloud.ply", plate_cloud, dev, limit_mm=0.2)
-    mesh = trimesh.load(path, process=False)
-    np.testing.assert_allclose(np.asarray(mesh.vertices), plate_cloud.points, atol=1e-3)
-    with open(path, "rb") as fh:
-        header = fh.read(400).split(b"end_header")[0].decode()
-    assert f"element vertex {len(plate_cloud)}" in header and "property float deviation" in header
-    with pytest.raises(InvalidInput):
-        write_deviation_ply(tmp_path / "bad.ply", plate_cloud.points, dev[:-1])

@@ -13,7 +13,14 @@ from inspection.cad import CadModel, load_cad
 from inspection.errors import InsufficientOverlap, InvalidInput
 from inspection.grid import GridTree
 from inspection.panel import PanelSpec, sheet_metal_panel
-from inspection.registration import LOSSES, Registration, StopReason, register
+from inspection.registration import (
+    LOSSES,
+    CadFaces,
+    RegisterParams,
+    Registration,
+    StopReason,
+    register,
+)
 
 # The tree's default build parameters: what the line uses.
 TREE: dict[str, float] = {}
@@ -510,7 +517,7 @@ def test_result_is_a_frozen_registration(panel):
 
 def test_per_point_figures_describe_every_point_at_the_final_pose(panel):
     """The fit runs on a subset; weights, residuals, RMS and inlier fraction
-    (computed on first access) cover every input point at the final pose."""
+    (computed when the fit ends) cover every input point at the final pose."""
     cad, tree = panel
     data, normals, _ = scenario(cad, n=30_000, deg=2.0, mm=3.0, seed=17)
     data, moved = add_blobs(data, normals, fraction=0.1, seed=17)
@@ -524,10 +531,63 @@ def test_per_point_figures_describe_every_point_at_the_final_pose(panel):
     assert reg.inlier_fraction == pytest.approx(inl.mean())
     assert reg.rms_mm == pytest.approx(np.sqrt(np.mean(d[inl] ** 2)))
     assert np.median(reg.weights[moved]) == 0.0 and np.median(reg.weights[~moved]) > 0.8
-    assert reg.weights is reg.weights  # computed once
-    assert not reg.weights.flags.writeable
-    # Computed later, but from the points as they were passed in.
+    assert not reg.weights.flags.writeable and not reg.residuals.flags.writeable
+    # From the points as they were passed in: a buffer reused after the fit changes nothing.
     buffer = data.copy()
     late = register(tree, buffer)
     buffer[:] = 0.0
     assert np.array_equal(late.residuals, reg.residuals)
+
+
+# --------------------------------------------------------------- parameters
+def test_params_and_keywords_are_one_fit(panel):
+    """``register(tree, points, params)`` and the keywords that build the same
+    params give the same fit, bit for bit; keywords replace fields of params."""
+    cad, tree = panel
+    data, _, _ = scenario(cad, n=5000, deg=3.0, mm=5.0, seed=18)
+    by_params = register(tree, data, RegisterParams(loss="huber", seed=3, max_subset=2048))
+    by_keywords = register(tree, data, loss="huber", seed=3, max_subset=2048)
+    mixed = register(tree, data, RegisterParams(loss="huber", max_subset=2048), seed=3)
+    for other in (by_keywords, mixed):
+        assert other.transform.tobytes() == by_params.transform.tobytes()
+        assert other.weights.tobytes() == by_params.weights.tobytes()
+        assert other.cost_history.tobytes() == by_params.cost_history.tobytes()
+
+
+def test_faces_built_once_fit_as_those_built_per_fit(panel):
+    """The faces a caller builds once (from the CAD or the tree) are those a
+    fit builds for itself from the tree: the same fit, bit for bit."""
+    cad, tree = panel
+    data, _, _ = scenario(cad, n=5000, deg=3.0, mm=5.0, seed=19)
+    alone = register(tree, data)
+    for faces in (CadFaces.of(cad), CadFaces.of(tree)):
+        given = register(tree, data, faces=faces)
+        assert given.transform.tobytes() == alone.transform.tobytes()
+        assert given.residuals.tobytes() == alone.residuals.tobytes()
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        {"loss": "bogus"},
+        {"residual": "point"},
+        {"max_iterations": 0},
+        {"max_iterations": 2.5},
+        {"initial_subset": 5},
+        {"max_subset": 100},
+        {"subset_growth": 1},
+        {"uncertainty_mm": 0.0},
+        {"max_distance_mm": float("inf")},
+        {"min_scale_mm": -1.0},
+        {"escape_deg": 0.0},
+        {"view_direction": (0.0, 0.0, 1.0), "loss": "huber"},
+    ],
+)
+def test_params_fail_fast(kwargs):
+    with pytest.raises(InvalidInput):
+        RegisterParams(**kwargs)
+
+
+def test_params_store_a_unit_view_direction():
+    assert RegisterParams(view_direction=(0.0, 0.0, 2.0)).view_direction == (0.0, 0.0, 1.0)
+    assert RegisterParams().view_direction is None

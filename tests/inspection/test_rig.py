@@ -136,9 +136,9 @@ def test_bad_rig_and_files_are_refused(rig: Rig, tmp_path) -> None:
 def test_rigid_align_recovers_a_transform() -> None:
     rng = np.random.default_rng(2)
     a = rng.normal(size=(10, 3)) * 100
-    from inspection.rig import _rotvec_matrix
+    from inspection.rig.poses import rotvec_matrix
 
-    R = _rotvec_matrix(np.array([0.3, -0.2, 0.9]))
+    R = rotvec_matrix(np.array([0.3, -0.2, 0.9]))
     b = a @ R.T + [10.0, -5.0, 3.0]
     T = rigid_align(a, b)
     assert np.allclose(T[:3, :3], R) and np.allclose(T[:3, 3], [10.0, -5.0, 3.0])

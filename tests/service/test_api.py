@@ -24,6 +24,7 @@ from fastapi.testclient import TestClient
 
 from inspection.panel import PanelSpec, panel_height, sheet_metal_panel
 from inspection.rig import belt_pose
+from inspection.transforms import apply
 from service.api import ResultHub, create_app
 from service.config import PartSpecBase, load_line_config
 from service.models import InspectionResult, PointResult, make_result_id, software_version
@@ -593,13 +594,12 @@ def visible_cloud(cad, n: int, seed: int) -> np.ndarray:
 
 
 def test_uploaded_clouds_are_measured_and_stored(client, app_parts, line):
-    pytest.importorskip("inspection.deviations", reason="the deviations stage is not installed")
     _, reg = line
     part = reg.get(PART)
     store, archive = app_parts[1], app_parts[2]
     T_rig_cad = belt_pose(40.0, -25.0, 37.0)
     pts_cad = visible_cloud(part.cad, 20_000, seed=1)
-    pts_rig = pts_cad @ T_rig_cad[:3, :3].T + T_rig_cad[:3, 3]
+    pts_rig = apply(T_rig_cad, pts_cad)
 
     r = post_cloud(client, payload=npy_bytes(pts_rig), serial="SN-1")
     assert r.status_code == 200, r.text
@@ -620,7 +620,7 @@ def test_uploaded_clouds_are_measured_and_stored(client, app_parts, line):
     c = next(p for p in part.spec.points if p.name == "c")
     near = np.linalg.norm(pts_cad - np.array(c.position_mm), axis=1) < 10.0
     dented = pts_cad + np.where(near[:, None], 0.6 * np.array(c.normal), 0.0)
-    dented_rig = dented @ T_rig_cad[:3, :3].T + T_rig_cad[:3, 3]
+    dented_rig = apply(T_rig_cad, dented)
     r = post_cloud(client, payload=npy_bytes(dented_rig), serial="SN-2")
     res2 = InspectionResult.model_validate(r.json())
     assert res2.status == "fail", res2.reason

@@ -201,3 +201,43 @@ def test_the_line_file_sets_every_simulator_key_and_the_ingest_uses_them():
     assert (settings.flip, settings.seed, settings.defect_rate) == (
         sim.flip, sim.seed, sim.defect_rate,
     )  # fmt: skip
+    assert settings.dent_flat_mm == sim.dent_flat_mm
+
+
+def test_the_belt_the_flash_and_the_slide_reach_the_simulator():
+    """The line's defaults render as the nominal rig with the simulator's defaults (the
+    frames of before); changed, the belt speed and the slide reach the rig rendered,
+    the flash the render options."""
+    from inspection.rig import Rig
+    from inspection.simulate import RenderOptions
+    from service.line import stages_for
+
+    stages = stages_for(load_line_config(LINE))
+    assert stages.rig.id == Rig.nominal().id
+    assert stages.render.options == RenderOptions()
+    changed = load_line_config(
+        LINE,
+        overrides={
+            ("line", "conveyor_speed_mm_s"): 1500.0,
+            ("projector", "flash_us"): 2000.0,
+            ("projector", "pattern_seed"): 3,
+        },
+    )
+    stages = stages_for(changed)
+    assert stages.rig.conveyor.speed_mm_s == 1500.0
+    assert stages.rig.projector.pattern.seed == 3
+    assert stages.render.options.flash_us == 2000.0
+
+
+@pytest.mark.parametrize(
+    ("section", "text", "message"),
+    [
+        ("projector", "flash_us = 0.0", "greater than 0"),
+        ("projector", "flash_us = 20000.0", "less than or equal to 10000"),
+        ("projector", "flash_ms = 2.0", "Extra inputs are not permitted"),  # the old key
+        ("simulator", "dent_flat_mm = 15.0", "dent_flat_mm"),
+    ],
+)
+def test_flash_and_dent_keys_are_bounded(tmp_path, section, text, message):
+    with pytest.raises(ConfigError, match=message):
+        load_line_config(write(tmp_path, "line.toml", f"[{section}]\n{text}\n"))

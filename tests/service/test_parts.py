@@ -180,22 +180,24 @@ def test_uploads_touch_only_what_the_registry_wrote(tmp_path):
         assert _files(uploads, outside) == before
 
 
-def test_the_alignment_model_is_cached_beside_the_trees(tmp_path, monkeypatch):
-    """Computed once, written beside the trees; a later process (an empty
-    in-process cache) reads it back unchanged; a corrupt file is recomputed."""
+def test_the_alignment_model_is_cached_beside_the_trees(tmp_path):
+    """Computed once, written beside the trees; a later load (another process, or
+    a registry of its own) reads it back unchanged; a corrupt file is recomputed;
+    models the caller keeps in memory are reused and filled."""
     from inspection.alignment import AlignmentModel
-    from service import parts
     from service.parts import alignment_model_path, load_part
 
-    monkeypatch.setattr(parts, "_models", {})
     trees = tmp_path / "trees"
     s = spec(spacing_mm=2.0)
-    first = load_part(s, tmp_path, trees)
+    kept: dict[str, AlignmentModel] = {}
+    first = load_part(s, tmp_path, trees, models=kept)
     path = alignment_model_path(trees, first.cad)
-    assert path is not None and path.is_file()
-    monkeypatch.setattr(parts, "_models", {})
+    assert path.is_file()
+    assert kept == {first.cad.hash: first.model.alignment}
+    assert load_part(s, tmp_path, trees, models=kept).model.alignment is first.model.alignment
     mtime = path.stat().st_mtime_ns
     again = load_part(s, tmp_path, trees).model.alignment
+    assert again is not first.model.alignment
     assert path.stat().st_mtime_ns == mtime  # read, not recomputed
     assert len(again.poses) == len(first.model.alignment.poses)
     for a, b in zip(again.poses, first.model.alignment.poses, strict=True):
@@ -204,7 +206,6 @@ def test_the_alignment_model_is_cached_beside_the_trees(tmp_path, monkeypatch):
         assert (a.axis_rad, a.elongation) == (b.axis_rad, b.elongation)
     assert again.surface.samples.tobytes() == first.model.alignment.surface.samples.tobytes()
     assert isinstance(AlignmentModel.load(path, key=first.cad.hash), AlignmentModel)
-    monkeypatch.setattr(parts, "_models", {})
     path.write_bytes(b"not a model")
     assert len(load_part(s, tmp_path, trees).model.alignment.poses) == len(again.poses)
     assert path.stat().st_size > 1000

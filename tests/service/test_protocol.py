@@ -8,8 +8,8 @@ import struct
 import numpy as np
 import pytest
 
+from inspection.defects import Dent
 from service.protocol import (
-    Defect,
     FrameSet,
     Keys,
     ProtocolError,
@@ -18,6 +18,7 @@ from service.protocol import (
     encode_frameset,
     parse_result_key,
     peek_identity,
+    read_header,
     validate_name,
 )
 
@@ -36,7 +37,9 @@ def make_frameset(seed: int = 0, *, truth: bool = True, shape=(48, 64)) -> Frame
         triggered_ns=1_795_340_000_123_456_789 + seed,
         calibration_id="rig-abc",
         images=images,
-        truth=Truth(T, Defect((1.0, 2.0, 3.0), (0.0, 0.0, 1.0), 0.8, 12.0)) if truth else None,
+        truth=Truth(T, (Dent((1.0, 2.0, 3.0), (0.0, 0.0, 1.0), 0.8, 12.0, 4.0),))
+        if truth
+        else None,
     )
 
 
@@ -73,9 +76,31 @@ def test_round_trip_is_lossless(encoding, truth):
     assert all(np.array_equal(a, b) for a, b in zip(fs.images, back.images, strict=True))
     if truth:
         np.testing.assert_array_equal(back.truth.T_rig_part, fs.truth.T_rig_part)
-        assert back.truth.defect.depth_mm == 0.8
+        assert back.truth.defects == fs.truth.defects  # Dent records compare by value
     else:
         assert back.truth is None
+
+
+def test_the_truth_lists_every_injected_defect_and_reads_older_recordings():
+    """The truth is a list that later kinds extend: kinds this reader does not know
+    are skipped. A truth written before the list (one ``defect``, or null) still reads."""
+    dents = (
+        Dent((1.0, 2.0, 3.0), (0.0, 0.0, 1.0), 0.8, 12.0),
+        Dent((-5.0, 0.0, 3.0), (0.0, 0.6, 0.8), -0.3, 9.0, 2.0),
+    )
+    truth = Truth(np.eye(4), dents)
+    as_json = json.loads(json.dumps(truth.to_json()))
+    assert [d["kind"] for d in as_json["defects"]] == ["dent", "dent"]
+    assert Truth.from_json(as_json).defects == dents
+    newer = dict(as_json, defects=[{"kind": "hole_shift", "dx_mm": 0.2}, *as_json["defects"]])
+    assert Truth.from_json(newer).defects == dents
+    old = {"T_rig_part": np.eye(4).tolist(), "defect": {"center_mm": [1, 2, 3],
+           "normal": [0, 0, 1], "depth_mm": 0.8, "radius_mm": 12.0}}  # fmt: skip
+    assert Truth.from_json(old).defects == (dents[0],)
+    assert Truth.from_json(dict(old, defect=None)).defects == ()
+    fs = make_frameset(5)
+    header, _ = read_header(encode_frameset(fs))
+    assert header["truth"]["defects"][0]["flat_mm"] == 4.0
 
 
 def test_doc_reader_parses_raw_frames():
@@ -124,6 +149,13 @@ def corruptions():
         "size_mismatch": with_header(images=bad_img),
         "no_images": with_header(images=[]),
         "bad_truth": with_header(truth={"T_rig_part": [[1, 2], [3, 4]]}),
+        "bad_defect": with_header(
+            truth={"T_rig_part": np.eye(4).tolist(), "defects": [{"kind": "dent", "depth_mm": 1}]}
+        ),
+        "defect_without_kind": with_header(
+            truth={"T_rig_part": np.eye(4).tolist(), "defects": [{"depth_mm": 1}]}
+        ),
+        "defects_not_a_list": with_header(truth={"T_rig_part": np.eye(4).tolist(), "defects": {}}),
         "unknown_encoding": with_header(
             images=[dict(m, encoding="jpeg") for m in header["images"]]
         ),

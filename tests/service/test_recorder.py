@@ -5,6 +5,7 @@ The recorded triggers are real: frames of the flash rig measured by the line's s
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import multiprocessing
 import os
@@ -18,6 +19,7 @@ from mcap.exceptions import EndOfFile
 from mcap.reader import NonSeekingReader, make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
+from inspection.defects import Dent
 from service.models import InspectionResult, Status
 from service.pipeline import Outcome, missed_result
 from service.recorder import Recorder, Retention, read_recording, recover
@@ -109,6 +111,31 @@ def test_png_images_are_lossless(tmp_path, outcomes):
     _, trig = read_recording(rec.files)
     for a, b in zip(trig[0].frameset.images, outcomes[0][1].images, strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+class _TruthBeforeTheList:
+    """A truth as recordings made before ``defects`` held it: one ``defect`` or null."""
+
+    def __init__(self, T: np.ndarray, dent: dict | None) -> None:
+        self.T, self.dent = T, dent
+
+    def to_json(self) -> dict:
+        return {"T_rig_part": self.T.tolist(), "defect": self.dent}
+
+
+def test_the_truth_reads_back_from_new_and_older_recordings(tmp_path, outcomes):
+    (o, fs), (o2, fs2) = outcomes[:2]
+    dent = {"center_mm": [1.0, 2.0, 30.0], "normal": [0.0, 0.0, 1.0], "depth_mm": 1.5,
+            "radius_mm": 15.0}  # fmt: skip
+    old = dataclasses.replace(fs2, truth=_TruthBeforeTheList(fs2.truth.T_rig_part, dent))
+    rec = Recorder(tmp_path, "truth")
+    rec.record(o, fs)
+    rec.record(o2, old)
+    rec.close()
+    _, (new_trig, old_trig) = read_recording(rec.files)
+    assert new_trig.frameset.truth.defects == fs.truth.defects
+    np.testing.assert_array_equal(new_trig.frameset.truth.T_rig_part, fs.truth.T_rig_part)
+    assert old_trig.frameset.truth.defects == (Dent((1.0, 2.0, 30.0), (0.0, 0.0, 1.0), 1.5, 15.0),)
 
 
 def _record_and_die(directory: str, triggers: str) -> None:

@@ -125,7 +125,7 @@ def test_good_framesets_are_measured_with_the_flash_rig(flash):
         assert r.ambiguous is False
         assert r.cad_hash == part.cad.hash and r.tree_hash == part.tree_hash
         assert r.calibration_id == stages.calibration_id and r.software_version
-    dented = [r for r, fs in zip(got.results, framesets, strict=True) if fs.truth.defect]
+    dented = [r for r, fs in zip(got.results, framesets, strict=True) if fs.truth.defects]
     assert all(r.field.min_mm < -0.5 for r in dented)
 
 
@@ -143,6 +143,14 @@ def test_gap_in_seq_becomes_missed_results(framesets, quick_part):
     t0, t3 = framesets[0].triggered_ns, framesets[3].triggered_ns
     assert t0 < got.results[1].triggered_ns < got.results[2].triggered_ns < t3
     assert len({r.id for r in got.results}) == 4
+
+
+def test_the_status_reports_the_queue_of_any_job_source(framesets, quick_part):
+    q = JobQueue(3)
+    w = Worker(pipeline(quick_part), q, [], line=LINE, station=STATION)
+    q.put(job(framesets[0]))
+    status = w.status("w1", "ready")
+    assert (status["queue_depth"], status["queue_capacity"], status["ready"]) == (1, 3, True)
 
 
 def test_queue_overflow_drops_oldest_and_records_it_as_missed(framesets, quick_part):

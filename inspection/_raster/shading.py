@@ -1,28 +1,4 @@
-"""numba kernels of the rig simulator: z-buffer rasteriser and per-pixel shading.
-
-The renderer works in two steps per camera, so that lens distortion is exact
-and triangle edges stay straight where they are straight:
-
-1. :func:`rasterize` draws the mesh into an *ideal* (undistorted pinhole)
-   buffer that stores, per ideal pixel, the depth and the index of the
-   nearest face (a classic z-buffer; 1/z is interpolated, since it is the
-   quantity that is linear in screen space).
-2. :func:`shade_scene` visits every *real* (distorted) pixel, takes its exact
-   viewing ray (precomputed by undistortion), looks up the face seen along
-   that ray in the ideal buffer, and intersects the ray with that face's
-   plane. Geometry is therefore exact to floating point inside faces; only
-   which face a pixel sees is decided at the resolution of the buffer.
-
-The projector's shadow map is the same rasteriser run from the projector.
-
-The kernels are serial and release the GIL: :mod:`inspection.simulate` runs
-the cameras in parallel Python threads, which is safe under every numba
-threading layer (numba's own ``parallel=True`` under the "workqueue" layer
-aborts the process when two threads launch kernels at once).
-
-Internal module: callers are trusted (shapes and dtypes are checked in
-:mod:`inspection.simulate`).
-"""
+"""The radiance of every real pixel: the part and belt under the flash, or a calibration board."""
 
 from __future__ import annotations
 
@@ -31,223 +7,12 @@ import math
 import numpy as np
 from numba import njit
 
+from .belt import belt_albedo
+from .flash import lit_fraction, pixel_slide, shadow_bias
+from .zbuffer import NEAR_MM, in_face
+
 # Fast-math without "nnan"/"ninf": infinities mark "no surface" in the kernels.
 _FAST = {"nsz", "arcp", "contract", "afn", "reassoc"}
-
-NEAR_MM = 1.0
-"""Faces with a vertex closer than this to the image plane are skipped."""
-
-
-@njit(cache=True, nogil=True)
-def rasterize(sx, sy, sz, faces, zbuf, fbuf):  # pragma: no cover - compiled
-    """Z-buffer rasterisation of triangles.
-
-    Parameters
-    ----------
-    sx, sy : (V,) float64
-        Vertex positions in buffer pixels (pixel centres at integers).
-    sz : (V,) float64, mm
-        Vertex depth along the optical axis.
-    faces : (F, 3) int64
-    zbuf : (H, W) float32, mm
-        Depth buffer, initialised to +inf; updated in place.
-    fbuf : (H, W) int32
-        Face index buffer, initialised to -1; updated in place.
-    """
-    H, W = zbuf.shape
-    for f in range(faces.shape[0]):
-        a = faces[f, 0]
-        b = faces[f, 1]
-        c = faces[f, 2]
-        za = sz[a]
-        zb = sz[b]
-        zc = sz[c]
-        if za < NEAR_MM or zb < NEAR_MM or zc < NEAR_MM:
-            continue
-        x0 = sx[a]
-        y0 = sy[a]
-        x1 = sx[b]
-        y1 = sy[b]
-        x2 = sx[c]
-        y2 = sy[c]
-        area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
-        if abs(area) < 1e-12:
-            continue
-        xmin = max(int(math.ceil(min(x0, min(x1, x2)))), 0)
-        xmax = min(int(math.floor(max(x0, max(x1, x2)))), W - 1)
-        ymin = max(int(math.ceil(min(y0, min(y1, y2)))), 0)
-        ymax = min(int(math.floor(max(y0, max(y1, y2)))), H - 1)
-        if xmin > xmax or ymin > ymax:
-            continue
-        inv = 1.0 / area
-        iz0 = 1.0 / za
-        iz1 = 1.0 / zb
-        iz2 = 1.0 / zc
-        # Barycentric weights are affine in (x, y): step them incrementally.
-        # w0 = ((x1 - x)(y2 - y) - (x2 - x)(y1 - y)) / area, likewise w1.
-        dw0dx = (y1 - y2) * inv
-        dw1dx = (y2 - y0) * inv
-        for y in range(ymin, ymax + 1):
-            w0 = ((x1 - xmin) * (y2 - y) - (x2 - xmin) * (y1 - y)) * inv
-            w1 = ((x2 - xmin) * (y0 - y) - (x0 - xmin) * (y2 - y)) * inv
-            for x in range(xmin, xmax + 1):
-                w2 = 1.0 - w0 - w1
-                if w0 >= -1e-9 and w1 >= -1e-9 and w2 >= -1e-9:
-                    z = 1.0 / (w0 * iz0 + w1 * iz1 + w2 * iz2)
-                    if z < zbuf[y, x]:
-                        zbuf[y, x] = z
-                        fbuf[y, x] = f
-                w0 += dw0dx
-                w1 += dw1dx
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _bilinear(img, u, v):  # pragma: no cover - compiled
-    """Bilinear sample of a 2-D float array at (u, v) (x, y), 0 outside."""
-    H, W = img.shape
-    if not (u >= 0.0 and v >= 0.0 and u <= W - 1.0 and v <= H - 1.0):
-        return 0.0
-    j = min(int(u), W - 2)
-    i = min(int(v), H - 2)
-    fu = u - j
-    fv = v - i
-    return (1.0 - fv) * ((1.0 - fu) * img[i, j] + fu * img[i, j + 1]) + fv * (
-        (1.0 - fu) * img[i + 1, j] + fu * img[i + 1, j + 1]
-    )
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _slide_uv(xn, yn, pl, Rcr, C, Rp, tp, kproj):  # pragma: no cover - compiled
-    """Slide position (u, v) of the point where the ray (xn, yn, 1) of a camera
-    meets the plane pl = (nx, ny, nz, d), n . X = d in the camera frame;
-    (-1, -1) when it does not."""
-    den = pl[0] * xn + pl[1] * yn + pl[2]
-    if abs(den) < 1e-12:
-        return -1.0, -1.0
-    z = pl[3] / den
-    xc = xn * z
-    yc = yn * z
-    X0 = Rcr[0, 0] * xc + Rcr[0, 1] * yc + Rcr[0, 2] * z + C[0]
-    X1 = Rcr[1, 0] * xc + Rcr[1, 1] * yc + Rcr[1, 2] * z + C[1]
-    X2 = Rcr[2, 0] * xc + Rcr[2, 1] * yc + Rcr[2, 2] * z + C[2]
-    qx = Rp[0, 0] * X0 + Rp[0, 1] * X1 + Rp[0, 2] * X2 + tp[0]
-    qy = Rp[1, 0] * X0 + Rp[1, 1] * X1 + Rp[1, 2] * X2 + tp[1]
-    qz = Rp[2, 0] * X0 + Rp[2, 1] * X1 + Rp[2, 2] * X2 + tp[2]
-    if qz <= NEAR_MM:
-        return -1.0, -1.0
-    return kproj[0] * qx / qz + kproj[1] * qy / qz + kproj[2], kproj[3] * qy / qz + kproj[4]
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _pixel_slide(
-    pattern, rays, i, j, up, vp, pl, Rcr, C, Rp, tp, kproj, samples
-):  # pragma: no cover - compiled
-    """The slide's mean over the footprint of real pixel (i, j) on the plane
-    pl (see :func:`_slide_uv`): ``samples`` x ``samples`` bilinear samples on
-    a regular grid over the pixel, placed through the footprint's Jacobian
-    (the slide position of the pixel's neighbours on the same plane). (up, vp)
-    is the slide position of the pixel's centre. ``samples`` 1: the centre only."""
-    if samples <= 1:
-        return _bilinear(pattern, up, vp)
-    H = rays.shape[0]
-    W = rays.shape[1]
-    j0 = max(j - 1, 0)
-    j1 = min(j + 1, W - 1)
-    i0 = max(i - 1, 0)
-    i1 = min(i + 1, H - 1)
-    sj = 1.0 / (j1 - j0)
-    si = 1.0 / (i1 - i0)
-    # The rays one pixel along the row and one down the column.
-    xj = rays[i, j, 0] + (rays[i, j1, 0] - rays[i, j0, 0]) * sj
-    yj = rays[i, j, 1] + (rays[i, j1, 1] - rays[i, j0, 1]) * sj
-    xi = rays[i, j, 0] + (rays[i1, j, 0] - rays[i0, j, 0]) * si
-    yi = rays[i, j, 1] + (rays[i1, j, 1] - rays[i0, j, 1]) * si
-    uj, vj = _slide_uv(xj, yj, pl, Rcr, C, Rp, tp, kproj)
-    ui, vi = _slide_uv(xi, yi, pl, Rcr, C, Rp, tp, kproj)
-    if uj < 0.0 or ui < 0.0:
-        return _bilinear(pattern, up, vp)
-    duj = uj - up
-    dvj = vj - vp
-    dui = ui - up
-    dvi = vi - vp
-    total = 0.0
-    for a in range(samples):
-        oa = (a + 0.5) / samples - 0.5
-        for b in range(samples):
-            ob = (b + 0.5) / samples - 0.5
-            total += _bilinear(pattern, up + ob * duj + oa * dui, vp + ob * dvj + oa * dvi)
-    return total / (samples * samples)
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _inside(sx, sy, faces, f, pu, pv):  # pragma: no cover - compiled
-    """Is the point (pu, pv) inside projected face f (either winding, 1e-9 tolerance)?"""
-    a = faces[f, 0]
-    b = faces[f, 1]
-    c = faces[f, 2]
-    x0 = sx[a]
-    y0 = sy[a]
-    x1 = sx[b]
-    y1 = sy[b]
-    x2 = sx[c]
-    y2 = sy[c]
-    area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
-    if area == 0.0:
-        return False
-    w0 = ((x1 - pu) * (y2 - pv) - (x2 - pu) * (y1 - pv)) / area
-    w1 = ((x2 - pu) * (y0 - pv) - (x0 - pu) * (y2 - pv)) / area
-    return w0 >= -1e-9 and w1 >= -1e-9 and 1.0 - w0 - w1 >= -1e-9
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _shadow(smap_z, smap_f, up, vp, qz, f, bias):  # pragma: no cover - compiled
-    """Fraction of the projector's light reaching a point (percentage-closer filtering).
-
-    The four shadow-map texels around the point's slide position (up, vp) each
-    vote lit when they see nothing, the point's own face f, or a surface no
-    nearer to the projector than the point's depth qz minus ``bias``; the votes
-    are weighted bilinearly, so shadow edges are soft like a real flash's.
-    """
-    Hs, Ws = smap_z.shape
-    j0 = int(math.floor(up))
-    i0 = int(math.floor(vp))
-    fu = up - j0
-    fv = vp - i0
-    lit = 0.0
-    for di in range(2):
-        for dj in range(2):
-            ii = min(max(i0 + di, 0), Hs - 1)
-            jj = min(max(j0 + dj, 0), Ws - 1)
-            sf = smap_f[ii, jj]
-            if sf < 0 or (f >= 0 and sf == f) or qz <= smap_z[ii, jj] + bias:
-                lit += (fu if dj == 1 else 1.0 - fu) * (fv if di == 1 else 1.0 - fv)
-    return lit
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _bias(qz, fpx, cos_l):  # pragma: no cover - compiled
-    """Shadow-map depth bias, mm: grows with the slope seen from the projector (acne otherwise)."""
-    tan_l = math.sqrt(max(1.0 - cos_l * cos_l, 0.0)) / max(cos_l, 0.05)
-    return 0.3 + 1.5 * (qz / fpx) * min(tan_l, 10.0)
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _belt_albedo(x, y, tex, texel_mm, belt_half_width, floor_albedo):  # pragma: no cover
-    """Belt albedo at rig (x, y): periodic texture along x, dark floor beyond the belt."""
-    if abs(y) > belt_half_width:
-        return floor_albedo
-    Ty, Tx = tex.shape
-    u = x / texel_mm
-    u = u - math.floor(u / Tx) * Tx  # wrap: the belt is an endless loop
-    v = min(max((y + belt_half_width) / texel_mm, 0.0), Ty - 1.0)
-    j = int(u)
-    i = min(int(v), Ty - 2)
-    fu = u - j
-    fv = v - i
-    j1 = j + 1 if j + 1 < Tx else 0
-    return (1.0 - fv) * ((1.0 - fu) * tex[i, j] + fu * tex[i, j1]) + fv * (
-        (1.0 - fu) * tex[i + 1, j] + fu * tex[i + 1, j1]
-    )
 
 
 @njit(cache=True, nogil=True, fastmath=_FAST)
@@ -348,7 +113,7 @@ def shade_scene(  # pragma: no cover - compiled
         Exposure times vignetting per pixel (radiance -> DN).
     samples : int
         The slide is averaged over each pixel's footprint on the part with
-        samples x samples samples (see :func:`_pixel_slide`); 1: the centre only.
+        samples x samples samples (see :func:`pixel_slide`); 1: the centre only.
     out : (H, W) float32
         Irradiance of the sensor in DN before noise (written).
     points : (H, W, 3) float32
@@ -387,7 +152,7 @@ def shade_scene(  # pragma: no cover - compiled
             f = -1
             if bi >= 0 and bi < Hb and bj >= 0 and bj < Wb:
                 f = fbuf[bi, bj]
-            if f < 0 or not _inside(sx, sy, faces, f, pu, pv):
+            if f < 0 or not in_face(sx, sy, faces, f, pu, pv):
                 f0 = f
                 f = -1
                 best = np.inf
@@ -403,7 +168,7 @@ def shade_scene(  # pragma: no cover - compiled
                         if g < 0:
                             edge = True
                             continue
-                        if g != f0 and g != f and _inside(sx, sy, faces, g, pu, pv):
+                        if g != f0 and g != f and in_face(sx, sy, faces, g, pu, pv):
                             den = planes[g, 0] * xn + planes[g, 1] * yn + planes[g, 2]
                             zg = planes[g, 3] / den if abs(den) > 1e-12 else np.inf
                             if zg > 0.0 and zg < best:
@@ -431,7 +196,7 @@ def shade_scene(  # pragma: no cover - compiled
                 # camera and precomputed (belt_static).
                 irr = belt_irr[i, j]
                 if irr > 0.0:
-                    irr *= _shadow(
+                    irr *= lit_fraction(
                         smap_z,
                         smap_f,
                         belt_q[i, j, 0],
@@ -447,7 +212,7 @@ def shade_scene(  # pragma: no cover - compiled
                 if belt_shift_mm == 0.0:
                     a = belt_alb[i, j]
                 else:
-                    a = _belt_albedo(
+                    a = belt_albedo(
                         X0 + belt_shift_mm, X1, tex, texel_mm, belt_half_width, floor_albedo
                     )
                 out[i, j] = a * (ambient + irr) * gain[i, j]
@@ -502,7 +267,7 @@ def shade_scene(  # pragma: no cover - compiled
                 if qz > NEAR_MM:
                     up = kproj[0] * qx / qz + kproj[1] * qy / qz + kproj[2]
                     vp = kproj[3] * qy / qz + kproj[4]
-                    slide = _pixel_slide(
+                    slide = pixel_slide(
                         pattern,
                         rays,
                         i,
@@ -518,7 +283,9 @@ def shade_scene(  # pragma: no cover - compiled
                         samples,
                     )
                     if slide > 0.0:
-                        lit = _shadow(smap_z, smap_f, up, vp, qz, f, _bias(qz, fpx, cos_l))
+                        lit = lit_fraction(
+                            smap_z, smap_f, up, vp, qz, f, shadow_bias(qz, fpx, cos_l)
+                        )
                         falloff = (r0 / dist) * (r0 / dist)
                         light = power * falloff * lit
                         irr = light * slide
@@ -553,7 +320,7 @@ def shade_scene(  # pragma: no cover - compiled
                             spec += ks_sharp * math.exp(n_sharp * lnh)
                         radiance += light * keep * spec
             else:
-                a = _belt_albedo(
+                a = belt_albedo(
                     X0 + belt_shift_mm, X1, tex, texel_mm, belt_half_width, floor_albedo
                 )
                 radiance = a * (ambient + irr * cos_l)
@@ -692,141 +459,8 @@ def shade_board(  # pragma: no cover - compiled
                         yc = yn * zc
                         X0 = Rcr[0, 0] * xc + Rcr[0, 1] * yc + Rcr[0, 2] * zc + C[0]
                         X1 = Rcr[1, 0] * xc + Rcr[1, 1] * yc + Rcr[1, 2] * zc + C[1]
-                        value = _belt_albedo(
+                        value = belt_albedo(
                             X0 + belt_shift_mm, X1, tex, texel_mm, belt_half_width, floor_albedo
                         )
                     acc += value
             out[i, j] = irradiance * acc * inv_n * gain[i, j]
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _splitmix64(x):  # pragma: no cover - compiled
-    x = x + np.uint64(0x9E3779B97F4A7C15)
-    x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-    x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-    return x ^ (x >> np.uint64(31))
-
-
-@njit(cache=True, nogil=True)
-def sensor_noise(img, key, shot, read2, out):  # pragma: no cover - compiled
-    """Add shot and read noise, clip and quantise to 8 bits.
-
-    The noise is a counter-based generator (splitmix64 of the key and the
-    pixel index), so every pixel's noise depends only on the
-    seed and its position: deterministic whatever the number of threads.
-
-    Parameters
-    ----------
-    img : (H, W) float32
-        Noise-free signal in DN.
-    key : uint64
-        Derived from the seed and the camera.
-    shot : float
-        Shot-noise variance per DN of signal.
-    read2 : float
-        Read-noise variance, DN^2.
-    out : (H, W) uint8
-        Written.
-    """
-    H, W = img.shape
-    for i in range(H):
-        for j in range(W):
-            s = img[i, j]
-            if s < 0.0:
-                s = 0.0
-            var = s * shot + read2
-            if var > 0.0:
-                # Irwin-Hall: the sum of four 16-bit uniforms from one hash,
-                # centred and scaled to unit variance (a Gaussian to within
-                # 1 % out to 3 sigma; sensor noise needs no better).
-                h = _splitmix64(key ^ np.uint64(i * W + j))
-                acc = 0.0
-                for _ in range(4):
-                    acc += float(h & np.uint64(0xFFFF))
-                    h = h >> np.uint64(16)
-                g = (acc * (1.0 / 65536.0) - 2.0) * 1.7320508075688772
-                s += math.sqrt(var) * g
-            s = math.floor(s + 0.5)
-            if s < 0.0:
-                s = 0.0
-            elif s > 255.0:
-                s = 255.0
-            out[i, j] = np.uint8(s)
-
-
-@njit(cache=True, nogil=True)
-def belt_static(  # pragma: no cover - compiled
-    rays,
-    Rcr,
-    C,
-    Rp,
-    tp,
-    kproj,
-    pattern,
-    P,
-    power,
-    r0,
-    tex,
-    texel_mm,
-    belt_half_width,
-    floor_albedo,
-    samples,
-    belt_irr,
-    belt_q,
-    belt_alb,
-):
-    """What a camera sees of the empty belt, computed once per rig.
-
-    Writes, per pixel: ``belt_irr`` (H, W) float32, the patterned irradiance
-    times the cosine (before shadows); ``belt_q`` (H, W, 4) float32, the slide
-    position (u, v), depth from the projector (mm) and shadow bias (mm) of the
-    belt point; ``belt_alb`` (H, W) float32, the belt's albedo there (belt at
-    rest). The formulas are those of :func:`shade_scene`, ``samples`` too.
-    """
-    H, W = belt_irr.shape
-    ncx = Rcr[2, 0]
-    ncy = Rcr[2, 1]
-    ncz = Rcr[2, 2]
-    ndc = -C[2]
-    for i in range(H):
-        for j in range(W):
-            xn = rays[i, j, 0]
-            yn = rays[i, j, 1]
-            den_c = ncx * xn + ncy * yn + ncz
-            z = ndc / den_c if den_c != 0.0 else -1.0
-            belt_irr[i, j] = 0.0
-            belt_q[i, j, 0] = -1.0
-            belt_q[i, j, 1] = -1.0
-            belt_q[i, j, 2] = 0.0
-            belt_q[i, j, 3] = 0.0
-            belt_alb[i, j] = 0.0
-            if z <= 0.0:
-                continue
-            xc = xn * z
-            yc = yn * z
-            X0 = Rcr[0, 0] * xc + Rcr[0, 1] * yc + Rcr[0, 2] * z + C[0]
-            X1 = Rcr[1, 0] * xc + Rcr[1, 1] * yc + Rcr[1, 2] * z + C[1]
-            belt_alb[i, j] = _belt_albedo(X0, X1, tex, texel_mm, belt_half_width, floor_albedo)
-            lx = P[0] - X0
-            ly = P[1] - X1
-            lz = P[2]
-            dist = math.sqrt(lx * lx + ly * ly + lz * lz)
-            cos_l = lz / dist
-            if cos_l <= 0.0:
-                continue
-            qx = Rp[0, 0] * X0 + Rp[0, 1] * X1 + tp[0]
-            qy = Rp[1, 0] * X0 + Rp[1, 1] * X1 + tp[1]
-            qz = Rp[2, 0] * X0 + Rp[2, 1] * X1 + tp[2]
-            if qz <= NEAR_MM:
-                continue
-            up = kproj[0] * qx / qz + kproj[1] * qy / qz + kproj[2]
-            vp = kproj[3] * qy / qz + kproj[4]
-            slide = _pixel_slide(
-                pattern, rays, i, j, up, vp, (ncx, ncy, ncz, ndc), Rcr, C, Rp, tp, kproj, samples
-            )
-            falloff = (r0 / dist) * (r0 / dist)
-            belt_irr[i, j] = power * falloff * slide * cos_l
-            belt_q[i, j, 0] = up
-            belt_q[i, j, 1] = vp
-            belt_q[i, j, 2] = qz
-            belt_q[i, j, 3] = _bias(qz, kproj[0], cos_l)

@@ -1,270 +1,54 @@
-"""Rectified stereo pairs of the rig: geometry, coarse matching and sub-pixel refinement.
+"""The compiled (numba) window fits of the matching, one pixel's window at a time.
 
-Internal module of :mod:`inspection.reconstruct`; callers are trusted.
+Every fit is a Lucas-Kanade (Gauss-Newton) fit of one pixel's window of the
+rectified left image against the right image, with a gain and an offset,
 
-Rectification is chosen for this rig, not left to ``cv2.stereoRectify``: both
-rectified cameras of a pair look straight down at the belt (the rectified z
-axis is the rig's -z made orthogonal to the baseline). A horizontal surface
-then has one disparity everywhere in the image, so the disparity range that
-SGBM must search is set by the heights in the measurement volume alone
-(``d = f B / Z``) and does not grow with the convergence of the cameras. The
-principal points of the two rectified images are shifted so that the volume
-fills both and its disparities are small numbers.
+    L(x + u, y + v) ≈ g R(x + u - d - w(u, v), y + v) + o,
 
-Refinement is a Lucas-Kanade (Gauss-Newton) fit of each pixel's own window,
-with a gain and an offset, on images normalised by their local mean and
-contrast, so that the different brightness of the metal seen from two sides
-does not bias the match. A dense variant that aggregates per-pixel updates
-with box filters (one ``cv2.remap`` per iteration for the whole field) was
-tried first: it is not a consistent model (neighbours shift by different
-amounts) and its iteration amplifies the frequencies where the box filter's
-response is negative, so it did not converge below ~0.1 px.
+on images normalised by their local mean and contrast, so that the different
+brightness of the metal seen from two sides does not bias the match. The
+unknowns ``(d, g, o)`` are found from the normal equations ``J^T J Δ = J^T e``
+of the residual ``e = L - g R - o``, with ``∂e/∂d = g ∂R/∂x``; a step of the
+disparity is clamped to one pixel, and a fit stops when it moves less than
+0.002 px. The kernels differ in the window's warp ``w``:
 
-Where the surface bends or slopes inside a window, :func:`refine_warped`
-fits the window again warped by the disparity field found so far.
+- :func:`refine_pixels`: a square window, ``w = 0`` (one disparity across it);
+- :func:`refine_cyclopean`: a square window centred half-way between the
+  views (``L(c + d/2 + u) ≈ g R(c - d/2 + u) + o``), which cancels to first
+  order the shift of edges and slopes towards the occluded side;
+- :func:`refine_warped`: ``w(u, v) = S(x + u, y + v) - S(x, y)`` for a known
+  disparity field ``S`` (the measured one, or the CAD's), so that a window on
+  a slope or a bend compares the right image stretched as the surface
+  stretches it; samples off the field get no weight;
+- :func:`refine_warped_shaded`: the warped window with light that changes
+  with the surface across it, ``+ Σ_k c_k (q_k - q_k(centre))`` for the
+  quadratic monomials ``q`` of two surface coordinates (five more unknowns,
+  solved by Cholesky with a ridge on their diagonal).
 
-**Interpolation.** The right image is sampled between its pixels by a cubic
-B-spline through them (its coefficients along the rows: :func:`spline_rows`).
+**Interpolation.** The right image is sampled between its pixels by the
+cubic B-spline through them (its row coefficients: :func:`spline_rows
+<inspection.reconstruct.matching.spline_rows>`; four taps, :func:`_bspline`).
 Any interpolator smooths the image by an amount that depends on where between
 two pixels it samples, and the fit then prefers the disparities whose
-fraction the smoothing favours: the "pixel locking" of window matchers. With
-Catmull-Rom's cubic convolution the disparity came out biased by up to
-0.014 px on clean rendered speckle (0.02 px with the simulator's faults),
-as a sine of the disparity's fraction; over a flat region the fraction
-changes slowly, so a comparison point's whole support radius took the same
-bias, ~0.03 mm. The B-spline's response is much flatter: 0.003 px
-(0.008 px with the faults). The coefficients cost one recursive filter pass
-per row; the kernels' cost is the same (four taps either way).
+fraction the smoothing favours (the "pixel locking" of window matchers). The
+cubic B-spline's response varies much less with the fraction than that of
+cubic convolution (Catmull-Rom), for the same four taps; its coefficients
+cost one recursive filter pass per row.
 
-The kernels run on one thread each (no ``prange``): the caller matches the
-two stereo pairs on two threads, which uses both cores without nesting
-numba's parallel layer inside Python threads (the workqueue layer aborts on
-that).
+The kernels run on one thread each (no ``prange``): the reconstructor
+matches the pairs on threads of its own, and numba's parallel layer nested
+inside Python threads aborts (its workqueue layer). Callers are trusted:
+shapes and dtypes are not checked.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
-import cv2
 import numpy as np
-import numpy.typing as npt
 from numba import njit
-from scipy import ndimage
 
-from ._linalg import cholesky_solve
-from .rig import Camera
-
-F32 = npt.NDArray[np.float32]
-F64 = npt.NDArray[np.float64]
-
-
-@dataclass(frozen=True, eq=False)
-class RectifiedPair:
-    """One stereo pair rectified to a common, belt-facing orientation.
-
-    Attributes
-    ----------
-    left, right : int
-        Camera indices in the rig.
-    R_rect_rig : (3, 3) float64
-        Rotation rig -> rectified frame (rows: x along the baseline, y, z down).
-    centre_left : (3,) float64, mm
-        Optical centre of the left camera in the rig frame (the rectified frame's origin).
-    baseline_mm : float
-        Distance between the two optical centres.
-    f_px : float
-        Focal length of both rectified images.
-    cx_left, cx_right, cy : float
-        Principal points of the rectified images (pixels).
-    size : (int, int)
-        (width, height) of both rectified images.
-    maps_left, maps_right : tuple of two (H, W) float32
-        ``cv2.remap`` maps from rectified pixels to the original (distorted) image.
-    """
-
-    left: int
-    right: int
-    R_rect_rig: F64
-    centre_left: F64
-    baseline_mm: float
-    f_px: float
-    cx_left: float
-    cx_right: float
-    cy: float
-    size: tuple[int, int]
-    maps_left: tuple[F32, F32]
-    maps_right: tuple[F32, F32]
-
-    @property
-    def name(self) -> str:
-        return f"{self.left}-{self.right}"
-
-    @property
-    def fb(self) -> float:
-        """f * B (px mm): disparity times depth."""
-        return self.f_px * self.baseline_mm
-
-    @property
-    def offset_px(self) -> float:
-        """Disparity of a point at infinite depth (the principal point shift)."""
-        return self.cx_left - self.cx_right
-
-    # -- geometry -----------------------------------------------------------
-    def to_rect(self, points_rig: F64) -> F64:
-        """Rig-frame points (N, 3) -> rectified left-camera frame (N, 3), mm."""
-        return (points_rig - self.centre_left) @ self.R_rect_rig.T
-
-    def project(self, points_rig: F64) -> tuple[F64, F64, F64]:
-        """Rig-frame points -> rectified left pixel (x, y) and depth Z (mm)."""
-        p = self.to_rect(points_rig)
-        z = p[:, 2]
-        return self.f_px * p[:, 0] / z + self.cx_left, self.f_px * p[:, 1] / z + self.cy, z
-
-    def disparity_of_depth(self, z: F64 | float) -> F64 | float:
-        """Rectified disparity (px) of a point at depth ``z`` (mm) along the rectified axis."""
-        return self.fb / z + self.offset_px
-
-    def triangulate(self, x: F64, y: F64, d: F64) -> F64:
-        """Rectified left pixels and disparities (N,) -> rig-frame points (N, 3), mm."""
-        z = self.fb / (d - self.offset_px)
-        p = np.empty((len(x), 3))
-        p[:, 0] = (x - self.cx_left) * z / self.f_px
-        p[:, 1] = (y - self.cy) * z / self.f_px
-        p[:, 2] = z
-        return p @ self.R_rect_rig + self.centre_left
-
-    def disparity_range(self, lo: F64, hi: F64) -> tuple[float, float]:
-        """Disparities spanned by the box ``lo``..``hi`` (rig frame, mm)."""
-        corners = np.array(
-            [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
-        )
-        z = self.to_rect(corners)[:, 2]
-        d = self.fb / z + self.offset_px
-        return float(d.min()), float(d.max())
-
-
-def rectify_pair(
-    cam_l: Camera, cam_r: Camera, left: int, right: int, lo: F64, hi: F64, margin_px: int = 8
-) -> RectifiedPair:
-    """Build the belt-facing rectification of one pair (see the module docstring).
-
-    Parameters
-    ----------
-    cam_l, cam_r : Camera
-        Left (lower x) and right camera.
-    left, right : int
-        Their indices in the rig.
-    lo, hi : (3,) float64, mm
-        The measurement volume (rig frame) that the rectified images must cover.
-    margin_px : int
-        Extra pixels around the projected volume.
-    """
-    c_l = cam_l.centre
-    c_r = cam_r.centre
-    base = c_r - c_l
-    baseline = float(np.linalg.norm(base))
-    ex = base / baseline
-    down = np.array([0.0, 0.0, -1.0])
-    ez = down - ex * (ex @ down)
-    ez /= np.linalg.norm(ez)
-    ey = np.cross(ez, ex)
-    R = np.stack([ex, ey, ez])
-    f = float(np.mean([cam_l.K[0, 0], cam_l.K[1, 1], cam_r.K[0, 0], cam_r.K[1, 1]]))
-    corners = np.array(
-        [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
-    )
-    # Ideal (principal-point-free) rectified coordinates of the volume in both views.
-    xs, ys = [], []
-    for c in (c_l, c_r):
-        p = (corners - c) @ R.T
-        xs.append(f * p[:, 0] / p[:, 2])
-        ys.append(f * p[:, 1] / p[:, 2])
-    cx_l = margin_px - float(xs[0].min())
-    cx_r = margin_px - float(xs[1].min())
-    width = (
-        int(math.ceil(max(xs[0].max() - xs[0].min(), xs[1].max() - xs[1].min()))) + 2 * margin_px
-    )
-    y_all = np.concatenate(ys)
-    cy = margin_px - float(y_all.min())
-    height = int(math.ceil(y_all.max() - y_all.min())) + 2 * margin_px
-    maps = []
-    for cam, cx in ((cam_l, cx_l), (cam_r, cx_r)):
-        K_new = np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
-        R_cam_rect = R @ cam.R.T  # camera -> rectified (OpenCV's R argument)
-        m1, m2 = cv2.initUndistortRectifyMap(
-            cam.K, cam.dist, R_cam_rect, K_new, (width, height), cv2.CV_32FC1
-        )
-        maps.append((np.asarray(m1, np.float32), np.asarray(m2, np.float32)))
-    R.setflags(write=False)
-    return RectifiedPair(
-        left, right, R, c_l.copy(), baseline, f, cx_l, cx_r, cy, (width, height), maps[0], maps[1]
-    )
-
-
-def local_normalise(img: F32, window: int) -> F32:
-    """Subtract the local mean and divide by the local standard deviation (box window)."""
-    k = (window, window)
-    mean = cv2.boxFilter(img, cv2.CV_32F, k, borderType=cv2.BORDER_REFLECT)
-    sq = cv2.boxFilter(img * img, cv2.CV_32F, k, borderType=cv2.BORDER_REFLECT)
-    var = np.maximum(sq - mean * mean, 0.0)
-    # The floor keeps flat, dark regions (shadows) from being amplified into noise.
-    return ((img - mean) / np.sqrt(var + 4.0)).astype(np.float32)
-
-
-def spline_rows(img: F32) -> F32:
-    """Cubic B-spline coefficients of each row of ``img`` (mirror boundary).
-
-    What the refinement kernels sample: the spline with these coefficients
-    passes through the pixels, and its values and slopes in between come from
-    four coefficients (:func:`_bspline`).
-    """
-    out = ndimage.spline_filter1d(img, order=3, axis=1, mode="mirror", output=np.float32)
-    return np.ascontiguousarray(out, dtype=np.float32)
-
-
-def coarse_disparity(
-    left_u8: npt.NDArray[np.uint8],
-    right_u8: npt.NDArray[np.uint8],
-    d_min: float,
-    d_max: float,
-    block: int,
-) -> F32:
-    """SGBM (3-way) disparity at half resolution, returned at full resolution (px, NaN = none).
-
-    Parameters
-    ----------
-    left_u8, right_u8 : (H, W) uint8
-        Rectified images at full resolution.
-    d_min, d_max : float
-        Disparity range to search, full-resolution pixels.
-    block : int
-        SGBM block size at half resolution (odd).
-    """
-    h, w = left_u8.shape
-    lh = cv2.pyrDown(left_u8)
-    rh = cv2.pyrDown(right_u8)
-    lo = int(math.floor(d_min / 2.0)) - 2
-    num = int(math.ceil((d_max / 2.0 - lo + 2) / 16.0)) * 16
-    sgbm = cv2.StereoSGBM.create(
-        minDisparity=lo,
-        numDisparities=num,
-        blockSize=block,
-        P1=8 * block * block,
-        P2=32 * block * block,
-        disp12MaxDiff=1,
-        preFilterCap=31,
-        uniquenessRatio=10,
-        speckleWindowSize=40,
-        speckleRange=2,
-        mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
-    )
-    raw = sgbm.compute(lh, rh)
-    disp = raw.astype(np.float32) * np.float32(2.0 / 16.0)
-    disp[raw <= (lo - 1) * 16] = np.nan
-    # Half-resolution pixel i sits at full-resolution pixel 2i (pyrDown's sampling).
-    return np.asarray(cv2.resize(disp, (w, h), interpolation=cv2.INTER_NEAREST), dtype=np.float32)
+from .._linalg import cholesky_solve
 
 
 @njit(cache=True, nogil=True, fastmath=True, inline="always")
@@ -354,7 +138,7 @@ def refine_pixels(
         Locally normalised rectified left image.
     right : (H, W) float32
         The same of the right image, as row B-spline coefficients
-        (:func:`spline_rows`).
+        (:func:`.matching.spline_rows`).
     wl, wr : (H, W) float32
         Sample weights (0: saturated or outside).
     px, py : (N,) int64
@@ -476,7 +260,7 @@ def refine_cyclopean(
     ----------
     left, right : (H, Wl), (H, Wr) float32
         Locally normalised rectified images (crops), both as row B-spline
-        coefficients (:func:`spline_rows`).
+        coefficients (:func:`.matching.spline_rows`).
     wl, wr : float32, same shapes
         Sample weights.
     cl, cr : (N,) float64
@@ -627,48 +411,6 @@ def _warp_centre(shape, mask, x, y, radius):  # pragma: no cover
     if not (y - radius >= 0 and y + radius < H and x - radius >= 0 and x + radius < W):
         return False, 0.0
     return mask[y, x] > 0.0, float(shape[y, x])
-
-
-@njit(cache=True, nogil=True)
-def depth_in_view(
-    points, centre, R, f_px, cx, cy, fb, offset_px, disparity, z_out, z_other
-):  # pragma: no cover
-    """Each rig-frame point's depth along a rectified view's axis (``z_out``) and the
-    depth of the surface that view's ``disparity`` map measures on the same ray
-    (``z_other``; NaN where not measured there): the map is interpolated
-    bilinearly where its four neighbours are measured, else taken from the
-    nearest pixel. ``R``, ``centre``: the view's rotation rig -> rectified and
-    optical centre."""
-    h, w = disparity.shape
-    for i in range(points.shape[0]):
-        a = points[i, 0] - centre[0]
-        b = points[i, 1] - centre[1]
-        c = points[i, 2] - centre[2]
-        z = R[2, 0] * a + R[2, 1] * b + R[2, 2] * c
-        z_out[i] = z
-        z_other[i] = np.nan
-        if not z > 0.0:
-            continue
-        x = f_px * (R[0, 0] * a + R[0, 1] * b + R[0, 2] * c) / z + cx
-        y = f_px * (R[1, 0] * a + R[1, 1] * b + R[1, 2] * c) / z + cy
-        xf = math.floor(x)
-        yf = math.floor(y)
-        if not (xf >= 0 and xf < w - 1 and yf >= 0 and yf < h - 1):
-            continue
-        xi = int(xf)
-        yi = int(yf)
-        fx = x - xf
-        fy = y - yf
-        d = (
-            disparity[yi, xi] * (1.0 - fx) * (1.0 - fy)
-            + disparity[yi, xi + 1] * fx * (1.0 - fy)
-            + disparity[yi + 1, xi] * (1.0 - fx) * fy
-            + disparity[yi + 1, xi + 1] * fx * fy
-        )
-        if not math.isfinite(d):
-            d = disparity[yi + int(round(fy)), xi + int(round(fx))]
-        if math.isfinite(d):
-            z_other[i] = fb / (d - offset_px)
 
 
 @njit(cache=True, nogil=True, fastmath=True)
@@ -953,3 +695,13 @@ def fill_row_gaps(disparity, passes):  # pragma: no cover
                     c += 1
                 if c > 0:
                     row[x] = s / np.float32(c)
+
+
+__all__ = [
+    "SHADE_TERMS",
+    "fill_row_gaps",
+    "refine_cyclopean",
+    "refine_pixels",
+    "refine_warped",
+    "refine_warped_shaded",
+]

@@ -1,0 +1,274 @@
+"""Windows warped by a disparity field: the measured one, or the one a guide draws from the CAD.
+
+A square window assumes one disparity across it. Where the surface bends
+(edge radii, character lines) or is seen at a grazing angle (walls), that is
+far from true, and the fit comes out off by an amount whose sign depends on
+the side of the part: those are the very points that fix a flat part in its
+plane. After the square windows (:mod:`.matching`), the windows over which
+the field is far from constant are fitted again with the window warped by
+the field (:func:`.kernels.refine_warped`: the right-image sample of window
+offset ``(u, v)`` is taken at ``x + u - d - (S(x + u, y + v) - S(x, y))``),
+solving for the centre's disparity only; samples off the field (across a
+depth edge) get no weight, so a window does not drag a surface past its
+outline.
+
+**The measured field** (no guide, ``warp_passes`` passes): the refined
+disparities of the previous pass, their row gaps filled and smoothed over
+``warp_smooth`` pixels, give the shape. A window is refitted when the mean of
+the field over it is off its centre's value by more than
+``warp_curvature_px`` (a bend), its slope along the baseline exceeds
+``warp_slope`` (foreshortened differently in the two views), or it reaches a
+hole in the field (:func:`bends`). Smoothing rounds the bends off, so the
+measured shape is least right where it matters most.
+
+**The guide's field** (``guide_passes`` passes): the CAD's disparities at the
+fitted pose (:mod:`.guided`) give the shape exactly, wherever they agree with
+the smoothed measured field within ``guide_tolerance_px`` at the window's
+centre (elsewhere the part departs from its CAD, and the measured shape is
+kept). Only the shape comes from the CAD: each window's disparity is still
+measured, so a dent is not guided away.
+
+**Light that changes with the surface** (``shading``, with a guide). Bare
+metal reflects the flash as a broad sheen as well as diffusely; each camera
+of a pair sees the sheen with another strength, and across a bend, where the
+normal turns, it changes by a different amount in each view. A window's gain
+and offset cannot absorb that, and the match moves. Where the guide shows
+that a window spans a bend (a slope of the guide's field that varies by more
+than ``shading_bend`` across it), the window also fits light that is a
+quadratic function of the surface's orientation
+(:func:`.kernels.refine_warped_shaded`): the regressors are the monomials of
+the guide's two disparity slopes, a function of the normal (:func:`_shading`).
+They come from the CAD, not from the images, so they cannot mimic the speckle.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from . import kernels
+from .matching import PairResult, PairState, fill_gaps, triangulate_state
+from .pairs import RectifiedPair
+from .params import ReconstructParams
+
+# Light that changes with the surface (ReconstructParams.shading): the
+# regressors are the guide's disparity slopes times this (O(1) on a bend),
+# and this times a window's weight is added to their coefficients' diagonal.
+_SHADING_SCALE = 10.0
+_SHADING_RIDGE = 1e-3
+
+
+def finish_pair(
+    pair: RectifiedPair,
+    st: PairState,
+    p: ReconstructParams,
+    timings: dict[str, float],
+    k: int,
+    shape: npt.NDArray[np.float32] | None = None,
+) -> PairResult:
+    """The warped passes and the triangulation of one pair, from its square windows
+    ``st``; ``shape``: a guide's disparity field over the crop (crop disparities, NaN off
+    the part; :func:`.guided.finish_guided`), None for the measured field alone."""
+    t = time.perf_counter()
+    d_ref, score, step = st.d_square, st.score, st.step
+    if p.warp_passes or shape is not None:
+        d_ref, score, step = warped_passes(
+            st.left_n,
+            st.right_n,
+            st.wl,
+            st.wr,
+            st.px,
+            st.py,
+            st.d_init + st.shift,
+            d_ref,
+            score,
+            step,
+            p,
+            shape,
+        )
+    timings[f"warp{k}"] = (time.perf_counter() - t) * 1e3
+    return triangulate_state(pair, st, (d_ref, score, step), p, timings, k, shape is not None)
+
+
+def warped_passes(
+    left_n: npt.NDArray[np.float32],
+    right_n: npt.NDArray[np.float32],
+    wl: npt.NDArray[np.float32],
+    wr: npt.NDArray[np.float32],
+    px: npt.NDArray[np.intp],
+    py: npt.NDArray[np.intp],
+    d_init: npt.NDArray[np.float32],
+    d_ref: npt.NDArray[np.float32],
+    score: npt.NDArray[np.float32],
+    step: npt.NDArray[np.float32],
+    p: ReconstructParams,
+    guide: npt.NDArray[np.float32] | None = None,
+) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+    """Refine again, with windows warped by the disparity field found so far (see the
+    module notes).
+
+    Only windows whose field is far from constant are refitted
+    (:func:`bends`); elsewhere the square window is already right. Each pass
+    starts from the previous one's field. With ``guide`` (the CAD's
+    disparity field over the crop, NaN off the part), every window whose
+    centre lies on it, within ``guide_tolerance_px`` of the measured field,
+    is warped by the guide instead (and, spanning a bend with
+    ``p.shading``, fits the light as well), in ``guide_passes`` passes.
+
+    Inputs are the crops and pixel lists of :class:`.matching.PairState`
+    (disparities in crop coordinates); returns new ``d_ref``, ``score``, ``step``.
+    """
+    ks = (p.warp_smooth, p.warp_smooth)
+    guided = shade = bent = None
+    if guide is not None:
+        g_field, g_mask, shade, bent = guide_maps(guide, p)
+        guided = (g_field, g_mask)
+    passes = p.warp_passes if guide is None else p.guide_passes
+    for _ in range(passes):
+        ok = (
+            np.isfinite(d_ref) & (score >= p.min_score) & (np.abs(d_ref - d_init) <= p.max_shift_px)
+        )
+        field_ = np.full(left_n.shape, np.nan, np.float32)
+        field_[py[ok], px[ok]] = d_ref[ok]
+        fill_gaps(field_, p.stride)
+        known = np.isfinite(field_)
+        mask = known.astype(np.float32)
+        v = np.where(known, field_, 0.0).astype(np.float32)
+        num = cv2.boxFilter(v, cv2.CV_32F, ks, normalize=False, borderType=cv2.BORDER_CONSTANT)
+        den = cv2.boxFilter(mask, cv2.CV_32F, ks, normalize=False, borderType=cv2.BORDER_CONSTANT)
+        smooth = np.where(known, num / np.maximum(den, 1.0), 0.0).astype(np.float32)
+        sel = ok & bends(smooth, mask, px, py, p)
+        d_ref, score, step = d_ref.copy(), score.copy(), step.copy()
+        if guided is not None:
+            g_field, g_mask = guided
+            follow = (
+                ok
+                & (g_mask[py, px] > 0.0)
+                & (np.abs(g_field[py, px] - smooth[py, px]) <= p.guide_tolerance_px)
+            )
+            shaded = follow & bent[py, px] if bent is not None else np.zeros_like(follow)
+            images = (left_n, right_n, wl, wr, g_field, g_mask, px, py)
+            warp(*images, follow & ~shaded, d_ref, score, step, p)
+            if shaded.any():
+                warp(*images, shaded, d_ref, score, step, p, shade)
+            sel &= ~follow
+        warp(left_n, right_n, wl, wr, smooth, mask, px, py, sel, d_ref, score, step, p)
+    return d_ref, score, step
+
+
+def bends(
+    field_: npt.NDArray[np.float32],
+    mask: npt.NDArray[np.float32],
+    px: npt.NDArray[np.intp],
+    py: npt.NDArray[np.intp],
+    p: ReconstructParams,
+) -> npt.NDArray[np.bool_]:
+    """Windows over which ``field_`` (0 where ``mask`` is 0) is far from constant: its
+    mean off the centre's value by more than ``warp_curvature_px``, a slope along the
+    baseline above ``warp_slope``, or a hole in the field inside the window."""
+    kw = (p.window, p.window)
+    num_w = cv2.boxFilter(field_, cv2.CV_32F, kw, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    den_w = cv2.boxFilter(mask, cv2.CV_32F, kw, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    cnt = den_w[py, px]
+    off = np.abs(num_w[py, px] / np.maximum(cnt, 1.0) - field_[py, px])
+    right = field_[py, np.minimum(px + 1, field_.shape[1] - 1)]
+    slope = np.abs(right - field_[py, np.maximum(px - 1, 0)]) * 0.5
+    uneven: npt.NDArray[np.bool_] = (
+        (off > p.warp_curvature_px) | (slope > p.warp_slope) | (cnt < p.window * p.window - 0.5)
+    )
+    return uneven
+
+
+def warp(
+    left_n: npt.NDArray[np.float32],
+    right_n: npt.NDArray[np.float32],
+    wl: npt.NDArray[np.float32],
+    wr: npt.NDArray[np.float32],
+    shape: npt.NDArray[np.float32],
+    mask: npt.NDArray[np.float32],
+    px: npt.NDArray[np.intp],
+    py: npt.NDArray[np.intp],
+    sel: npt.NDArray[np.bool_],
+    d_ref: npt.NDArray[np.float32],
+    score: npt.NDArray[np.float32],
+    step: npt.NDArray[np.float32],
+    p: ReconstructParams,
+    shade: tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]] | None = None,
+) -> None:
+    """Refit the selected windows warped by ``shape``, in place: with
+    :func:`.kernels.refine_warped`, or with ``shade`` (the surface
+    coordinates of :func:`_shading`) :func:`.kernels.refine_warped_shaded`."""
+    idx = np.nonzero(sel)[0]
+    d2 = np.empty(len(idx), np.float32)
+    s2 = np.empty(len(idx), np.float32)
+    st2 = np.empty(len(idx), np.float32)
+    pixels = (px[idx].astype(np.int64), py[idx].astype(np.int64), d_ref[idx].astype(np.float32))
+    fit = (p.warp_window // 2, p.warp_iterations, d2, s2, st2)
+    if shade is None:
+        kernels.refine_warped(left_n, right_n, wl, wr, shape, mask, *pixels, *fit)
+    else:
+        kernels.refine_warped_shaded(
+            left_n, right_n, wl, wr, shape, mask, *shade, _SHADING_RIDGE, *pixels, *fit
+        )
+    d_ref[idx], score[idx], step[idx] = d2, s2, st2
+
+
+def guide_maps(guide: npt.NDArray[np.float32], p: ReconstructParams) -> tuple[Any, ...]:
+    """What the warped kernels take of a guide's disparity field over a crop
+    (NaN off the part): the field with 0 off the part, its mask (1 on the
+    part), and with ``p.shading`` the surface coordinates and the windows on
+    bends of :func:`_shading` (else None, None)."""
+    on_part = np.isfinite(guide)
+    g_field = np.where(on_part, guide, 0.0).astype(np.float32)
+    g_mask = on_part.astype(np.float32)
+    if not p.shading:
+        return g_field, g_mask, None, None
+    su, sv, bent = _shading(guide, on_part, p)
+    return g_field, g_mask, (su, sv), bent
+
+
+def _shading(
+    field_: npt.NDArray[np.float32], on_part: npt.NDArray[np.bool_], p: ReconstructParams
+) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], npt.NDArray[np.bool_]]:
+    """Surface coordinates for light that changes with the surface, and the windows on bends.
+
+    The slopes ``(a, b)`` of the guide's disparity field (px/px, one-sided at
+    its outline) are a function of the surface normal: scaled by
+    ``_SHADING_SCALE`` (to about 1 on a bend), they are the coordinates whose
+    quadratic monomials :func:`.kernels.refine_warped_shaded` fits the light
+    with. A window spans a bend where either slope varies, over the window's
+    on-part pixels, by more than ``p.shading_bend``.
+    """
+    a, b = (_slope(field_, on_part, axis) for axis in (1, 0))
+    k = np.ones((p.warp_window, p.warp_window), np.uint8)
+    bent = np.zeros(on_part.shape, bool)
+    for g in (a, b):
+        hi = cv2.dilate(np.where(on_part, g, np.float32(-1e30)), k)
+        lo = cv2.erode(np.where(on_part, g, np.float32(1e30)), k)
+        bent |= hi - lo > p.shading_bend
+    scale = np.float32(_SHADING_SCALE)
+    return scale * a, scale * b, bent
+
+
+def _slope(
+    field_: npt.NDArray[np.float32], on_part: npt.NDArray[np.bool_], axis: int
+) -> npt.NDArray[np.float32]:
+    """Derivative of ``field_`` along ``axis``: the mean of the differences to
+    both neighbours that are on the part (one-sided at its outline, 0 alone)."""
+    f = np.moveaxis(np.where(on_part, field_, np.float32(0.0)), axis, -1)
+    on = np.moveaxis(on_part, axis, -1)
+    both = on[..., 1:] & on[..., :-1]
+    diff = np.where(both, f[..., 1:] - f[..., :-1], np.float32(0.0))
+    total = np.zeros_like(f)
+    count = np.zeros(f.shape, np.int8)
+    for side in (np.s_[..., 1:], np.s_[..., :-1]):
+        total[side] += diff
+        count[side] += both
+    return np.ascontiguousarray(np.moveaxis(total / np.maximum(count, 1), -1, axis), np.float32)
+
+
+__all__ = ["bends", "finish_pair", "guide_maps", "warp", "warped_passes"]
