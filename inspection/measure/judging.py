@@ -12,6 +12,7 @@ import numpy.typing as npt
 from ..alignment import Alignment
 from ..deviations import ComparisonPoint, ComparisonResult, Deviations, Verdict, part_verdict
 from ..registration import Registration, StopReason
+from ..registration.solver import UNRESOLVED_REL_EIG
 from .params import MeasureParams
 from .result import FitQuality
 
@@ -85,27 +86,37 @@ def pose_sigma_mm(
 
     The fit's twist ``(omega L, t)`` about ``fit.pose_center`` moves a point
     ``q`` along ``n`` by ``J . x`` with ``J = ((q - c) x n / L, n)``; its
-    variance is ``J^T C J`` with ``C = fit.pose_covariance``. A direction the
-    data leave free that moves the point along ``n`` makes it infinite.
+    variance is ``J^T C J`` with ``C = fit.pose_covariance``, in which a weakly
+    constrained direction counts with its large variance. A direction the
+    data do not resolve at all that moves the point along ``n`` makes it
+    infinite.
 
     Returns
     -------
     sigma_mm : float
         ``inf`` when a free direction moves the point.
-    free : tuple of str
-        The names of the free directions that do.
+    weak : tuple of str
+        The names of the weak directions (``fit.degenerate_directions``) that
+        move the point along ``n``: free ones when ``sigma_mm`` is infinite.
     """
     q = np.asarray(position, dtype=np.float64)
     n = np.asarray(normal, dtype=np.float64)
     n = n / np.linalg.norm(n)
     L = float(fit.pose_radius_mm)
     J = np.concatenate([np.cross(q - fit.pose_center, n) / L, n])
-    moving = tuple(
-        _direction_name(u) for u in fit.degenerate_directions if abs(float(J @ u)) > _FREE_MOVES
-    )
-    if moving:
-        return math.inf, moving
-    return float(np.sqrt(max(float(J @ fit.pose_covariance @ J), 0.0))), ()
+    eig = np.asarray(fit.observability, dtype=np.float64)
+    floor = UNRESOLVED_REL_EIG * max(float(eig[-1]), 1e-300)
+    # degenerate_directions are the eigenvectors of the smallest eigenvalues, in order.
+    moving = [
+        (_direction_name(u), bool(eig[k] <= floor))
+        for k, u in enumerate(fit.degenerate_directions)
+        if abs(float(J @ u)) > _FREE_MOVES
+    ]
+    free = tuple(name for name, unresolved in moving if unresolved)
+    if free:
+        return math.inf, free
+    sigma = float(np.sqrt(max(float(J @ fit.pose_covariance @ J), 0.0)))
+    return sigma, tuple(name for name, _ in moving)
 
 
 def _held_to_the_pose(
@@ -124,18 +135,20 @@ def _held_to_the_pose(
             out.append(c)
             continue
         cp = by_name[c.name]
-        sigma, free = pose_sigma_mm(fit, cp.position, cp.normal)
+        sigma, weak = pose_sigma_mm(fit, cp.position, cp.normal)
         allowed = p.uncertainty_fraction * (cp.upper_mm - cp.lower_mm)
         if 3.0 * sigma <= allowed:
             out.append(c)
             continue
-        if free:
-            why = f"the fit leaves {', '.join(free)} free, which moves this point along its normal"
+        if math.isinf(sigma):
+            why = f"the fit leaves {', '.join(weak)} free, which moves this point along its normal"
         else:
             why = (
                 f"the pose leaves its deviation uncertain by {3 * sigma:.4f} mm (3 sigma), "
                 f"over {allowed:.4f} mm allowed"
             )
+            if weak:
+                why += f": {', '.join(weak)} is only weakly constrained"
         out.append(
             dataclasses.replace(
                 c, verdict=Verdict.NOT_MEASURABLE, deviation_mm=math.nan, reason=why

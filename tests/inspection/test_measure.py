@@ -27,6 +27,7 @@ from inspection.measure import (
     RegisterParams,
     measure_cloud,
     measure_frames,
+    pose_sigma_mm,
     subsample,
     validate_cloud,
 )
@@ -199,27 +200,39 @@ def test_a_flat_plate_passes_and_names_its_three_free_directions(plate):
     assert all(abs(c.deviation_mm) < 0.005 for c in m.deviations.comparison)
 
 
-def step_cloud(wall_points: int) -> np.ndarray:
+def step_cloud(wall_points: int, sigma: float = 0.005) -> np.ndarray:
     low = grid((-95, -5), (-70, 70), 2.0, 1.0)
     high = grid((5, 95), (-70, 70), 6.0, 1.0)
     rng = np.random.default_rng(1)
     wall = np.column_stack(
         [np.zeros(wall_points), rng.uniform(-3, 3, wall_points), rng.uniform(3, 5, wall_points)]
     )
-    return noisy(np.concatenate([low, high, wall]))
+    return noisy(np.concatenate([low, high, wall]), sigma)
 
 
-def test_a_free_direction_that_moves_a_point_makes_it_not_measurable(step):
-    m = measure_cloud(step, step_cloud(12), frame="cad")
+def test_a_weak_direction_that_moves_a_point_makes_it_not_measurable(step):
+    """A handful of noisy points on the wall: across it the pose is all but free."""
+    m = measure_cloud(step, step_cloud(5, sigma=0.05), frame="cad")
     by_name = {c.name: c for c in m.deviations.comparison}
     assert by_name["low"].verdict is Verdict.PASS and by_name["high"].verdict is Verdict.PASS
     wall = by_name["wall"]
     assert wall.support >= 5  # seen: only the pose leaves it undetermined
     assert wall.verdict is Verdict.NOT_MEASURABLE and math.isnan(wall.deviation_mm)
-    assert "translation along x" in wall.reason and "free" in wall.reason
+    assert "translation along x" in wall.reason and "weakly constrained" in wall.reason
     assert "translation along x" in " ".join(m.quality.weak_directions)
     assert m.verdict is Verdict.NOT_MEASURABLE
     assert "wall" in m.reason and "translation along x" in m.reason
+
+
+def test_a_free_direction_leaves_a_point_it_moves_undetermined(plate):
+    """The plate does not resolve its in-plane slide at all: a normal with a
+    component along x is moved by it without bound; one along z is not."""
+    m = measure_cloud(plate, noisy(grid((-95, 95), (-70, 70), 1.0, 1.0)), frame="cad")
+    tilted = np.array([0.6, 0.0, 0.8])
+    sigma, free = pose_sigma_mm(m.registration, (10.0, 5.0, 1.0), tilted)
+    assert math.isinf(sigma) and "translation along x" in free
+    sigma, free = pose_sigma_mm(m.registration, (10.0, 5.0, 1.0), (0.0, 0.0, 1.0))
+    assert free == () and 0 < sigma < 1e-3
 
 
 def test_the_same_wall_seen_well_is_measured(step):
