@@ -94,7 +94,7 @@ def decode_cursor(cursor: str) -> tuple[int, str]:
         value = int(ns)
     except (binascii.Error, UnicodeDecodeError, ValueError) as exc:
         raise InvalidCursor(f"not a valid cursor: {cursor!r}") from exc
-    if value < 0 or not id_:
+    if not 0 <= value < 2**63 or not id_:
         raise InvalidCursor(f"not a valid cursor: {cursor!r}")
     return value, id_
 

@@ -50,6 +50,9 @@ MIN_POINTS = 10
 """Fewer measured points than this are not a cloud."""
 MAX_POINTS = 20_000_000
 """Larger clouds are refused (memory), far above the rig's ~300k points."""
+MAX_COORDINATE_MM = 1e7
+"""Coordinates beyond +-10 km are refused: no part is that large, and the fit's
+squares of them would overflow."""
 
 
 def measure_frames(
@@ -193,8 +196,8 @@ def validate_cloud(points: object) -> np.ndarray:
     """``points`` as a C-contiguous (N, 3) float64 array, or raise InvalidInput.
 
     Refuses wrong shapes, fewer than :data:`MIN_POINTS` points, more than
-    :data:`MAX_POINTS`, and any non-finite coordinate (a NaN would silently
-    poison the fit).
+    :data:`MAX_POINTS`, any non-finite coordinate (a NaN would silently
+    poison the fit) and any beyond :data:`MAX_COORDINATE_MM`.
     """
     a = np.asarray(points)
     if a.dtype.kind not in "fiu":
@@ -210,6 +213,11 @@ def validate_cloud(points: object) -> np.ndarray:
     if not finite.all():
         raise InvalidInput(
             f"{int((~finite).sum())} of {len(a)} points have non-finite coordinates (NaN or inf)"
+        )
+    far = (np.abs(a) > MAX_COORDINATE_MM).any(axis=1)
+    if far.any():
+        raise InvalidInput(
+            f"{int(far.sum())} of {len(a)} points lie beyond +-{MAX_COORDINATE_MM:g} mm"
         )
     return a
 

@@ -491,9 +491,7 @@ def test_sub_pixel_disparities_are_not_pulled_to_half_pixels() -> None:
             ones = np.ones_like(left)
             out = [np.empty(len(px), np.float32) for _ in range(3)]
             start = np.full(len(px), shift + 0.3, np.float32)
-            kernels.refine_pixels(
-                left, spline_rows(right), ones, ones, px, py, start, 4, 10, *out
-            )
+            kernels.refine_pixels(left, spline_rows(right), ones, ones, px, py, start, 4, 10, *out)
             assert np.isfinite(out[0]).all()
             errors.append(out[0] - shift)
         bias.append(float(np.mean(errors)))

@@ -29,7 +29,7 @@ from service.api import ResultHub, create_app
 from service.config import PartSpecBase, load_line_config
 from service.models import InspectionResult, PointResult, make_result_id, software_version
 from service.parts import PartRegistry
-from service.store import DeviationArchive, ResultStore
+from service.store import DeviationArchive, ResultStore, encode_cursor
 
 PART = "panel-s"
 SMALL = PanelSpec().scaled(150.0, 100.0)
@@ -265,6 +265,11 @@ def test_list_filters_and_pagination(client, app_parts):
     assert [r["seq"] for r in since.json()["items"]] == [6, 5]
     iso = client.get("/v1/inspections", params={"since": "2023-11-14T22:13:25Z"}).json()["items"]
     assert [r["seq"] for r in iso] == [6, 5]
+    # Calendar times beyond what the store's 64-bit times hold ask for everything or nothing.
+    ancient = client.get("/v1/inspections", params={"since": "0001-01-01"})
+    assert ancient.status_code == 200 and len(ancient.json()["items"]) == 7
+    future = client.get("/v1/inspections", params={"since": "9999-12-31T23:59:59"})
+    assert future.status_code == 200 and future.json()["items"] == []
     assert client.get("/v1/inspections", params={"part": "other"}).json() == {
         "items": [],
         "next": None,
@@ -280,7 +285,10 @@ def test_list_filters_and_pagination(client, app_parts):
         ({"limit": 0}, "validation_error"),
         ({"limit": 5000}, "validation_error"),
         ({"since": "yesterday"}, "validation_error"),
+        ({"since": "99999999999999999999999"}, "validation_error"),
+        ({"since": str(2**63)}, "validation_error"),
         ({"cursor": "garbage!"}, "invalid_cursor"),
+        ({"cursor": encode_cursor(2**64, "x.1")}, "invalid_cursor"),
         ({"part": "a/b"}, "validation_error"),
     ],
 )
@@ -390,6 +398,7 @@ def post_cloud(
             422,
             "invalid_input",
         ),
+        (lambda: post_cloud_args(npy_bytes(np.full((100, 3), 1e308))), 422, "invalid_input"),
     ],
 )
 def test_bad_clouds_give_clear_errors_and_keep_results(client, app_parts, make, status, code):

@@ -31,6 +31,9 @@ _counter = itertools.count(1)
 
 FRAMES = ("rig", "data", "cad")
 
+MAX_NS = 2**63 - 1
+"""The latest time the store can hold, ns since the epoch (SQLite's int64)."""
+
 _POST_BODY = {
     "requestBody": {
         "required": True,
@@ -72,14 +75,20 @@ _ERRORS: dict[int | str, dict[str, object]] = {
 
 
 def parse_since(value: str | None) -> int | None:
-    """``since`` as ns since the epoch: an integer (ns) or an ISO 8601 time (naive = UTC)."""
+    """``since`` as ns since the epoch: an integer (ns) or an ISO 8601 time (naive = UTC).
+
+    The store keeps times as 64-bit integers: an integer outside them is refused;
+    a calendar time before the epoch or beyond 2262 is clamped to their range
+    (everything, or nothing), which is what it asks for.
+    """
     if value is None or value == "":
         return None
     if value.lstrip("-").isdigit():
-        ns = int(value)
-        if ns < 0:
-            raise ApiError(422, "validation_error", "since must not be negative")
-        return ns
+        if len(value) > 20 or not 0 <= int(value) <= MAX_NS:
+            raise ApiError(
+                422, "validation_error", f"since must be ns since the epoch in [0, {MAX_NS}]"
+            )
+        return int(value)
     try:
         dt = datetime.fromisoformat(value.replace("Z", "+00:00"))
     except ValueError as exc:
@@ -88,7 +97,7 @@ def parse_since(value: str | None) -> int | None:
         ) from exc
     if dt.tzinfo is None:
         dt = dt.replace(tzinfo=UTC)
-    return int(round(dt.timestamp() * 1e9))
+    return min(max(int(round(dt.timestamp() * 1e9)), 0), MAX_NS)
 
 
 @router.post(
