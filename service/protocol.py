@@ -45,6 +45,7 @@ PREAMBLE = struct.Struct("<4sHHI")
 
 DEFAULT_PREFIX = "insp/v1"
 ENCODINGS = ("raw", "png")
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 PIXEL_FORMATS = ("mono8",)
 
 # Generous upper bounds: a hostile or corrupt header must not make us allocate
@@ -381,6 +382,8 @@ def read_header(data: bytes | bytearray | memoryview) -> tuple[dict[str, Any], i
         header = json.loads(bytes(buf[PREAMBLE.size : PREAMBLE.size + hlen]).decode("utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ProtocolError(f"FrameSet header is not UTF-8 JSON: {exc}") from exc
+    except RecursionError as exc:
+        raise ProtocolError("FrameSet header is JSON nested too deeply") from exc
     if not isinstance(header, dict):
         raise ProtocolError("FrameSet header must be a JSON object")
     return header, PREAMBLE.size + hlen
@@ -395,6 +398,13 @@ def _decode_image(payload: memoryview, meta: dict[str, Any], i: int) -> np.ndarr
             raise ProtocolError(f"image {i}: {len(payload)} bytes for a {w}x{h} mono8 image")
         return np.frombuffer(payload, dtype=np.uint8).reshape(h, w).copy()
     if meta["encoding"] == "png":
+        # The PNG's own size comes first, before anything is decoded: a small
+        # payload can expand to gigabytes.
+        if len(payload) < 24 or bytes(payload[:8]) != PNG_SIGNATURE:
+            raise ProtocolError(f"image {i}: {len(payload)} bytes are not a PNG file")
+        pw, ph = struct.unpack(">II", payload[16:24])
+        if (pw, ph) != (w, h):
+            raise ProtocolError(f"image {i}: the PNG is {pw}x{ph}, the header says {w}x{h}")
         img = cv2.imdecode(np.frombuffer(payload, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
         if img is None:
             raise ProtocolError(f"image {i}: PNG payload cannot be decoded")

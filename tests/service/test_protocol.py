@@ -132,7 +132,25 @@ def corruptions():
 
     bad_img = [dict(m) for m in header["images"]]
     bad_img[0]["width"] += 1
+
+    png = encode_frameset(make_frameset(2), encoding="png")
+    plen = int.from_bytes(png[8:12], "little")
+    png_header = json.loads(png[12 : 12 + plen])
+    first = png_header["images"][0]["length"]
+
+    def with_png(images, payload):
+        body = json.dumps(dict(png_header, images=images)).encode()
+        return struct.pack("<4sHHI", b"INSF", 1, 0, len(body)) + body + payload
+
+    empty_png = [dict(png_header["images"][0], length=0), *png_header["images"][1:]]
+    wider = [dict(m, width=m["width"] + 1) for m in png_header["images"]]
     return {
+        "header_nested_deeply": struct.pack("<4sHHI", b"INSF", 1, 0, 200_000)
+        + b"[" * 100_000
+        + b"]" * 100_000,
+        "png_of_length_0": with_png(empty_png, png[12 + plen + first :]),
+        "png_not_a_png": with_png(png_header["images"], b"\0" * first + png[12 + plen + first :]),
+        "png_of_another_size": with_png(wider, png[12 + plen :]),
         "empty": b"",
         "short": good[:7],
         "magic": b"XXXX" + good[4:],
