@@ -24,9 +24,13 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from inspection.deviations import Verdict
 
 from .config import ComparisonPointSpec, Name, PartSpecBase
-from .names import NAME_PATTERN
+from .names import NAME_MAX_LEN, NAME_PATTERN
 
 SCHEMA_VERSION = 2
+
+MAX_ID_LEN = 2 * NAME_MAX_LEN + 2 * 19 + 3
+"""The longest result id: a trigger's line and station names at their limit,
+its time and sequence number (each below 2**63: 19 digits), and three dots."""
 """Version of :class:`InspectionResult`'s JSON."""
 
 T = TypeVar("T")
@@ -98,7 +102,10 @@ class InspectionResult(_Model):
 
     schema_version: int = SCHEMA_VERSION
     id: str = Field(
-        min_length=1, max_length=128, pattern=NAME_PATTERN, description="Unique per inspection."
+        min_length=1,
+        max_length=MAX_ID_LEN,
+        pattern=NAME_PATTERN,
+        description="Unique per inspection.",
     )
     line: Name
     station: Name

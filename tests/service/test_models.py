@@ -122,3 +122,16 @@ def test_page_and_error_shapes():
     assert set(json.loads(page.model_dump_json())) == {"items", "next"}
     err = ErrorBody.model_validate({"error": {"code": "unknown_part", "message": "no such part"}})
     assert err.error.code == "unknown_part"
+
+
+def test_a_trigger_at_every_limit_still_has_a_valid_result():
+    """Names of 64 characters, and a time and sequence number just below 2**63:
+    the result id they make is within the model's own bound, on the error path too."""
+    from service.pipeline import error_result, missed_result
+
+    line, station = "l" * 64, "s" * 64
+    big = 2**63 - 1
+    for make in (error_result, missed_result):
+        r = make(line=line, station=station, seq=big, triggered_ns=big, reason="x")
+        assert r.id == make_result_id(line, station, big, big)
+        assert InspectionResult.model_validate_json(r.model_dump_json()) == r
