@@ -6,8 +6,8 @@ conveyor in a resting pose with a random in-plane rotation and position,
 gives it a random serial, now and then presses a dent into it
 (:mod:`inspection.defects`; the truth goes into the FrameSet header), and
 renders the rig's images. A real-camera source implements the same
-one-method protocol. :func:`line_rig` and :class:`FlashRender` make the
-simulator render the line as configured: its belt speed, flash and slide.
+one-method protocol. :func:`line_rig` makes the
+simulator's rig the line as configured: its belt speed and slide.
 
 :class:`Ingest` fires the trigger every ``trigger_period_s`` (on an absolute
 schedule, so a slow capture does not make the line drift), numbers the
@@ -27,11 +27,9 @@ from typing import Protocol
 import numpy as np
 import trimesh
 
-from inspection.arrays import Image
 from inspection.cad import CadModel
 from inspection.defects import Dent, press
 from inspection.rig import Rig
-from inspection.simulate import RenderOptions, simulate
 from inspection.transforms import apply
 
 from .pipeline import Stages
@@ -93,18 +91,6 @@ def line_rig(rig: Rig, *, conveyor_speed_mm_s: float, pattern_seed: int) -> Rig:
     projector = replace(rig.projector, pattern=replace(rig.projector.pattern, seed=pattern_seed))
     conveyor = replace(rig.conveyor, speed_mm_s=conveyor_speed_mm_s)
     return replace(rig, projector=projector, conveyor=conveyor)
-
-
-@dataclass(frozen=True)
-class FlashRender:
-    """A :attr:`Stages.render`: the simulator with the line's render options (the flash)."""
-
-    options: RenderOptions
-
-    def __call__(
-        self, rig: Rig, mesh: trimesh.Trimesh, T_rig_part: np.ndarray, seed: int
-    ) -> list[Image]:
-        return simulate(rig, mesh, T_rig_part, seed=seed, options=self.options)
 
 
 @dataclass(frozen=True, eq=False)

@@ -14,7 +14,6 @@ otherwise keep the process from exiting.
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import json
 import logging
 import threading
@@ -28,13 +27,14 @@ import numpy as np
 import zenoh
 
 from inspection.cad import CadModel
+from inspection.rig import Rig
 from inspection.simulate import RenderOptions
 from inspection.transforms import apply
 
 from . import bus
 from .api import ResultHub, create_app
 from .config import LineConfig, PartSpec, load_part_spec
-from .ingest import FlashRender, Ingest, SimPart, SimulatedRig, SimulationSettings, line_rig
+from .ingest import Ingest, SimPart, SimulatedRig, SimulationSettings, line_rig
 from .models import software_version
 from .parts import LoadedPart, PartRegistry, load_part_cad
 from .pipeline import Outcome, Pipeline, Stages, flash_stages
@@ -208,14 +208,17 @@ class Station:
 def stages_for(cfg: LineConfig) -> Stages:
     """The line's stages: the four-camera flash rig, calibrated as configured, whose
     simulator renders the line as configured (belt speed, flash duration, slide)."""
-    stages = flash_stages(cfg.rig_calibration_path(), guided=cfg.station.guided_matching)
     truth = line_rig(
-        stages.rig,
+        Rig.nominal(),
         conveyor_speed_mm_s=cfg.line.conveyor_speed_mm_s,
         pattern_seed=cfg.projector.pattern_seed,
     )
-    render = FlashRender(RenderOptions(flash_us=cfg.projector.flash_us))
-    return dataclasses.replace(stages, rig=truth, render=render)
+    return flash_stages(
+        cfg.rig_calibration_path(),
+        guided=cfg.station.guided_matching,
+        truth=truth,
+        render_options=RenderOptions(flash_us=cfg.projector.flash_us),
+    )
 
 
 def bus_settings(cfg: LineConfig, mode: str | None = None) -> bus.BusSettings:

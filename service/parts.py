@@ -33,7 +33,12 @@ from typing import Any
 
 import numpy as np
 
-from inspection.alignment import MODEL_FORMAT_VERSION, AlignmentModel, alignment_model
+from inspection.alignment import (
+    MODEL_FORMAT_VERSION,
+    AlignmentModel,
+    alignment_model,
+    sample_facing,
+)
 from inspection.cad import CadModel, load_cad
 from inspection.deviations import ComparisonPoint
 from inspection.errors import CadLoadError, InspectionError, InvalidInput, TreeMismatch
@@ -320,19 +325,14 @@ def warm_up(part: LoadedPart, *, points: int = 3000) -> float:
     """
     t0 = time.perf_counter()
     cad = part.cad
-    up = cad.faces[cad.face_normals[:, 2] > 0.3]
-    if len(up) == 0:
-        up = cad.faces
     # Points spread evenly over the faces looking up: a cloud like the rig's.
-    tri = cad.vertices[up]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    rng = np.random.default_rng(0)
-    pick = rng.choice(len(tri), size=points, p=area / area.sum())
-    a, b = rng.random((2, points))
-    flip = a + b > 1
-    a[flip], b[flip] = 1 - a[flip], 1 - b[flip]
-    t = tri[pick]
-    cloud = t[:, 0] + a[:, None] * (t[:, 1] - t[:, 0]) + b[:, None] * (t[:, 2] - t[:, 0])
+    try:
+        cloud, _ = sample_facing(
+            cad.vertices, cad.faces, cad.face_normals, np.eye(4), points, seed=0, min_cos=0.3
+        )
+    except InspectionError as exc:
+        log.info("warm-up of %s skipped: %s", part.name, exc)
+        return time.perf_counter() - t0
     frames: tuple[Frame, ...] = ("rig", "cad") if part.model.alignment is not None else ("cad",)
     for frame in frames:
         try:

@@ -83,8 +83,14 @@ class Stages:
     calibration_toml: str | None = None
 
 
-def flash_stages(rig_calibration: str | Path | None = None, *, guided: bool = True) -> Stages:
-    """The line's stages: ``inspection.simulate`` with ``Rig.nominal()`` renders;
+def flash_stages(
+    rig_calibration: str | Path | None = None,
+    *,
+    guided: bool = True,
+    truth: Any = None,
+    render_options: Any = None,
+) -> Stages:
+    """The line's stages: ``inspection.simulate`` renders with the rig as built;
     ``inspection.measure_frames`` with the calibrated rig measures.
 
     Parameters
@@ -94,6 +100,10 @@ def flash_stages(rig_calibration: str | Path | None = None, *, guided: bool = Tr
         ``Rig.default()``. A named file that does not exist is an error.
     guided : bool
         With the CAD-guided second matching pass.
+    truth : inspection.Rig, optional
+        The rig the simulator renders with; default ``Rig.nominal()``.
+    render_options : inspection.RenderOptions, optional
+        The simulator's options (the flash); default its own.
     """
     from inspection.measure import measure_frames
     from inspection.reconstruct import Reconstructor
@@ -101,7 +111,7 @@ def flash_stages(rig_calibration: str | Path | None = None, *, guided: bool = Tr
     from inspection.simulate import simulate
 
     calibrated = Rig.load(rig_calibration) if rig_calibration else Rig.default()
-    nominal = Rig.nominal()
+    nominal = truth if truth is not None else Rig.nominal()
     reconstructor = Reconstructor.build(calibrated)
 
     def measure(part: LoadedPart, frames: list[np.ndarray]) -> Measurement:
@@ -109,7 +119,7 @@ def flash_stages(rig_calibration: str | Path | None = None, *, guided: bool = Tr
         return measure_frames(part.model, reconstructor, frames, params)
 
     def render(r: Any, mesh: trimesh.Trimesh, T: np.ndarray, seed: int) -> list[np.ndarray]:
-        return simulate(r, mesh, T, seed=seed)
+        return simulate(r, mesh, T, seed=seed, options=render_options)
 
     def calibrations() -> list[dict[str, Any]]:
         out = []

@@ -86,7 +86,15 @@ def measure_frames(
     """
     p = params if params is not None else MeasureParams()
     _check_part(part, "rig")
-    rec = rig if isinstance(rig, Reconstructor) else Reconstructor.build(rig)
+    if isinstance(rig, Reconstructor):
+        return _measure_frames(part, rig, frames, p)
+    with Reconstructor.build(rig) as rec:  # its threads end with this call
+        return _measure_frames(part, rec, frames, p)
+
+
+def _measure_frames(
+    part: PartModel, rec: Reconstructor, frames: Sequence[npt.NDArray[np.uint8]], p: MeasureParams
+) -> Measurement:
     timings: dict[str, float] = {}
     t_start = time.perf_counter()
 
