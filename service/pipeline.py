@@ -83,6 +83,21 @@ class Stages:
     calibration_toml: str | None = None
 
 
+@dataclass(frozen=True)
+class FlashRender:
+    """A :attr:`Stages.render`: the simulator with the line's render options (the flash)."""
+
+    options: Any
+    """inspection.RenderOptions"""
+
+    def __call__(
+        self, rig: Any, mesh: trimesh.Trimesh, T_rig_part: np.ndarray, seed: int
+    ) -> list[np.ndarray]:
+        from inspection.simulate import simulate
+
+        return simulate(rig, mesh, T_rig_part, seed=seed, options=self.options)
+
+
 def flash_stages(
     rig_calibration: str | Path | None = None,
     *,
@@ -108,7 +123,7 @@ def flash_stages(
     from inspection.measure import measure_frames
     from inspection.reconstruct import Reconstructor
     from inspection.rig import Rig
-    from inspection.simulate import simulate
+    from inspection.simulate import RenderOptions
 
     calibrated = Rig.load(rig_calibration) if rig_calibration else Rig.default()
     nominal = truth if truth is not None else Rig.nominal()
@@ -117,9 +132,6 @@ def flash_stages(
     def measure(part: LoadedPart, frames: list[np.ndarray]) -> Measurement:
         params = dataclasses.replace(part.params, guided=guided)
         return measure_frames(part.model, reconstructor, frames, params)
-
-    def render(r: Any, mesh: trimesh.Trimesh, T: np.ndarray, seed: int) -> list[np.ndarray]:
-        return simulate(r, mesh, T, seed=seed, options=render_options)
 
     def calibrations() -> list[dict[str, Any]]:
         out = []
@@ -143,7 +155,7 @@ def flash_stages(
         rig=nominal,
         calibration_id=calibrated.id,
         measure=measure,
-        render=render,
+        render=FlashRender(render_options if render_options is not None else RenderOptions()),
         calibrations=calibrations,
         guided=guided,
         calibration_toml=calibrated.to_toml(),
