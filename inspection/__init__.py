@@ -38,6 +38,7 @@ from .reconstruct import Cloud, Guide, Prior, Reconstructor, ReconstructParams, 
 from .registration import CadFaces, RegisterParams, Registration, StopReason, register
 from .rig import Camera, Conveyor, Projector, Rig, belt_pose
 from .simulate import RenderOptions, Simulator, simulate, simulate_board
+from .surface import SurfaceDefect, SurfaceModel, SurfaceParams
 
 __all__ = [
     "Alignment",
@@ -74,6 +75,9 @@ __all__ = [
     "Rig",
     "Simulator",
     "StopReason",
+    "SurfaceDefect",
+    "SurfaceModel",
+    "SurfaceParams",
     "TreeMismatch",
     "align",
     "belt_pose",

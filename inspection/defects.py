@@ -187,3 +187,65 @@ def press(
         pressed = facing & (height >= height[facing].max() - d.radius_mm)
         v -= (d.depth_mm * d.profile(r) * pressed)[:, None] * normals
     return trimesh.Trimesh(v, out.faces, process=False)
+
+
+def random_dent(
+    mesh: Any,
+    rng: np.random.Generator,
+    *,
+    up: npt.ArrayLike = (0.0, 0.0, 1.0),
+    depth_mm: tuple[float, float] = (0.2, 2.0),
+    radius_mm: tuple[float, float] = (12.0, 20.0),
+    flat_mm: float = 7.0,
+    bump_fraction: float = 0.5,
+) -> Dent:
+    """A dent at a random point of the surface that faces ``up`` (the cameras' side).
+
+    The point is drawn uniformly over the area of the faces whose normal lies
+    within about 45 degrees of ``up`` (part frame), so dents land anywhere
+    the cameras see: by holes, at the outline, on the character line.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+        The part in its own frame, mm.
+    rng : numpy.random.Generator
+    up : (3,) float
+        Towards the cameras, part frame.
+    depth_mm : (lo, hi)
+        Range of the depth's size, mm, drawn uniformly.
+    radius_mm : (lo, hi)
+        Range of the radius, mm, drawn uniformly (above ``flat_mm``).
+    flat_mm : float
+        Radius of the flat bottom, mm.
+    bump_fraction : float
+        Share of bumps (negative depths), 0..1.
+    """
+    lo, hi = (float(v) for v in depth_mm)
+    r_lo, r_hi = (float(v) for v in radius_mm)
+    if not (0 < lo <= hi and flat_mm < r_lo <= r_hi and 0 <= bump_fraction <= 1):
+        raise InvalidInput(
+            "random_dent needs 0 < depth lo <= hi, flat_mm < radius lo <= hi, "
+            f"0 <= bump_fraction <= 1; got {depth_mm}, {radius_mm}, {flat_mm}, {bump_fraction}"
+        )
+    u = np.asarray(up, dtype=np.float64)
+    visible = np.flatnonzero(mesh.face_normals @ (u / np.linalg.norm(u)) > 0.7)
+    if len(visible) == 0:
+        raise InvalidInput("no face of the part turns towards the cameras")
+    weights = mesh.area_faces[visible] / mesh.area_faces[visible].sum()
+    face = int(visible[rng.choice(len(visible), p=weights)])
+    a, b = rng.random(2)
+    if a + b > 1:
+        a, b = 1 - a, 1 - b
+    tri = mesh.triangles[face]
+    centre = tri[0] + a * (tri[1] - tri[0]) + b * (tri[2] - tri[0])
+    depth = float(rng.uniform(lo, hi))
+    if rng.random() < bump_fraction:
+        depth = -depth
+    return Dent(
+        tuple(float(v) for v in centre),  # type: ignore[arg-type]
+        tuple(float(v) for v in mesh.face_normals[face]),  # type: ignore[arg-type]
+        depth,
+        float(rng.uniform(r_lo, r_hi)),
+        float(flat_mm),
+    )

@@ -7,7 +7,12 @@ distances, taken along the comparison point's normal, are averaged robustly
 (a Tukey-biweight M-estimate of location with a MAD scale, so that a stray
 reflection in the support does not move the result). The deviation is checked against
 the point's signed tolerance; a comparison point with too few points in its
-support cannot be judged (``not_measurable``).
+support cannot be judged (``not_measurable``). Given the part's
+:class:`~inspection.surface.SurfaceModel`, the whole surface is judged too:
+the field's statistics count only the points the surface measured (not the
+edge points, the fit's outliers or the background), and regions of the
+surface out of the band are surface defects
+(:class:`~inspection.surface.SurfaceDefect`).
 """
 
 from __future__ import annotations
@@ -26,6 +31,7 @@ from numba import njit
 from .arrays import Points, Scalars
 from .errors import InvalidInput
 from .protocols import ClosestPointQuery
+from .surface import PointClasses, SurfaceDefect, SurfaceModel, SurfaceParams
 from .validate import validate_points
 
 log = logging.getLogger(__name__)
@@ -260,24 +266,33 @@ class ComparisonResult:
 
 @dataclass(frozen=True)
 class FieldSummary:
-    """Statistics of the signed distances of the inlier points, mm.
+    """Statistics of the signed distances of the points the surface measured, mm.
 
     Attributes
     ----------
     n : int
         Points measured.
     inliers : int
-        Points counted in the statistics: those within the correspondence
-        distance of the CAD (the others are background or gross outliers).
+        Points counted in the statistics: the others are counted apart below.
+    edge : int
+        Edge points: off the CAD's edge, or near a boundary or an occlusion edge.
+    outliers : int
+        Points the fit rejects (beyond its rejection distance).
+    far : int
+        Points beyond the correspondence distance (background, gross outliers).
     mean_mm, std_mm, rms_mm, min_mm, max_mm, max_abs_mm : float
     median_mm, mad_mm : float
         Median and median absolute deviation from it.
-    p01_mm, p05_mm, p95_mm, p99_mm : float
-        Percentiles. Every statistic is NaN when no point is an inlier.
+    p001_mm, p01_mm, p05_mm, p95_mm, p99_mm, p999_mm : float
+        Percentiles (0.1, 1, 5, 95, 99, 99.9). Every statistic is NaN when no
+        point is counted.
     """
 
     n: int
     inliers: int
+    edge: int
+    outliers: int
+    far: int
     mean_mm: float
     std_mm: float
     rms_mm: float
@@ -286,24 +301,36 @@ class FieldSummary:
     max_abs_mm: float
     median_mm: float
     mad_mm: float
+    p001_mm: float
     p01_mm: float
     p05_mm: float
     p95_mm: float
     p99_mm: float
+    p999_mm: float
 
     @classmethod
-    def of(cls, d: Scalars, inliers: np.ndarray | None = None) -> FieldSummary:
-        """The statistics of ``d[inliers]`` (every finite value when ``inliers`` is None)."""
+    def of(
+        cls, d: Scalars, counted: np.ndarray | None = None, classes: PointClasses | None = None
+    ) -> FieldSummary:
+        """The statistics of ``d[counted]`` (every finite value when ``counted`` is None);
+        ``classes`` gives the counts set apart."""
         d = np.asarray(d, dtype=np.float64)
-        keep = np.isfinite(d) if inliers is None else np.asarray(inliers, bool) & np.isfinite(d)
+        keep = np.isfinite(d) if counted is None else np.asarray(counted, bool) & np.isfinite(d)
         x = d[keep]
+        apart = (0, 0, 0)
+        if classes is not None:
+            apart = (
+                int(classes.edge.sum()), int(classes.outlier.sum()), int(classes.far.sum())
+            )  # fmt: skip
+        elif counted is not None:
+            apart = (0, 0, int(len(d) - keep.sum()))
         if len(x) == 0:
-            nan = math.nan
-            return cls(len(d), 0, *([nan] * 12))
-        p01, p05, p50, p95, p99 = np.percentile(x, [1, 5, 50, 95, 99])
+            return cls(len(d), 0, *apart, *([math.nan] * 14))
+        p001, p01, p05, p50, p95, p99, p999 = np.percentile(x, [0.1, 1, 5, 50, 95, 99, 99.9])
         return cls(
-            n=len(d),
-            inliers=len(x),
+            len(d),
+            len(x),
+            *apart,
             mean_mm=float(x.mean()),
             std_mm=float(x.std()),
             rms_mm=float(np.sqrt(np.mean(x * x))),
@@ -312,10 +339,12 @@ class FieldSummary:
             max_abs_mm=float(np.abs(x).max()),
             median_mm=float(p50),
             mad_mm=float(np.median(np.abs(x - p50))),
+            p001_mm=float(p001),
             p01_mm=float(p01),
             p05_mm=float(p05),
             p95_mm=float(p95),
             p99_mm=float(p99),
+            p999_mm=float(p999),
         )
 
     def to_dict(self) -> dict[str, float | int | None]:
@@ -334,14 +363,20 @@ class Deviations:
     distances : (N,) float64, mm
         Signed distance of every point (positive on the outer side).
     inliers : (N,) bool
-        Points within ``max_distance_mm`` of the CAD: the field's statistics
-        count these only.
+        Points within ``max_distance_mm`` of the CAD (the others are background).
     comparison : tuple of ComparisonResult
         One per comparison point, in the given order.
     summary : FieldSummary
-        Statistics of the inliers' ``distances`` (the whole field).
+        Statistics of the field over the points the surface measured.
     verdict : Verdict
         The part's verdict by :func:`part_verdict`.
+    defects : tuple of SurfaceDefect
+        Regions of the surface out of the surface band, largest first (empty
+        without a surface model).
+    defects_fail : bool
+        Whether the defects fail the part (the spec's ``fails_part``).
+    classes : PointClasses or None
+        What each point is (None without a surface model).
     """
 
     distances: Scalars
@@ -349,13 +384,23 @@ class Deviations:
     comparison: tuple[ComparisonResult, ...]
     summary: FieldSummary
     verdict: Verdict
+    defects: tuple[SurfaceDefect, ...] = ()
+    defects_fail: bool = True
+    classes: PointClasses | None = None
+
+    @property
+    def failing_defects(self) -> tuple[SurfaceDefect, ...]:
+        """The defects that fail the part."""
+        return self.defects if self.defects_fail else ()
 
 
-def part_verdict(comparison: Iterable[ComparisonResult]) -> Verdict:
-    """``fail`` if any comparison point fails, else ``not_measurable`` if any
-    cannot be judged, else ``pass``."""
+def part_verdict(
+    comparison: Iterable[ComparisonResult], failing_defects: Sequence[SurfaceDefect] = ()
+) -> Verdict:
+    """``fail`` if any comparison point fails or a surface defect fails the part, else
+    ``not_measurable`` if any comparison point cannot be judged, else ``pass``."""
     verdicts = {r.verdict for r in comparison}
-    if Verdict.FAIL in verdicts:
+    if Verdict.FAIL in verdicts or len(failing_defects):
         return Verdict.FAIL
     if Verdict.NOT_MEASURABLE in verdicts:
         return Verdict.NOT_MEASURABLE
@@ -449,8 +494,13 @@ def deviations(
     *,
     min_support: int = 10,
     max_distance_mm: float = math.inf,
+    surface: SurfaceModel | None = None,
+    surface_params: SurfaceParams | None = None,
+    outlier_mm: float = math.inf,
+    viewpoints: Points | None = None,
+    view_directions: Points | None = None,
 ) -> Deviations:
-    """Signed deviations of every point, and at each comparison point.
+    """Signed deviations of every point, at each comparison point, and over the surface.
 
     Parameters
     ----------
@@ -461,10 +511,22 @@ def deviations(
     comparison_points : iterable of ComparisonPoint
     min_support : int
         A comparison point with fewer pooled points is ``not_measurable``
-        (unless the point sets its own ``min_support``).
+        (unless the point sets its own ``min_support``); so is a node of the
+        defect search.
     max_distance_mm : float
-        Points farther than this from the CAD are left out of the field's
-        statistics (the registration's correspondence distance).
+        Points farther than this from the CAD are background, left out of the
+        field (the registration's correspondence distance).
+    surface : SurfaceModel, optional
+        The part's surface model (``PartModel.surface``): with it, edge points
+        and outliers are counted apart and surface defects are searched.
+    surface_params : SurfaceParams, optional
+        The surface band (default: ``SurfaceParams()``).
+    outlier_mm : float
+        The fit's rejection distance: farther points are outliers.
+    viewpoints : (K, 3) float64, mm, CAD frame, optional
+        The cameras' centres, whose silhouettes of the CAD are occlusion edges.
+    view_directions : (K, 3) float64, CAD frame, optional
+        Views from far away (towards the sensor), when the centres are not known.
 
     Returns
     -------
@@ -481,9 +543,52 @@ def deviations(
         raise InvalidInput(f"min_support must be >= 1, got {min_support}")
     if not max_distance_mm > 0:
         raise InvalidInput(f"max_distance_mm must be positive, got {max_distance_mm}")
+    if not outlier_mm > 0:
+        raise InvalidInput(f"outlier_mm must be positive, got {outlier_mm}")
     cl = tree.query(P)
     d = np.asarray(cl.distances, dtype=np.float64)
     normals = np.asarray(cl.normals, dtype=np.float64)
+    results = _at_comparison_points(P, d, normals, cps, min_support)
+    inliers = np.abs(d) <= max_distance_mm
+    defects: tuple[SurfaceDefect, ...] = ()
+    sp = surface_params if surface_params is not None else SurfaceParams()
+    classes = None
+    if surface is not None:
+        classes, defects = surface.assess(
+            P, np.asarray(cl.points, dtype=np.float64), normals, d, sp,
+            outlier_mm=outlier_mm, max_distance_mm=max_distance_mm, min_support=min_support,
+            viewpoints=viewpoints, directions=view_directions,
+            comparison=tuple((cp.name, cp.position) for cp in cps),
+        )  # fmt: skip
+        summary = FieldSummary.of(d, classes.surface, classes)
+    else:
+        summary = FieldSummary.of(d, inliers & (np.abs(d) <= outlier_mm))
+    failing = defects if sp.fails_part else ()
+    verdict = part_verdict(results, failing)
+    log.debug(
+        "deviations: %d points, %d comparison points, %d defects, verdict %s",
+        len(P), len(cps), len(defects), verdict,
+    )  # fmt: skip
+    return Deviations(
+        distances=d,
+        inliers=inliers,
+        comparison=tuple(results),
+        summary=summary,
+        verdict=verdict,
+        defects=defects,
+        defects_fail=sp.fails_part,
+        classes=classes,
+    )
+
+
+def _at_comparison_points(
+    P: np.ndarray,
+    d: np.ndarray,
+    normals: np.ndarray,
+    cps: tuple[ComparisonPoint, ...],
+    min_support: int,
+) -> list[ComparisonResult]:
+    """Each comparison point's pooled, robust deviation and its verdict."""
     results = []
     measured = [cp for cp in cps if cp.kind in MEASURED_KINDS]
     if measured:
@@ -539,13 +644,4 @@ def deviations(
                 spread,
             )
         )
-    verdict = part_verdict(results)
-    inliers = np.abs(d) <= max_distance_mm
-    log.debug("deviations: %d points, %d comparison points, verdict %s", len(P), len(cps), verdict)
-    return Deviations(
-        distances=d,
-        inliers=inliers,
-        comparison=tuple(results),
-        summary=FieldSummary.of(d, inliers),
-        verdict=verdict,
-    )
+    return results

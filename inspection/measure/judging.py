@@ -28,6 +28,8 @@ _DIRECTION_NAMES = (
 # A free direction that moves a point along its normal by more than this
 # fraction of its own (unit) size leaves the point's deviation undetermined.
 _FREE_MOVES = 1e-3
+# A reason names this many surface defects (the largest), then counts the rest.
+_LISTED_DEFECTS = 3
 
 
 def _fit_problem(fit: Registration, quality: FitQuality, p: MeasureParams) -> str | None:
@@ -155,15 +157,25 @@ def _held_to_the_pose(
             )
         )
     comparison = tuple(out)
-    return dataclasses.replace(devs, comparison=comparison, verdict=part_verdict(comparison))
+    verdict = part_verdict(comparison, devs.failing_defects)
+    return dataclasses.replace(devs, comparison=comparison, verdict=verdict)
 
 
 def _reason(devs: Deviations, note: str | None) -> str | None:
-    """Which points made the verdict, and any note of the fit."""
+    """Which points and surface defects made the verdict, and any note of the fit."""
     parts = []
     if devs.verdict is Verdict.FAIL:
         names = [c.name for c in devs.comparison if c.verdict is Verdict.FAIL]
-        parts.append("out of tolerance at " + ", ".join(names))
+        if names:
+            parts.append("out of tolerance at " + ", ".join(names))
+        failing = devs.failing_defects
+        if failing:
+            listed = "; ".join(f.describe() for f in failing[:_LISTED_DEFECTS])
+            more = len(failing) - _LISTED_DEFECTS
+            parts.append(
+                f"{len(failing)} surface defect{'s' if len(failing) > 1 else ''}: {listed}"
+                + (f"; and {more} more" if more > 0 else "")
+            )
     elif devs.verdict is Verdict.NOT_MEASURABLE:
         why = [
             f"{c.name} ({c.reason})" for c in devs.comparison if c.verdict is Verdict.NOT_MEASURABLE

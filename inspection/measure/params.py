@@ -8,6 +8,7 @@ from typing import Literal
 
 from ..errors import InvalidInput
 from ..registration import RegisterParams
+from ..surface import SurfaceParams
 
 Frame = Literal["rig", "cad", "data"]
 """The frame a cloud is given in: ``rig`` (seen from above, anywhere on the
@@ -53,6 +54,9 @@ class MeasureParams:
     register : RegisterParams
         The fit (default :data:`LINE_REGISTER`); its view direction applies to
         clouds in the rig frame only (:meth:`fit_params`).
+    surface : SurfaceParams
+        The band the whole surface must stay in, the smallest defect, and
+        whether a defect fails the part (a spec's ``[surface]``).
     """
 
     path: Literal["cloud", "comparison_points"] = "cloud"
@@ -65,6 +69,7 @@ class MeasureParams:
     min_support: int = 10
     uncertainty_fraction: float = 0.1
     register: RegisterParams = field(default_factory=lambda: LINE_REGISTER)
+    surface: SurfaceParams = field(default_factory=SurfaceParams)
 
     def __post_init__(self) -> None:
         if self.path == "comparison_points":
@@ -92,6 +97,8 @@ class MeasureParams:
             raise InvalidInput(
                 f"register must be RegisterParams, got {type(self.register).__name__}"
             )
+        if not isinstance(self.surface, SurfaceParams):
+            raise InvalidInput(f"surface must be SurfaceParams, got {type(self.surface).__name__}")
 
     def fit_params(self, frame: Frame) -> RegisterParams:
         """The fit's parameters for a cloud in ``frame``: the view direction (the

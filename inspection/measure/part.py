@@ -1,4 +1,4 @@
-"""What a part is measured against: its CAD, tree, face planes, alignment model and points."""
+"""What a part is measured against: its CAD, tree, faces, surface, alignment and points."""
 
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ from ..deviations import ComparisonPoint, check_comparison_points, load_comparis
 from ..errors import InvalidInput
 from ..grid import GridTree
 from ..registration import CadFaces
+from ..surface import SurfaceModel
 
 
 @dataclass(frozen=True, eq=False)
@@ -31,6 +32,9 @@ class PartModel:
     faces : CadFaces
         The CAD's face planes and bounding box, as every fit against ``tree``
         uses them (computed from ``tree`` when not given).
+    surface : SurfaceModel
+        The CAD's surface as the defect search samples it (built from ``cad``
+        when not given).
     """
 
     cad: CadModel
@@ -38,6 +42,7 @@ class PartModel:
     alignment: AlignmentModel | None
     comparison_points: tuple[ComparisonPoint, ...] = ()
     faces: CadFaces | None = None
+    surface: SurfaceModel | None = None
 
     @classmethod
     def build(
@@ -77,6 +82,11 @@ class PartModel:
         )
         if self.faces is None:
             object.__setattr__(self, "faces", CadFaces.of(self.tree))
+        if self.surface is None:
+            cad = self.cad
+            object.__setattr__(
+                self, "surface", SurfaceModel.build(cad.vertices, cad.faces, cad.face_normals)
+            )
 
     def save(self, directory: str | Path) -> Path:
         """Write the tree, the alignment model and the comparison points into ``directory``."""

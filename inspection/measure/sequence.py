@@ -13,9 +13,12 @@ the four-camera flash rig:
    windows on bends once more with the CAD at that fit;
 4. fit the final cloud, starting from the first pose;
 5. judge the fit (converged, inliers, residual, ambiguity);
-6. measure signed deviations over the cloud and at the comparison points;
+6. measure signed deviations over the cloud and at the comparison points,
+   set apart the points at edges and the fit's outliers, and search the
+   surface for defects;
 7. hold each comparison point's verdict against the pose's own uncertainty
-   along its normal, and give the part its verdict.
+   along its normal, and give the part its verdict (a surface defect fails
+   it when the spec says so).
 
 Invalid input raises :class:`~inspection.errors.InvalidInput`; a valid
 input that cannot be measured (no surface seen, no fit) gives a
@@ -26,6 +29,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import time
 from collections.abc import Sequence
 
@@ -36,7 +40,7 @@ from ..alignment import align
 from ..deviations import deviations
 from ..errors import InspectionError, InvalidInput
 from ..reconstruct import Cloud, Guide, Matching, Reconstructor
-from ..registration import Registration, register
+from ..registration import LOSSES, Registration, register
 from ..rig import Rig
 from ..transforms import apply
 from .judging import _fit_problem, _held_to_the_pose, _reason, fit_quality
@@ -139,7 +143,11 @@ def _measure_frames(
     timings["align"] = _ms(t)
     passes[-1] = dataclasses.replace(last, fit=final)
     search = passes[0].fit if start is not None else None
-    return _judge(part, last.points, final, p, "rig", timings, t_start, tuple(passes), search)
+    cameras = np.array([cam.centre for cam in rec.rig.cameras], dtype=np.float64)
+    return _judge(
+        part, last.points, final, p, "rig", timings, t_start, tuple(passes), search,
+        cameras=cameras,
+    )  # fmt: skip
 
 
 def measure_cloud(
@@ -349,11 +357,14 @@ def _judge(
     t_start: float,
     passes: tuple[Pass, ...],
     search: Registration | None = None,
+    *,
+    cameras: np.ndarray | None = None,
 ) -> Measurement:
-    """5.-7.: the fit's quality, the deviations, and the verdict.
+    """5.-7.: the fit's quality, the deviations over the cloud and the surface, and the verdict.
 
     ``search`` is the global search's fit when the final fit started from
-    it (the guided passes): its ambiguity is the part's."""
+    it (the guided passes): its ambiguity is the part's. ``cameras`` are the
+    rig's camera centres (rig frame), whose view of the CAD has its occlusion edges."""
     T = np.asarray(fit.transform, dtype=np.float64)
     quality = fit_quality(fit, search)
     if not np.isfinite(T).all():
@@ -373,12 +384,22 @@ def _judge(
         )
 
     t = time.perf_counter()
+    viewpoints = directions = None
+    if cameras is not None:
+        viewpoints = apply(T, cameras)
+    elif frame == "rig" and p.register.view_direction is not None:
+        directions = (T[:3, :3] @ np.asarray(p.register.view_direction, dtype=np.float64))[None]
     devs = deviations(
         part.tree,
         apply(T, points),
         part.comparison_points,
         min_support=p.min_support,
         max_distance_mm=p.register.max_distance_mm,
+        surface=part.surface,
+        surface_params=p.surface,
+        outlier_mm=rejection_mm(fit),
+        viewpoints=viewpoints,
+        view_directions=directions,
     )
     devs = _held_to_the_pose(devs, part.comparison_points, fit, p)
     timings["deviations"] = _ms(t)
@@ -395,6 +416,12 @@ def _judge(
         passes=passes,
         timings_ms=timings,
     )
+
+
+def rejection_mm(fit: Registration) -> float:
+    """The distance beyond which the fit gives a point no weight: where Tukey's biweight
+    reaches zero at the fit's scale (the same distance for losses that never reach zero)."""
+    return float(LOSSES["tukey"][1] * fit.scale_mm) if fit.scale_mm > 0 else math.inf
 
 
 def _unmeasured(

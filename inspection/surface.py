@@ -1,0 +1,587 @@
+"""The whole surface: which measured points the field's statistics count, and surface defects.
+
+A :class:`SurfaceModel` samples the CAD surface into nodes on a
+:data:`NODE_MM` grid (one node per grid cell and side of the surface) and
+links the nodes within the defect search's support radius. Per part:
+
+- **Classes of points.** A point off the CAD's edge (its offset from its
+  closest CAD point runs across the surface, not along the normal: the
+  reconstruction carried the surface past a boundary or an occlusion), or
+  within :data:`EDGE_MM` of a CAD boundary (the outline, the holes), of a
+  bend sharper than :data:`BEND_DEG` over 2 mm, or of an occlusion edge
+  (an edge of the CAD the cameras see as a silhouette at the fitted pose,
+  where depth jumps in their view) is an *edge* point; a
+  point beyond the fit's rejection distance (where Tukey's weight reaches
+  zero) is an *outlier*; a point beyond the correspondence distance is
+  *far* (background). The field's statistics count the rest only.
+- **Surface defects.** The signed field is taken per node (the median of its
+  points) and smoothed over the support (the point-weighted mean of the
+  nodes within :data:`SUPPORT_MM`); nodes whose smoothed value leaves the
+  band ``[lower_mm, upper_mm]`` are joined into connected regions, dents
+  and bumps apart. Edge points carry their own rim's artefacts, so a node
+  away from the edges is smoothed over points away from the edges only,
+  and a region must cover ``min_area_mm2`` away from the edges; flagged
+  nodes at an edge then join the region they touch. So a dent by a hole is
+  found, with its part at the rim, and a hole's rim alone is not a defect.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+from numba import njit
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from .arrays import Points, Scalars, Vectors
+from .errors import InvalidInput
+
+__all__ = [
+    "BEND_DEG",
+    "EDGE_MM",
+    "NODE_MM",
+    "SUPPORT_MM",
+    "PointClasses",
+    "SurfaceDefect",
+    "SurfaceModel",
+    "SurfaceParams",
+]
+
+NODE_MM = 2.0
+"""Edge of the grid cells the CAD surface is sampled into, mm."""
+SUPPORT_MM = 6.0
+"""Radius the defect search smooths the field over, mm: a defect's depth is
+the field's mean over a disc of this radius."""
+EDGE_MM = 4.0
+"""Points within this distance of a CAD boundary, a bend or an occlusion edge are edge
+points, mm."""
+BEND_DEG = 10.0
+"""Where the CAD's surface turns by more than this within :data:`_BEND_SPAN_MM` (a bend
+radius below about 11 mm: a flange, a character line, an emboss's shoulder), the
+reconstruction rounds it: a bend is an edge."""
+_BEND_SPAN_MM = 2.0
+_JOIN_MM = 1.75 * NODE_MM
+"""Nodes closer than this are neighbours in a region (cells sharing a face, edge or corner)."""
+_MIN_NORMAL_COS = 0.5
+"""Nodes whose normals differ by more than 60 degrees do not smooth each other (a flange, the
+far side of a sheet)."""
+_LATERAL_MM = 0.05
+_LATERAL_SLOPE = 0.1
+"""A point is off the edge when its offset runs across the surface by more than
+``_LATERAL_MM + _LATERAL_SLOPE * |distance|``."""
+_EDGE_STEP_MM = 0.5
+"""Edges are sampled at this step to measure distances to them."""
+
+
+@dataclass(frozen=True)
+class SurfaceParams:
+    """How the surface between the comparison points is judged.
+
+    Attributes
+    ----------
+    lower_mm, upper_mm : float
+        Signed band the smoothed field must stay in (negative: into the
+        material, a dent).
+    min_area_mm2 : float
+        Smallest region out of the band reported as a defect, mm^2.
+    fails_part : bool
+        Whether a defect fails the part.
+    """
+
+    lower_mm: float = -0.15
+    upper_mm: float = 0.15
+    min_area_mm2: float = 80.0
+    fails_part: bool = True
+
+    def __post_init__(self) -> None:
+        for label in ("lower_mm", "upper_mm", "min_area_mm2"):
+            v = getattr(self, label)
+            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+                raise InvalidInput(f"surface {label} must be a finite number, got {v!r}")
+        if not self.lower_mm < 0.0 < self.upper_mm:
+            raise InvalidInput(
+                f"the surface band must hold 0: lower_mm {self.lower_mm} < 0 < upper_mm "
+                f"{self.upper_mm}"
+            )
+        if self.min_area_mm2 < 0:
+            raise InvalidInput(f"surface min_area_mm2 must be >= 0, got {self.min_area_mm2}")
+        if not isinstance(self.fails_part, bool):
+            raise InvalidInput(f"surface fails_part must be true or false, got {self.fails_part!r}")
+        object.__setattr__(self, "lower_mm", float(self.lower_mm))
+        object.__setattr__(self, "upper_mm", float(self.upper_mm))
+        object.__setattr__(self, "min_area_mm2", float(self.min_area_mm2))
+
+
+@dataclass(frozen=True)
+class SurfaceDefect:
+    """A connected region of the surface whose deviation leaves the band.
+
+    Attributes
+    ----------
+    center_mm : (3,) float64, mm, CAD frame
+        Centre of the region (its nodes weighted by area and depth).
+    area_mm2 : float
+        Area of the CAD surface the region covers.
+    peak_mm : float
+        The smoothed field's extreme over the region, signed (positive outward).
+    mean_mm : float
+        The smoothed field's mean over the region (by area), signed.
+    nearest_point : str or None
+        The comparison point nearest to the centre (None: the part has none).
+    points : int
+        Measured points in the region.
+    """
+
+    center_mm: np.ndarray = field(repr=False)
+    area_mm2: float
+    peak_mm: float
+    mean_mm: float
+    nearest_point: str | None
+    points: int = 0
+
+    @property
+    def kind(self) -> str:
+        """``dent`` (into the material) or ``bump``."""
+        return "dent" if self.peak_mm < 0 else "bump"
+
+    def to_dict(self) -> dict[str, object]:
+        return {
+            "kind": self.kind,
+            "center_mm": [float(v) for v in self.center_mm],
+            "area_mm2": self.area_mm2,
+            "peak_mm": self.peak_mm,
+            "mean_mm": self.mean_mm,
+            "nearest_point": self.nearest_point,
+            "points": self.points,
+        }
+
+    def describe(self) -> str:
+        """One line for a reason: kind, depth, area, where."""
+        x, y, z = (float(v) for v in self.center_mm)
+        near = f", near {self.nearest_point}" if self.nearest_point else ""
+        return (
+            f"{self.kind} {abs(self.peak_mm):.2f} mm over {self.area_mm2:.0f} mm^2 "
+            f"at ({x:.1f}, {y:.1f}, {z:.1f}){near}"
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class PointClasses:
+    """What each measured point is, for the field's statistics and the defect search.
+
+    Attributes
+    ----------
+    edge : (N,) bool
+        Off the CAD's edge, or within :data:`EDGE_MM` of a boundary, a bend or an
+        occlusion edge.
+    outlier : (N,) bool
+        Beyond the fit's rejection distance (and not an edge point).
+    far : (N,) bool
+        Beyond the correspondence distance (background; neither of the above).
+    """
+
+    edge: np.ndarray
+    outlier: np.ndarray
+    far: np.ndarray
+
+    @property
+    def surface(self) -> np.ndarray:
+        """(N,) bool: the points the field's statistics count."""
+        return ~(self.edge | self.outlier | self.far)
+
+
+@dataclass(frozen=True, eq=False)
+class SurfaceModel:
+    """The CAD surface as nodes for the defect search, built once per part (:meth:`build`).
+
+    Attributes
+    ----------
+    origin : (3,) float64, mm
+        Corner of the node grid.
+    dims : (3,) int64
+        Cells of the grid along x, y, z.
+    keys : (M,) int64, sorted
+        Each node's cell and side (the octant of its normal).
+    centres : (M, 3) float64, mm
+    normals : (M, 3) float64
+    areas : (M,) float64, mm^2
+    support : scipy.sparse.csr_matrix (M, M)
+        1 where two nodes lie within :data:`SUPPORT_MM` with compatible normals (and on
+        the diagonal).
+    join : scipy.sparse.csr_matrix (M, M)
+        The same within :data:`_JOIN_MM`: neighbours in a region.
+    boundary : (B, 3) float64, mm
+        Samples along the CAD's boundary edges (outline, holes) and the centres
+        of the nodes on bends.
+    boundary_mm : (M,) float64
+        Each node's distance to those.
+    edge_faces : (E, 2) int64
+        The two faces of each interior edge of the CAD.
+    edge_ends : (E, 2, 3) float64, mm
+        Its end points.
+    face_normals : (F, 3) float64
+    """
+
+    origin: np.ndarray
+    dims: np.ndarray
+    keys: np.ndarray
+    centres: np.ndarray
+    normals: np.ndarray
+    areas: np.ndarray
+    support: sp.csr_matrix = field(repr=False)
+    join: sp.csr_matrix = field(repr=False)
+    boundary: np.ndarray = field(repr=False)
+    boundary_mm: np.ndarray = field(repr=False)
+    edge_faces: np.ndarray = field(repr=False)
+    edge_ends: np.ndarray = field(repr=False)
+    face_normals: np.ndarray = field(repr=False)
+
+    @classmethod
+    def build(cls, vertices: Points, faces: np.ndarray, face_normals: Vectors) -> SurfaceModel:
+        """Sample the surface of a CAD (``CadModel.vertices``, ``faces``, ``face_normals``)."""
+        V = np.asarray(vertices, dtype=np.float64)
+        F = np.asarray(faces, dtype=np.int64)
+        N = np.asarray(face_normals, dtype=np.float64)
+        tri = V[F]
+        area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+        # Samples at about four per cell: the cells' areas and centroids to a few percent.
+        per_face = np.maximum(1, np.ceil(area / (0.5 * NODE_MM) ** 2)).astype(np.int64)
+        fi = np.repeat(np.arange(len(F)), per_face)
+        rng = np.random.default_rng(0)
+        u, v = rng.random((2, len(fi)))
+        flip = u + v > 1.0
+        u[flip], v[flip] = 1.0 - u[flip], 1.0 - v[flip]
+        t = tri[fi]
+        S = t[:, 0] + u[:, None] * (t[:, 1] - t[:, 0]) + v[:, None] * (t[:, 2] - t[:, 0])
+        w = (area / per_face)[fi]
+        origin = V.min(axis=0) - NODE_MM
+        dims = np.ceil((V.max(axis=0) + NODE_MM - origin) / NODE_MM).astype(np.int64) + 1
+        keys, inv = np.unique(_keys(origin, dims, S, N[fi]), return_inverse=True)
+        M = len(keys)
+        areas = np.bincount(inv, w, M).astype(np.float64)
+        sums = np.stack([np.bincount(inv, w * S[:, j], M) for j in range(3)], axis=1)
+        centres = sums.astype(np.float64) / areas[:, None]
+        turned = np.stack([np.bincount(inv, w * N[fi, j], M) for j in range(3)], axis=1)
+        normals = turned / np.maximum(np.linalg.norm(turned, axis=1, keepdims=True), 1e-300)
+
+        pairs = cKDTree(centres).query_pairs(SUPPORT_MM, output_type="ndarray")
+        compatible = np.einsum("ij,ij->i", normals[pairs[:, 0]], normals[pairs[:, 1]])
+        pairs = pairs[compatible > _MIN_NORMAL_COS]
+        gap = np.linalg.norm(centres[pairs[:, 0]] - centres[pairs[:, 1]], axis=1)
+        support = _adjacency(pairs, M)
+        join = _adjacency(pairs[gap <= _JOIN_MM], M)
+
+        edges = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
+        owner = np.tile(np.arange(len(F)), 3)
+        order = np.lexsort((edges[:, 1], edges[:, 0]))
+        edges, owner = edges[order], owner[order]
+        same = np.r_[False, (edges[1:] == edges[:-1]).all(axis=1)]
+        starts = np.flatnonzero(~same)
+        counts = np.diff(np.r_[starts, len(edges)])
+        lone = starts[counts == 1]
+        bends = _bends(centres, normals)
+        boundary = np.concatenate([_sample_segments(V[edges[lone]]), centres[bends]])
+        pair = starts[counts == 2]
+        edge_faces = np.stack([owner[pair], owner[pair + 1]], axis=1)
+        edge_ends = V[edges[pair]]
+        if len(boundary):
+            boundary_mm, _ = cKDTree(boundary).query(centres)
+        else:
+            boundary_mm = np.full(M, np.inf)
+        return cls(
+            origin=origin, dims=dims, keys=keys, centres=centres, normals=normals, areas=areas,
+            support=support, join=join, boundary=boundary, boundary_mm=boundary_mm,
+            edge_faces=edge_faces, edge_ends=edge_ends, face_normals=N,
+        )  # fmt: skip
+
+    def nodes_of(self, points: Points, normals: Vectors) -> np.ndarray:
+        """(N,) int64: the node of each closest CAD point (with its face's normal).
+
+        The node of its cell and side; a point on a sliver of surface that
+        the cell's samples missed takes the nearest node whose normal agrees
+        (-1 if none within two cells).
+        """
+        key = _keys(self.origin, self.dims, points, normals)
+        pos = np.minimum(np.searchsorted(self.keys, key), len(self.keys) - 1)
+        out = np.where(self.keys[pos] == key, pos, -1)
+        missed = np.flatnonzero(out < 0)
+        if len(missed):
+            k = min(4, len(self.keys))
+            _, near = cKDTree(self.centres).query(
+                np.asarray(points)[missed], k=k, distance_upper_bound=2 * NODE_MM
+            )
+            near = near.reshape(len(missed), k)
+            n = np.asarray(normals)[missed]
+            for j in range(k - 1, -1, -1):  # the nearest agreeing node wins
+                ok = near[:, j] < len(self.keys)
+                agree = np.zeros(len(missed), dtype=bool)
+                agree[ok] = (
+                    np.einsum("ij,ij->i", self.normals[near[ok, j]], n[ok]) > _MIN_NORMAL_COS
+                )
+                out[missed[agree]] = near[agree, j]
+        return out
+
+    def occlusion_edges(
+        self, viewpoints: Points | None = None, directions: Vectors | None = None
+    ) -> np.ndarray:
+        """(S, 3) mm: samples along the CAD's edges seen as silhouettes, CAD frame.
+
+        An interior edge is a silhouette for a camera when one of its faces
+        turns towards the camera and the other away: where the depth the
+        camera sees jumps. ``viewpoints`` are camera centres, ``directions``
+        are views from infinitely far (towards the sensor), both in the CAD frame.
+        """
+        if len(self.edge_faces) == 0:
+            return np.empty((0, 3))
+        n0 = self.face_normals[self.edge_faces[:, 0]]
+        n1 = self.face_normals[self.edge_faces[:, 1]]
+        mid = self.edge_ends.mean(axis=1)
+        silhouette = np.zeros(len(mid), dtype=bool)
+        for c in np.empty((0, 3)) if viewpoints is None else np.asarray(viewpoints, float):
+            towards = c - mid
+            silhouette |= (np.einsum("ij,ij->i", n0, towards) > 0) != (
+                np.einsum("ij,ij->i", n1, towards) > 0
+            )
+        for u in np.empty((0, 3)) if directions is None else np.asarray(directions, float):
+            silhouette |= (n0 @ u > 0) != (n1 @ u > 0)
+        return _sample_segments(self.edge_ends[silhouette])
+
+    def assess(
+        self,
+        points: Points,
+        closest: Points,
+        normals: Vectors,
+        distances: Scalars,
+        params: SurfaceParams,
+        *,
+        outlier_mm: float,
+        max_distance_mm: float,
+        min_support: int,
+        viewpoints: Points | None = None,
+        directions: Vectors | None = None,
+        comparison: tuple[tuple[str, tuple[float, float, float]], ...] = (),
+    ) -> tuple[PointClasses, tuple[SurfaceDefect, ...]]:
+        """The class of each point, and the surface's defects (largest first).
+
+        Parameters
+        ----------
+        points : (N, 3) float64, mm, CAD frame
+        closest, normals, distances : (N, 3), (N, 3), (N,)
+            Each point's closest CAD point, that face's unit normal and the signed distance.
+        params : SurfaceParams
+        outlier_mm : float
+            The fit's rejection distance.
+        max_distance_mm : float
+            The correspondence distance (farther points are background).
+        min_support : int
+            Points a smoothed node needs to be judged.
+        viewpoints, directions : see :meth:`occlusion_edges`.
+        comparison : (name, position) of each comparison point, for ``nearest_point``.
+        """
+        d = np.asarray(distances, dtype=np.float64)
+        nodes = self.nodes_of(closest, normals)
+        occlusion = self.occlusion_edges(viewpoints, directions)
+        edge_mm = self.edge_distance(occlusion)
+        off = self.off_edge(points, closest, normals, d)
+        edge = off | self._near_edges(closest, nodes, occlusion, edge_mm)
+        far = (np.abs(d) > max_distance_mm) & ~edge
+        outlier = (np.abs(d) > outlier_mm) & ~edge & ~far
+        classes = PointClasses(edge=edge, outlier=outlier, far=far)
+        usable = ~off & (np.abs(d) <= max_distance_mm) & (nodes >= 0)
+        found = self._defects(d, nodes, usable, edge, edge_mm, params, min_support, comparison)
+        return classes, found
+
+    @staticmethod
+    def off_edge(
+        points: Points, closest: Points, normals: Vectors, distances: Scalars
+    ) -> np.ndarray:
+        """(N,) bool: points whose offset from the CAD runs across its surface."""
+        offset = np.asarray(points) - np.asarray(closest)
+        along = np.einsum("ij,ij->i", offset, normals)
+        lateral = np.linalg.norm(offset - along[:, None] * normals, axis=1)
+        return lateral > _LATERAL_MM + _LATERAL_SLOPE * np.abs(np.asarray(distances))
+
+    def edge_distance(self, occlusion: Points) -> np.ndarray:
+        """(M,) mm: each node's distance to the boundary or an occlusion edge (inf beyond
+        twice :data:`EDGE_MM`)."""
+        if len(occlusion) == 0:
+            return self.boundary_mm
+        near, _ = cKDTree(occlusion).query(self.centres, distance_upper_bound=2 * EDGE_MM)
+        return np.minimum(self.boundary_mm, near)
+
+    def _near_edges(
+        self, closest: Points, nodes: np.ndarray, occlusion: Points, edge_mm: np.ndarray
+    ) -> np.ndarray:
+        """(N,) bool: closest points within EDGE_MM of the boundary or an occlusion edge.
+
+        Decided per node where the whole cell lies inside or outside that
+        distance, per point in the cells that straddle it.
+        """
+        half_cell = 0.5 * math.sqrt(3.0) * NODE_MM
+        at = np.where(nodes >= 0, edge_mm[np.maximum(nodes, 0)], EDGE_MM)
+        near = (at <= EDGE_MM - half_cell) & (nodes >= 0)
+        unsure = np.flatnonzero(~near & (at <= EDGE_MM + half_cell))
+        samples = np.concatenate([self.boundary, np.asarray(occlusion).reshape(-1, 3)])
+        if len(unsure) and len(samples):
+            dist, _ = cKDTree(samples).query(
+                np.asarray(closest)[unsure], distance_upper_bound=EDGE_MM + 1e-9
+            )
+            near[unsure] = dist <= EDGE_MM
+        return near
+
+    def _defects(
+        self,
+        d: np.ndarray,
+        nodes: np.ndarray,
+        usable: np.ndarray,
+        edge: np.ndarray,
+        edge_mm: np.ndarray,
+        params: SurfaceParams,
+        min_support: int,
+        comparison: tuple[tuple[str, tuple[float, float, float]], ...],
+    ) -> tuple[SurfaceDefect, ...]:
+        """Regions out of the band: a node away from the edges is smoothed over points away
+        from the edges, a node at an edge over all; regions need ``min_area_mm2`` away from
+        the edges, then take in the flagged edge nodes they touch."""
+        M = len(self.keys)
+        rim = edge_mm <= EDGE_MM
+        median_inner, count_inner, median_all, count_all = _node_medians(
+            d, nodes, usable, usable & ~edge, M
+        )
+        inner = self._smoothed(median_inner, count_inner)
+        at_rim = self._smoothed(median_all, count_all)
+        s = np.where(rim, at_rim[0], inner[0])
+        n = np.where(rim, at_rim[1], inner[1])
+        judged = n >= min_support
+        out: list[SurfaceDefect] = []
+        for flagged in (judged & (s < params.lower_mm), judged & (s > params.upper_mm)):
+            core = np.flatnonzero(flagged & ~rim)
+            if len(core) == 0:
+                continue
+            k, label = connected_components(self.join[core][:, core], directed=False)
+            core_area = np.bincount(label, self.areas[core], k)
+            rim_nodes = flagged & rim
+            for j in np.flatnonzero(core_area >= params.min_area_mm2):
+                members = core[label == j]
+                touching = np.asarray(self.support[members].sum(axis=0)).ravel() > 0
+                region = np.union1d(members, np.flatnonzero(touching & rim_nodes))
+                out.append(self._defect(region, s, count_all, comparison))
+        out.sort(key=lambda f: -f.area_mm2)
+        return tuple(out)
+
+    def _smoothed(self, median: np.ndarray, count: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per node: the point-weighted mean of the node medians within the support, and the
+        points it rests on."""
+        c = count.astype(np.float64)
+        total = self.support @ c
+        field = (self.support @ (median * c)) / np.maximum(total, 1.0)
+        return np.where(total > 0, field, np.nan), total
+
+    def _defect(
+        self,
+        region: np.ndarray,
+        s: np.ndarray,
+        counts: np.ndarray,
+        comparison: tuple[tuple[str, tuple[float, float, float]], ...],
+    ) -> SurfaceDefect:
+        a = self.areas[region]
+        v = s[region]
+        w = a * np.abs(v)
+        centre = (self.centres[region] * w[:, None]).sum(axis=0) / w.sum()
+        nearest = None
+        if comparison:
+            gaps = [float(np.linalg.norm(np.asarray(p) - centre)) for _, p in comparison]
+            nearest = comparison[int(np.argmin(gaps))][0]
+        return SurfaceDefect(
+            center_mm=centre,
+            area_mm2=float(a.sum()),
+            peak_mm=float(v[np.argmax(np.abs(v))]),
+            mean_mm=float((a * v).sum() / a.sum()),
+            nearest_point=nearest,
+            points=int(counts[region].sum()),
+        )
+
+
+@njit(cache=True, nogil=True)
+def _node_medians(
+    d: np.ndarray, nodes: np.ndarray, first: np.ndarray, second: np.ndarray, m: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """Per node, the median of ``d`` over the points selected by ``second`` and its count,
+    then the same over ``first`` (a superset): bucketed by node, each bucket sorted."""
+    counts = np.zeros(m + 1, dtype=np.int64)
+    for i in range(d.shape[0]):
+        if first[i]:
+            counts[nodes[i] + 1] += 1
+    start = np.cumsum(counts)
+    fill = start[:-1].copy()
+    values = np.empty(start[-1])
+    inner = np.empty(start[-1], dtype=np.bool_)
+    for i in range(d.shape[0]):
+        if first[i]:
+            values[fill[nodes[i]]] = d[i]
+            inner[fill[nodes[i]]] = second[i]
+            fill[nodes[i]] += 1
+    med_second = np.zeros(m)
+    n_second = np.zeros(m, dtype=np.int64)
+    med_first = np.zeros(m)
+    n_first = np.zeros(m, dtype=np.int64)
+    for j in range(m):
+        a, b = start[j], start[j + 1]
+        if b == a:
+            continue
+        bucket = values[a:b]
+        keep = inner[a:b]
+        order = np.argsort(bucket)
+        bucket, keep = bucket[order], keep[order]
+        k = b - a
+        med_first[j] = 0.5 * (bucket[(k - 1) // 2] + bucket[k // 2])
+        n_first[j] = k
+        sub = bucket[keep]
+        q = sub.shape[0]
+        if q:
+            med_second[j] = 0.5 * (sub[(q - 1) // 2] + sub[q // 2])
+            n_second[j] = q
+    return med_second, n_second, med_first, n_first
+
+
+def _keys(origin: np.ndarray, dims: np.ndarray, points: Points, normals: Vectors) -> np.ndarray:
+    """Cell of each point and the octant of its normal, as one int64."""
+    ijk = np.floor((np.asarray(points) - origin) / NODE_MM).astype(np.int64)
+    ijk = np.clip(ijk, 0, dims - 1)
+    n = np.asarray(normals)
+    octant = (n[:, 0] >= 0) | ((n[:, 1] >= 0).astype(np.int64) << 1) | ((n[:, 2] >= 0) << 2)
+    return ((ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]) * 8 + octant
+
+
+def _bends(centres: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """(M,) bool: nodes with a neighbour within _BEND_SPAN_MM whose normal turns by more
+    than BEND_DEG."""
+    pairs = cKDTree(centres).query_pairs(_BEND_SPAN_MM, output_type="ndarray")
+    turned = np.einsum("ij,ij->i", normals[pairs[:, 0]], normals[pairs[:, 1]]) < math.cos(
+        math.radians(BEND_DEG)
+    )
+    out = np.zeros(len(centres), dtype=bool)
+    out[pairs[turned].ravel()] = True
+    return out
+
+
+def _adjacency(pairs: np.ndarray, m: int) -> sp.csr_matrix:
+    """Symmetric 0/1 matrix of ``pairs`` with ones on the diagonal."""
+    i = np.concatenate([pairs[:, 0], pairs[:, 1], np.arange(m)])
+    j = np.concatenate([pairs[:, 1], pairs[:, 0], np.arange(m)])
+    return sp.csr_matrix((np.ones(len(i)), (i, j)), shape=(m, m))
+
+
+def _sample_segments(ends: np.ndarray) -> np.ndarray:
+    """(S, 3): points every _EDGE_STEP_MM or less along each segment of ``ends`` (E, 2, 3)."""
+    if len(ends) == 0:
+        return np.empty((0, 3))
+    a, b = ends[:, 0], ends[:, 1]
+    steps = np.maximum(1, np.ceil(np.linalg.norm(b - a, axis=1) / _EDGE_STEP_MM)).astype(np.int64)
+    seg = np.repeat(np.arange(len(a)), steps + 1)
+    t = np.arange(len(seg)) - np.repeat(np.cumsum(steps + 1) - (steps + 1), steps + 1)
+    t = t / steps[seg]
+    return a[seg] + t[:, None] * (b[seg] - a[seg])
