@@ -16,7 +16,7 @@ import inspection
 from inspection.defects import Dent, press
 from inspection.panel import panel_height
 from inspection.pictures import write_rig_pictures
-from service.api.colormap import render_top_view
+from service.api.colormap import Marker, render_top_view
 
 OUT = Path(__file__).parent / "images"
 
@@ -39,9 +39,13 @@ def deviation_map(path: Path) -> None:
     m = inspection.measure_frames(part, inspection.Rig.default(), frames)
     if m.deviations is None:
         raise SystemExit(f"the picture's part was not measured: {m.reason}")
+    markers = [
+        Marker(tuple(f.center_mm), f.area_mm2, f"{f.kind} {f.peak_mm:+.2f} mm")
+        for f in m.deviations.defects
+    ]
     png = render_top_view(
         m.points_cad(), m.deviations.distances, limit_mm=0.5, size_px=560,
-        title="deviation from CAD, mm",
+        title="deviation from CAD, mm", markers=markers,
     )  # fmt: skip
     path.write_bytes(png)
 

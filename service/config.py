@@ -27,6 +27,8 @@ from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from inspection.surface import SurfaceParams
+
 from .names import KEY_PREFIX_PATTERN, NAME_MAX_LEN, NAME_PATTERN
 
 Name = Annotated[str, Field(pattern=NAME_PATTERN, min_length=1, max_length=NAME_MAX_LEN)]
@@ -154,6 +156,37 @@ class RegistrationSettings(_Strict):
         return (0.0, 0.0, 1.0) if on else None
 
 
+_SURFACE = SurfaceParams()
+
+
+class SurfaceSettings(_Strict):
+    """How the surface between the comparison points is judged; ``inspection.SurfaceParams``.
+
+    A region of the surface whose deviation (smoothed over 6 mm) leaves
+    ``[lower_mm, upper_mm]`` over at least ``min_area_mm2`` is a surface
+    defect (a dent or a bump).
+    """
+
+    lower_mm: float = Field(
+        default=_SURFACE.lower_mm, lt=0, ge=-100, description="Signed lower limit, mm (a dent)."
+    )
+    upper_mm: float = Field(
+        default=_SURFACE.upper_mm, gt=0, le=100, description="Signed upper limit, mm (a bump)."
+    )
+    min_area_mm2: float = Field(
+        default=_SURFACE.min_area_mm2,
+        ge=0,
+        le=1e6,
+        description="Smaller regions out of the band are not reported, mm^2.",
+    )
+    fails_part: bool = Field(
+        default=_SURFACE.fails_part, strict=True, description="A surface defect fails the part."
+    )
+
+    def params(self) -> SurfaceParams:
+        return SurfaceParams(**self.model_dump())
+
+
 class TreeSettings(_Strict):
     """Build parameters of the closest-point grid (``GridTree.build``); ``None``: its defaults."""
 
@@ -176,6 +209,7 @@ class PartSpecBase(_Strict):
     description: str = Field(default="", max_length=1000)
     points: list[ComparisonPointSpec] = Field(default_factory=list, max_length=1000)
     registration: RegistrationSettings = Field(default_factory=RegistrationSettings)
+    surface: SurfaceSettings = Field(default_factory=SurfaceSettings)
     tree: TreeSettings = Field(default_factory=TreeSettings)
 
     @field_validator("points")
@@ -367,17 +401,22 @@ class SimulatorSection(_Strict):
     defect_rate: float = Field(
         default=0.1, ge=0, le=1, description="Fraction of parts given a defect."
     )
-    dent_depth_mm: float = Field(
-        default=1.5, gt=0, le=20, description="Depth of an injected dent, mm."
+    dent_depth_mm: tuple[float, float] = Field(
+        default=(0.2, 2.0),
+        description="Range of an injected dent's depth, mm (a number: that depth).",
     )
-    dent_radius_mm: float = Field(
-        default=15.0, ge=1, le=200, description="Radius of an injected dent, mm."
+    dent_radius_mm: tuple[float, float] = Field(
+        default=(12.0, 20.0),
+        description="Range of an injected dent's radius, mm (a number: that radius).",
     )
     dent_flat_mm: float = Field(
-        default=0.0,
+        default=7.0,
         ge=0,
         le=200,
         description="Radius of the dent's flat bottom, mm (0: a smooth bowl); below the radius.",
+    )
+    dent_bump_fraction: float = Field(
+        default=0.5, ge=0, le=1, description="Share of the injected dents that are bumps."
     )
     position_range_x_mm: float = Field(
         default=60.0, ge=0, le=400, description="Half-range of the part's x on the belt, mm."
@@ -391,9 +430,28 @@ class SimulatorSection(_Strict):
     flip: bool = Field(default=False, description="Half of the parts arrive turned by 180 deg.")
     seed: int = Field(default=0, ge=0)
 
+    @field_validator("dent_depth_mm", "dent_radius_mm", mode="before")
+    @classmethod
+    def _one_number_is_a_range(cls, v: object) -> object:
+        return (v, v) if isinstance(v, int | float) and not isinstance(v, bool) else v
+
+    @field_validator("dent_depth_mm")
+    @classmethod
+    def _depth_range(cls, v: tuple[float, float]) -> tuple[float, float]:
+        if not 0 < v[0] <= v[1] <= 20:
+            raise ValueError(f"a depth range 0 < lo <= hi <= 20 mm is needed, got {list(v)}")
+        return v
+
+    @field_validator("dent_radius_mm")
+    @classmethod
+    def _radius_range(cls, v: tuple[float, float]) -> tuple[float, float]:
+        if not 1 <= v[0] <= v[1] <= 200:
+            raise ValueError(f"a radius range 1 <= lo <= hi <= 200 mm is needed, got {list(v)}")
+        return v
+
     @model_validator(mode="after")
     def _flat_within_the_dent(self) -> SimulatorSection:
-        if not self.dent_flat_mm < self.dent_radius_mm:
+        if not self.dent_flat_mm < self.dent_radius_mm[0]:
             raise ValueError(
                 f"dent_flat_mm ({self.dent_flat_mm}) must be below dent_radius_mm "
                 f"({self.dent_radius_mm})"

@@ -28,7 +28,7 @@ import numpy as np
 import trimesh
 
 from inspection.cad import CadModel
-from inspection.defects import Dent, press
+from inspection.defects import Dent, press, random_dent
 from inspection.rig import Rig
 from inspection.transforms import apply
 
@@ -53,8 +53,14 @@ class SimulationSettings:
     ----------
     defect_rate : float
         Fraction of parts that get a dent, 0..1.
-    dent_depth_mm, dent_radius_mm, dent_flat_mm : float
-        Size of an injected dent (:class:`inspection.defects.Dent`).
+    dent_depth_mm, dent_radius_mm : (float, float)
+        Ranges of an injected dent's depth (its size: ``dent_bump_fraction``
+        of them are bumps) and radius, mm, drawn uniformly
+        (:func:`inspection.defects.random_dent`).
+    dent_flat_mm : float
+        Radius of its flat bottom, mm.
+    dent_bump_fraction : float
+        Share of the dents that are bumps, 0..1.
     position_range_mm : (float, float)
         Half-ranges of the random x, y position of the part's centre on the conveyor.
     yaw_range_deg : float
@@ -70,9 +76,10 @@ class SimulationSettings:
     """
 
     defect_rate: float = 0.1
-    dent_depth_mm: float = 1.5
-    dent_radius_mm: float = 15.0
-    dent_flat_mm: float = 0.0
+    dent_depth_mm: tuple[float, float] = (0.2, 2.0)
+    dent_radius_mm: tuple[float, float] = (12.0, 20.0)
+    dent_flat_mm: float = 7.0
+    dent_bump_fraction: float = 0.5
     position_range_mm: tuple[float, float] = (60.0, 10.0)
     yaw_range_deg: float = 180.0
     flip: bool = False
@@ -81,8 +88,11 @@ class SimulationSettings:
     def __post_init__(self) -> None:
         if not 0 <= self.defect_rate <= 1:
             raise ValueError("defect_rate must lie in [0, 1]")
-        if self.dent_depth_mm <= 0 or not 0 <= self.dent_flat_mm < self.dent_radius_mm:
-            raise ValueError("a dent needs a positive depth and 0 <= flat < radius")
+        (d_lo, d_hi), (r_lo, r_hi) = self.dent_depth_mm, self.dent_radius_mm
+        if not (0 < d_lo <= d_hi and 0 <= self.dent_flat_mm < r_lo <= r_hi):
+            raise ValueError("a dent needs 0 < depth lo <= hi and 0 <= flat < radius lo <= hi")
+        if not 0 <= self.dent_bump_fraction <= 1:
+            raise ValueError("dent_bump_fraction must lie in [0, 1]")
 
 
 def line_rig(rig: Rig, *, conveyor_speed_mm_s: float, pattern_seed: int) -> Rig:
@@ -191,25 +201,12 @@ class SimulatedRig:
 
     def _random_dent(self, part: SimPart, T_rig_part: np.ndarray, rng: np.random.Generator) -> Dent:
         """A dent at a random point of the surface the cameras see (normal up in the rig)."""
-        mesh = part.mesh
-        up_in_part = T_rig_part[:3, :3].T @ np.array([0.0, 0.0, 1.0])
-        visible = np.flatnonzero(mesh.face_normals @ up_in_part > 0.7)
-        weights = mesh.area_faces[visible] / mesh.area_faces[visible].sum()
-        face = int(visible[rng.choice(len(visible), p=weights)])
-        a, b = rng.random(2)
-        if a + b > 1:
-            a, b = 1 - a, 1 - b
-        tri = mesh.triangles[face]
-        centre = tri[0] + a * (tri[1] - tri[0]) + b * (tri[2] - tri[0])
-        n = mesh.face_normals[face]
         s = self.settings
-        return Dent(
-            tuple(float(v) for v in centre),  # type: ignore[arg-type]
-            tuple(float(v) for v in n),  # type: ignore[arg-type]
-            s.dent_depth_mm,
-            s.dent_radius_mm,
-            s.dent_flat_mm,
-        )
+        return random_dent(
+            part.mesh, rng, up=T_rig_part[:3, :3].T @ np.array([0.0, 0.0, 1.0]),
+            depth_mm=s.dent_depth_mm, radius_mm=s.dent_radius_mm, flat_mm=s.dent_flat_mm,
+            bump_fraction=s.dent_bump_fraction,
+        )  # fmt: skip
 
 
 class Ingest:

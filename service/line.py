@@ -158,6 +158,7 @@ class Station:
                 dent_depth_mm=sim.dent_depth_mm,
                 dent_radius_mm=sim.dent_radius_mm,
                 dent_flat_mm=sim.dent_flat_mm,
+                dent_bump_fraction=sim.dent_bump_fraction,
                 position_range_mm=(sim.position_range_x_mm, sim.position_range_y_mm),
                 yaw_range_deg=sim.yaw_range_deg,
                 flip=sim.flip,

@@ -17,7 +17,7 @@ import math
 import os
 import time
 from enum import StrEnum
-from typing import Annotated, Generic, TypeVar
+from typing import Annotated, Generic, Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
@@ -26,12 +26,12 @@ from inspection.deviations import Verdict
 from .config import ComparisonPointSpec, Name, PartSpecBase
 from .names import NAME_MAX_LEN, NAME_PATTERN
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
+"""Version of :class:`InspectionResult`'s JSON."""
 
 MAX_ID_LEN = 2 * NAME_MAX_LEN + 2 * 19 + 3
 """The longest result id: a trigger's line and station names at their limit,
 its time and sequence number (each below 2**63: 19 digits), and three dots."""
-"""Version of :class:`InspectionResult`'s JSON."""
 
 T = TypeVar("T")
 
@@ -68,21 +68,53 @@ class PointResult(_Model):
 
 
 class FieldStats(_Model):
-    """Summary of the signed deviations of the whole cloud (CAD frame, mm).
+    """Summary of the signed deviations over the surface (CAD frame, mm).
 
-    Only inlier points (those the registration kept) count; ``null`` when no
-    point does.
+    Only the points the surface measured count; the others are counted apart
+    (``edge``, ``outliers``, ``far``). The statistics are ``null`` when no
+    point counts.
     """
 
     points: int = Field(ge=0, description="Points measured.")
     inliers: int = Field(ge=0, description="Points counted below.")
+    edge: int = Field(
+        default=0,
+        ge=0,
+        description="Points off the CAD's edge or near its outline, holes, sharp bends or "
+        "occlusion edges (within 4 mm).",
+    )
+    outliers: int = Field(default=0, ge=0, description="Points the fit rejects.")
+    far: int = Field(
+        default=0, ge=0, description="Points beyond the correspondence distance (background)."
+    )
     mean_mm: float | None = None
     std_mm: float | None = None
     rms_mm: float | None = None
     min_mm: float | None = None
     max_mm: float | None = None
+    median_mm: float | None = None
+    p001_mm: float | None = Field(default=None, description="0.1th percentile.")
     p05_mm: float | None = None
     p95_mm: float | None = None
+    p999_mm: float | None = Field(default=None, description="99.9th percentile.")
+
+
+class SurfaceDefectResult(_Model):
+    """A region of the surface whose deviation leaves the spec's surface band."""
+
+    kind: Literal["dent", "bump"] = Field(description="dent: into the material; bump: outward.")
+    center_mm: list[float] = Field(
+        min_length=3, max_length=3, description="Centre of the region, CAD frame, mm."
+    )
+    area_mm2: float = Field(ge=0, description="Area of the CAD surface it covers, mm^2.")
+    peak_mm: float = Field(
+        description="Extreme of the field smoothed over the defect search's support, signed, mm."
+    )
+    mean_mm: float = Field(description="Mean of the smoothed field over the region, signed, mm.")
+    nearest_point: str | None = Field(
+        default=None, description="The comparison point nearest to the centre."
+    )
+    points: int = Field(default=0, ge=0, description="Measured points in the region.")
 
 
 Matrix4 = Annotated[
@@ -147,6 +179,9 @@ class InspectionResult(_Model):
         description="The best other pose's score over the chosen one's (1: fits as well).",
     )
     comparison: list[PointResult] = Field(default_factory=list)
+    defects: list[SurfaceDefectResult] = Field(
+        default_factory=list, description="Surface defects, largest first."
+    )
     field: FieldStats | None = None
     timings_ms: dict[str, float] = Field(default_factory=dict)
     spec_version: str | None = None

@@ -133,6 +133,7 @@ def measure_params(spec: PartSpec, *, guided: bool = True) -> MeasureParams:
         min_inlier_fraction=r.min_inlier_fraction,
         max_rms_mm=r.max_rms_mm,
         ambiguous_is_error=r.ambiguous_is_error,
+        surface=spec.surface.params(),
         register=RegisterParams(
             loss=r.loss.value,
             max_iterations=r.max_iterations,

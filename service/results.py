@@ -23,6 +23,7 @@ from .models import (
     InspectionResult,
     PointResult,
     Status,
+    SurfaceDefectResult,
     finite_or_none,
     software_version,
 )
@@ -134,7 +135,9 @@ def outcome(m: Measurement, trigger: Trigger) -> Outcome:
     measured: dict[str, object] = {}
     distances = None
     if devs is not None:
-        measured = dict(comparison=point_results(devs), field=field_stats(devs))
+        measured = dict(
+            comparison=point_results(devs), defects=defect_results(devs), field=field_stats(devs)
+        )
         distances = np.where(devs.inliers, devs.distances, np.nan)
     result = InspectionResult(
         **dataclasses.asdict(trigger),
@@ -166,22 +169,40 @@ def point_results(devs: Deviations) -> list[PointResult]:
     ]
 
 
+def defect_results(devs: Deviations) -> list[SurfaceDefectResult]:
+    return [
+        SurfaceDefectResult(
+            kind=f.kind,  # type: ignore[arg-type]
+            center_mm=[float(v) for v in f.center_mm],
+            area_mm2=f.area_mm2,
+            peak_mm=f.peak_mm,
+            mean_mm=f.mean_mm,
+            nearest_point=f.nearest_point,
+            points=f.points,
+        )
+        for f in devs.defects
+    ]
+
+
 def field_stats(devs: Deviations) -> FieldStats:
     s = devs.summary
+    counts = dict(points=s.n, inliers=s.inliers, edge=s.edge, outliers=s.outliers, far=s.far)
     if s.inliers == 0:
-        return FieldStats(points=s.n, inliers=0)
+        return FieldStats(**counts)
 
     def f(x: float) -> float | None:
         return None if math.isnan(x) else finite_or_none(x)
 
     return FieldStats(
-        points=s.n,
-        inliers=s.inliers,
+        **counts,
         mean_mm=f(s.mean_mm),
         std_mm=f(s.std_mm),
         rms_mm=f(s.rms_mm),
         min_mm=f(s.min_mm),
         max_mm=f(s.max_mm),
+        median_mm=f(s.median_mm),
+        p001_mm=f(s.p001_mm),
         p05_mm=f(s.p05_mm),
         p95_mm=f(s.p95_mm),
+        p999_mm=f(s.p999_mm),
     )

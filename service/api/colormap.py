@@ -4,16 +4,32 @@ Points are drawn in the CAD frame seen from +z, the highest point of each
 pixel on top, coloured on a diverging scale: blue below the CAD, white on it,
 red above, saturated at ``limit_mm`` (:func:`inspection.colours.deviation_colours`);
 unmeasured points are grey. A colour bar with its scale is drawn on the right.
+Each surface defect is outlined (a circle of the region's area, widened by
+the search's support) and labelled with its number, kind and peak.
 """
 
 from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
 from inspection.colours import deviation_colours
+from inspection.surface import SUPPORT_MM
 
 _BACKGROUND = 40
+_OUTLINE = (0, 215, 255)  # BGR amber: apart from the blue-white-red scale
+
+
+@dataclass(frozen=True)
+class Marker:
+    """A surface defect to outline: where it is (CAD frame, mm), how large, and its label."""
+
+    center_mm: tuple[float, float, float]
+    area_mm2: float
+    label: str
 
 
 def _bgr(deviations_mm: np.ndarray, limit_mm: float) -> np.ndarray:
@@ -29,6 +45,7 @@ def render_top_view(
     size_px: int = 800,
     dot_px: int | None = None,
     title: str = "",
+    markers: Sequence[Marker] = (),
 ) -> bytes:
     """PNG bytes of the deviation map.
 
@@ -43,6 +60,9 @@ def render_top_view(
     dot_px : int, optional
         Typical spacing of the points in pixels; gaps up to 1.5 times it
         are filled. Default: from the point density.
+    title : str
+    markers : sequence of Marker
+        Surface defects to outline and label.
     """
     if not limit_mm > 0:
         raise ValueError(f"limit_mm must be positive, got {limit_mm}")
@@ -71,6 +91,13 @@ def render_top_view(
         drawn = np.zeros(img.shape[:2], dtype=bool)
         drawn[v, u] = True
         _fill_gaps(img, drawn, max_px=1.5 * dot_px)
+    for k, mk in enumerate(markers, start=1):
+        cx = int(round((mk.center_mm[0] - lo[0]) * scale)) + margin
+        cy = int(round((hi[1] - mk.center_mm[1]) * scale)) + margin
+        radius = int(np.ceil((np.sqrt(max(mk.area_mm2, 0.0) / np.pi) + SUPPORT_MM) * scale))
+        cv2.circle(img, (cx, cy), max(radius, 6), _OUTLINE, 2, cv2.LINE_AA)
+        cv2.putText(img, f"{k} {mk.label}", (cx + max(radius, 6) + 3, cy + 4),
+                    cv2.FONT_HERSHEY_SIMPLEX, 0.45, _OUTLINE, 1, cv2.LINE_AA)  # fmt: skip
     _colour_bar(img, x0=w + 2 * margin + 10, y0=margin, height=max(h, 120), limit_mm=limit_mm)
     if title:
         cv2.putText(img, title, (margin, margin - 5), cv2.FONT_HERSHEY_SIMPLEX, 0.45,

@@ -17,6 +17,7 @@ import threading
 from pathlib import Path
 from types import SimpleNamespace
 
+import cv2
 import numpy as np
 import pytest
 import uvicorn
@@ -635,6 +636,15 @@ def test_uploaded_clouds_are_measured_and_stored(client, app_parts, line):
     assert res2.status == "fail", res2.reason
     verdicts = {p.name: p.verdict for p in res2.comparison}
     assert verdicts["c"] == "fail" and verdicts["e"] == "pass"
+    # The same bump is a surface defect, in the result and outlined on the colour map.
+    assert [(f.kind, f.nearest_point) for f in res2.defects] == [("bump", "c")]
+    assert res2.defects[0].peak_mm == pytest.approx(0.6, abs=0.05)
+    assert "surface defect: bump 0.6" in res2.reason
+    assert store.get(res2.id).defects == res2.defects
+    png = client.get(f"/v1/inspections/{res2.id}/colormap.png", params={"size_px": 300})
+    img = cv2.imdecode(np.frombuffer(png.content, np.uint8), cv2.IMREAD_COLOR)
+    amber = (img[:, :, 0] < 30) & (img[:, :, 1] > 180) & (img[:, :, 2] > 230)
+    assert amber.sum() > 50, "the defect is outlined"
     assert store.count() == 2
 
     # The same cloud, already in the CAD frame: only the fine registration.

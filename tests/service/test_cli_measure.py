@@ -56,15 +56,21 @@ def scene(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
     for name, img in zip(rig.names, images, strict=True):
         pngs.append(d / f"{name}.png")
         cv2.imwrite(str(pngs[-1]), img)
+    # Frames of a quarter of the rig's pixels resolve the surface too coarsely for the
+    # demo's 0.15 mm surface band: here the defects it finds are reported, not failed.
+    text = DEMO.read_text()
+    assert "fails_part = true" in text
+    spec_file = d / "demo-panel.toml"
+    spec_file.write_text(text.replace("fails_part = true", "fails_part = false"))
     return {
         "dir": d, "rig": rig, "rig_file": rig.save(d / "rig.toml"), "images": images,
-        "frameset": fs_file, "pngs": pngs, "T_rig_part": T_rig_part,
+        "frameset": fs_file, "pngs": pngs, "T_rig_part": T_rig_part, "spec": spec_file,
     }  # fmt: skip
 
 
 def args(scene: dict[str, object], trees: Path, *frames: object) -> list[str]:
     return [
-        "measure", *map(str, frames), "--part", str(DEMO), "--rig", str(scene["rig_file"]),
+        "measure", *map(str, frames), "--part", str(scene["spec"]), "--rig", str(scene["rig_file"]),
         "--trees", str(trees),
     ]  # fmt: skip
 
@@ -98,7 +104,7 @@ def test_a_frameset_gives_the_workers_result(scene, trees, capsys):
 def test_one_image_per_camera_gives_a_text_summary(scene, trees, capsys):
     code = main(args(scene, trees, *scene["pngs"]))
     text = capsys.readouterr().out
-    assert code == 0
+    assert code == 0, text
     assert text.startswith("demo-panel cli: PASS")
     assert "T_cad_rig" in text and "rms " in text and "fit quality" in text
     assert "centre" in text and "time: reconstruct" in text

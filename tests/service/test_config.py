@@ -154,6 +154,33 @@ def test_bad_part_specs(tmp_path, change, match):
         load_part_spec(write(tmp_path, "bracket.toml", PART.replace(*change)))
 
 
+def test_a_spec_without_a_surface_table_gets_the_sequence_defaults(tmp_path):
+    from inspection.surface import SurfaceParams
+    from service.parts import measure_params
+
+    plain = load_part_spec(write(tmp_path, "bracket.toml", PART))
+    assert measure_params(plain).surface == SurfaceParams()
+    table = "lower_mm = -0.3\nupper_mm = 0.2\nmin_area_mm2 = 25\nfails_part = false\n"
+    text = f"{PART}\n[surface]\n{table}"
+    own = load_part_spec(write(tmp_path, "bracket.toml", text))
+    assert measure_params(own).surface == SurfaceParams(-0.3, 0.2, 25.0, False)
+
+
+@pytest.mark.parametrize(
+    "table, where",
+    [
+        ("lower_mm = 0.1", "surface.lower_mm"),
+        ("upper_mm = 0", "surface.upper_mm"),
+        ("min_area_mm2 = -5", "surface.min_area_mm2"),
+        ("fails_part = 'no'", "surface.fails_part"),
+        ("depth_mm = 1", "surface.depth_mm"),
+    ],
+)
+def test_bad_surface_tables_fail_with_the_key(tmp_path, table, where):
+    with pytest.raises(ConfigError, match=where.replace(".", r"\.")):
+        load_part_spec(write(tmp_path, "bracket.toml", f"{PART}\n[surface]\n{table}\n"))
+
+
 @pytest.mark.parametrize(
     "settings, view",
     [

@@ -27,6 +27,8 @@ DESIGN_FIELDS = {
     # The fit's diagnostics ("One measuring sequence"):
     "converged", "stop_reason", "iterations", "observability", "weak_directions", "ambiguous",
     "runner_up_score",
+    # The whole surface ("The verdict covers the whole surface"):
+    "defects",
 }  # fmt: skip
 
 

@@ -17,7 +17,7 @@ from ...names import NAME_RULE, is_valid_name
 from ...results import upload_trigger
 from ...store import Filters, InvalidCursor
 from ..clouds import UnsupportedCloudFormat, parse_cloud
-from ..colormap import render_top_view
+from ..colormap import Marker, render_top_view
 from ..deps import PartQuery, Services, ServicesDep
 from ..errors import ApiError
 from ..forms import file_field, read_multipart, text_field
@@ -203,11 +203,16 @@ def colormap(
     if limit_mm is None:
         tol = [max(abs(c.lower_mm), abs(c.upper_mm)) for c in result.comparison]
         limit_mm = max(tol) if tol else 1.0
+    markers = [
+        Marker(tuple(f.center_mm), f.area_mm2, f"{f.kind} {f.peak_mm:+.2f} mm")  # type: ignore[arg-type]
+        for f in result.defects
+    ]
     png = render_top_view(
         points,
         distances,
         limit_mm=limit_mm,
         size_px=size_px,
         title=f"{result.part} {result.serial} {result.status.value}",
+        markers=markers,
     )
     return Response(png, media_type="image/png", headers={"Cache-Control": "max-age=3600"})
