@@ -223,6 +223,8 @@ class SurfaceModel:
     edge_ends : (E, 2, 3) float64, mm
         Its end points.
     face_normals : (F, 3) float64
+    centre_tree : scipy.spatial.cKDTree
+        Of ``centres``: the nearest node of a point its cell's samples missed.
     """
 
     origin: np.ndarray
@@ -238,6 +240,7 @@ class SurfaceModel:
     edge_faces: np.ndarray = field(repr=False)
     edge_ends: np.ndarray = field(repr=False)
     face_normals: np.ndarray = field(repr=False)
+    centre_tree: cKDTree = field(repr=False)
 
     @classmethod
     def build(cls, vertices: Points, faces: np.ndarray, face_normals: Vectors) -> SurfaceModel:
@@ -295,6 +298,7 @@ class SurfaceModel:
             origin=origin, dims=dims, keys=keys, centres=centres, normals=normals, areas=areas,
             support=support, join=join, boundary=boundary, boundary_mm=boundary_mm,
             edge_faces=edge_faces, edge_ends=edge_ends, face_normals=N,
+            centre_tree=cKDTree(centres),
         )  # fmt: skip
 
     def nodes_of(self, points: Points, normals: Vectors) -> np.ndarray:
@@ -310,7 +314,7 @@ class SurfaceModel:
         missed = np.flatnonzero(out < 0)
         if len(missed):
             k = min(4, len(self.keys))
-            _, near = cKDTree(self.centres).query(
+            _, near = self.centre_tree.query(
                 np.asarray(points)[missed], k=k, distance_upper_bound=2 * NODE_MM
             )
             near = near.reshape(len(missed), k)
