@@ -293,6 +293,16 @@ class StationSection(_Strict):
     queue_size: int = Field(
         default=4, ge=1, le=1000, description="Frame sets waiting for the worker."
     )
+    max_seq_jump: int = Field(
+        default=300,
+        ge=1,
+        le=1_000_000,
+        description=(
+            "Triggers a FrameSet's seq may skip: those skipped are answered `missed`; a "
+            "longer jump is refused with an error result and an alarm (a forged or corrupt "
+            "seq), and so is a seq answered already."
+        ),
+    )
 
     @field_validator("parts")
     @classmethod
@@ -349,9 +359,20 @@ class StorageSection(_Strict):
     )
     mcap_dir: str = Field(default="mcap", description="Relative to data_dir.")
     mcap_rotate_mb: float = Field(default=512.0, gt=0, le=1_000_000)
+    mcap_rotate_min: float = Field(
+        default=10.0,
+        gt=0,
+        le=100_000,
+        description="A recording is finished after this long too, so at most this much "
+        "of it is in a file the indexed reader cannot read yet.",
+    )
     trees_dir: str = Field(default="trees", description="Tree cache, relative to data_dir.")
     deviations_dir: str = Field(
         default="deviations", description="Per-inspection arrays, rel. to data_dir."
+    )
+    state_dir: str = Field(
+        default="state",
+        description="The worker's journal and the ingest's seq, relative to data_dir.",
     )
 
     def data_path(self) -> Path:
@@ -368,6 +389,14 @@ class StorageSection(_Strict):
 
     def deviations_path(self) -> Path:
         return self.data_path() / self.deviations_dir
+
+    def journal_path(self, line: str, station: str) -> Path:
+        """The worker's journal of FrameSets accepted and not yet answered."""
+        return self.data_path() / self.state_dir / line / station / "journal"
+
+    def ingest_seq_path(self, line: str, station: str) -> Path:
+        """The ingest's next seq: kept across its restarts so no seq is used twice."""
+        return self.data_path() / self.state_dir / line / station / "ingest-seq"
 
 
 class RecordPolicy(StrEnum):

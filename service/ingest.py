@@ -12,16 +12,19 @@ simulator's rig the line as configured: its belt speed and slide.
 :class:`Ingest` fires the trigger every ``trigger_period_s`` (on an absolute
 schedule, so a slow capture does not make the line drift), numbers the
 triggers per station from 0, and publishes each FrameSet with congestion
-control BLOCK.
+control BLOCK. With a :class:`SeqState` the numbering survives a restart:
+each seq is on disk before its FrameSet leaves, so none is used twice.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import Protocol
 
 import numpy as np
@@ -209,6 +212,38 @@ class SimulatedRig:
         )  # fmt: skip
 
 
+class SeqState:
+    """The ingest's next seq, in a file: written (and synced) before each trigger fires.
+
+    Parameters
+    ----------
+    path : str or Path
+        Created with its folder on the first save; absent: counting starts at 0.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+
+    def load(self) -> int:
+        """The next seq to use (0 without a file; a damaged file is an error)."""
+        try:
+            text = self.path.read_text().strip()
+        except FileNotFoundError:
+            return 0
+        if not text.isdigit():
+            raise ValueError(f"{self.path.name}: not a seq number: {text[:40]!r}")
+        return int(text)
+
+    def save(self, next_seq: int) -> None:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = self.path.with_name(self.path.name + ".tmp")
+        with tmp.open("w") as fh:
+            fh.write(f"{next_seq}\n")
+            fh.flush()
+            os.fsync(fh.fileno())
+        tmp.replace(self.path)
+
+
 class Ingest:
     """Fires triggers on a fixed period and publishes one FrameSet per trigger.
 
@@ -223,6 +258,8 @@ class Ingest:
         Image encoding on the wire.
     on_trigger : callable(FrameSet) -> None, optional
         Called after each publish (benchmarks, tests, logs).
+    seq_state : SeqState, optional
+        Where the numbering goes on from after a restart.
     """
 
     def __init__(
@@ -233,6 +270,7 @@ class Ingest:
         period_s: float,
         encoding: str = "raw",
         on_trigger: Callable[[FrameSet], None] | None = None,
+        seq_state: SeqState | None = None,
     ) -> None:
         if period_s <= 0:
             raise ValueError("period_s must be positive")
@@ -241,12 +279,17 @@ class Ingest:
         self.period_s = period_s
         self.encoding = encoding
         self.on_trigger = on_trigger
-        self.seq = 0
+        self.seq_state = seq_state
+        self.seq = seq_state.load() if seq_state is not None else 0
+        if self.seq:
+            log.info("ingest: going on from seq %d", self.seq)
         self.stop_event = threading.Event()
         self._thread: threading.Thread | None = None
 
     def trigger(self) -> FrameSet:
         """Fire one trigger now: capture, publish, count."""
+        if self.seq_state is not None:
+            self.seq_state.save(self.seq + 1)
         t_ns = time.time_ns()
         fs = self.source.capture(self.seq, t_ns)
         self.publish(encode_frameset(fs, encoding=self.encoding))

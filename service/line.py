@@ -34,7 +34,8 @@ from inspection.transforms import apply
 from . import bus
 from .api import ResultHub, create_app
 from .config import LineConfig, PartSpec, load_part_spec
-from .ingest import Ingest, SimPart, SimulatedRig, SimulationSettings, line_rig
+from .ingest import Ingest, SeqState, SimPart, SimulatedRig, SimulationSettings, line_rig
+from .journal import Journal
 from .models import software_version
 from .parts import LoadedPart, PartRegistry, load_part_cad
 from .pipeline import Outcome, Pipeline, Stages, flash_stages
@@ -202,6 +203,7 @@ class Station:
             metadata=self.metadata(),
             calibrations=self.stages.calibrations(),
             rotate_bytes=int(st.mcap_rotate_mb * 1e6),
+            rotate_s=st.mcap_rotate_min * 60.0,
             retention=Retention.from_config(self.cfg.retention),
         )
 
@@ -260,6 +262,27 @@ def archive_sink(
             log.error("deviations of %s not kept: %s", outcome.result.id, exc)
 
     return sink
+
+
+def worker_state(cfg: LineConfig, store: ResultStore) -> dict[str, Any]:
+    """What a station's worker keeps across a restart: the store it goes on from,
+    its journal, and the bound on a seq's jump."""
+    line, station = cfg.line.name, cfg.station.name
+    return dict(
+        store=store,
+        journal=Journal(cfg.storage.journal_path(line, station)),
+        max_seq_jump=cfg.station.max_seq_jump,
+    )
+
+
+def make_ingest(cfg: LineConfig, station: Station, publish: Callable[[bytes], None]) -> Ingest:
+    """The station's simulated ingest, numbering on from where it stopped last."""
+    return Ingest(
+        station.simulated_rig(),
+        publish,
+        period_s=cfg.line.trigger_period_s,
+        seq_state=SeqState(cfg.storage.ingest_seq_path(cfg.line.name, station.name)),
+    )
 
 
 def store_sink(store: ResultStore) -> Callable[[Outcome, FrameSet | None], None]:
@@ -455,6 +478,7 @@ def start_line(
             # Counted once recorded: stopping after N results stops with N recorded.
             after_publish=[recorder.record, counter],
             missed_part=station.missed_part(),
+            **worker_state(cfg, store),
         )
         opened.append(worker)
         api = None
@@ -474,7 +498,7 @@ def start_line(
                 if not api.wait_started():
                     raise RuntimeError(f"the API did not start on {cfg.http.host}:{cfg.http.port}")
         publisher = bus.frame_publisher(session, station.keys.frames(station.name))
-        ingest = Ingest(station.simulated_rig(), publisher.put, period_s=cfg.line.trigger_period_s)
+        ingest = make_ingest(cfg, station, publisher.put)
         ingest.start()
     except BaseException:
         bus.close_all(reversed(opened))
@@ -523,7 +547,7 @@ def run_ingest(cfg: LineConfig, stop: threading.Event, *, count: int | None = No
     station = Station.load(cfg, build_trees=False)
     with contextlib.closing(bus.open_session(bus_settings(cfg))) as session:
         publisher = bus.frame_publisher(session, station.keys.frames(station.name))
-        ingest = Ingest(station.simulated_rig(), publisher.put, period_s=cfg.line.trigger_period_s)
+        ingest = make_ingest(cfg, station, publisher.put)
         ingest.start(count)
         while not stop.is_set() and ingest._thread is not None and ingest._thread.is_alive():
             stop.wait(0.2)
@@ -553,6 +577,7 @@ def run_worker(cfg: LineConfig, stop: threading.Event) -> int:
             ],
             after_publish=[recorder.record],
             missed_part=station.missed_part(),
+            **worker_state(cfg, store),
         )
         try:
             stop.wait()

@@ -24,14 +24,14 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from inspection.deviations import Verdict
 
 from .config import ComparisonPointSpec, Name, PartSpecBase
-from .names import NAME_MAX_LEN, NAME_PATTERN
+from .names import ID_PATTERN, ID_SEPARATOR, NAME_MAX_LEN
 
 SCHEMA_VERSION = 3
 """Version of :class:`InspectionResult`'s JSON."""
 
 MAX_ID_LEN = 2 * NAME_MAX_LEN + 2 * 19 + 3
 """The longest result id: a trigger's line and station names at their limit,
-its time and sequence number (each below 2**63: 19 digits), and three dots."""
+its sequence number and time (each below 2**63: 19 digits), and three separators."""
 
 T = TypeVar("T")
 
@@ -136,7 +136,7 @@ class InspectionResult(_Model):
     id: str = Field(
         min_length=1,
         max_length=MAX_ID_LEN,
-        pattern=NAME_PATTERN,
+        pattern=ID_PATTERN,
         description="Unique per inspection.",
     )
     line: Name
@@ -200,12 +200,39 @@ class InspectionResult(_Model):
         return v
 
 
-def make_result_id(line: str, station: str, seq: int, triggered_ns: int) -> str:
-    """The id of the result of one trigger: unique per line, station, sequence number and time.
+class AlarmKind(StrEnum):
+    seq_jump = "seq_jump"
+    seq_repeat = "seq_repeat"
+    seq_rebased = "seq_rebased"
+    bad_frameset = "bad_frameset"
+    queue_overflow = "queue_overflow"
 
-    Deterministic, so a replay of a recorded trigger gets the same id.
+
+class Alarm(_Model):
+    """What a person should look at, published on ``<prefix>/<line>/<station>/alarm``.
+
+    Alarms come with a result where there is one (the ``error`` result of a
+    FrameSet whose seq was refused, say); they say what the result cannot:
+    that the trigger source misbehaves.
     """
-    return f"{line}.{station}.{triggered_ns}.{seq}"
+
+    kind: AlarmKind
+    message: str = Field(max_length=2000)
+    triggered_ns: int = Field(description="The trigger it is about (or when it was raised), ns.")
+    line: Name
+    station: Name
+    seq: int | None = Field(default=None, description="The seq it is about, when there is one.")
+    raised_ns: int = Field(description="When the worker raised it, ns since the epoch.")
+
+
+def make_result_id(line: str, station: str, seq: int, triggered_ns: int) -> str:
+    """The id of the result of one trigger: ``<line>~<station>~<seq>~<triggered_ns>``.
+
+    Deterministic, so a replay of a recorded trigger gets the same id and a
+    trigger delivered twice is stored once. Names cannot hold the separator,
+    so no two triggers share an id whatever dots their names contain.
+    """
+    return ID_SEPARATOR.join((line, station, str(seq), str(triggered_ns)))
 
 
 def new_upload_id() -> str:

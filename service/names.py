@@ -30,6 +30,13 @@ KEY_PREFIX_PATTERN = rf"^{_BODY}(/{_BODY})*$"
 NAME_RULE = "1 to 64 characters from `[A-Za-z0-9._-]`, not made of dots alone"
 """The rule in words, as docs/protocol.md and error messages state it."""
 
+ID_SEPARATOR = "~"
+"""Joins the names and numbers of a result id: no name may contain it, so an id
+splits back into its fields one way only (``a.b`` ``c`` and ``a`` ``b.c`` differ)."""
+
+ID_PATTERN = r"^[A-Za-z0-9._~-]*[A-Za-z0-9_~-][A-Za-z0-9._~-]*$"
+"""A result id: the name characters and :data:`ID_SEPARATOR`, not made of dots alone."""
+
 _NAME_RE = re.compile(NAME_PATTERN)
 
 

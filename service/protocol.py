@@ -122,6 +122,20 @@ class Keys:
             validate_name(station, "station")
         return f"{self.prefix}/{self.line}/{station}/result/**"
 
+    def history(self, station: str) -> str:
+        """``<prefix>/<line>/<station>/results``: queryable over the station's stored results."""
+        return f"{self.prefix}/{self.line}/{validate_name(station, 'station')}/results"
+
+    def alarm(self, station: str) -> str:
+        """``<prefix>/<line>/<station>/alarm``: Alarm JSON."""
+        return f"{self.prefix}/{self.line}/{validate_name(station, 'station')}/alarm"
+
+    def alarms(self, station: str = "*") -> str:
+        """Selector for the alarms of a station (``*``: of every station)."""
+        if station != "*":
+            validate_name(station, "station")
+        return f"{self.prefix}/{self.line}/{station}/alarm"
+
     def status(self, station: str) -> str:
         """``<prefix>/<line>/<station>/status``: worker status and heartbeat (JSON)."""
         return f"{self.prefix}/{self.line}/{validate_name(station, 'station')}/status"

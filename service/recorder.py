@@ -24,18 +24,24 @@ into the file's metadata records.
 
 Crash safety: the writer finishes its chunk and flushes after every trigger,
 so a killed process leaves a file readable up to the last completed trigger;
-:func:`recover` rewrites such a file into a complete, indexed one.
+:func:`recover` rewrites such a file into a complete, indexed one, and a
+recorder that starts does so for every unfinished file in its directory that
+no live recorder holds (each holds an exclusive lock on its open file). A
+file is finished after ``rotate_s`` as well as at ``rotate_bytes``, so every
+file but the open one can be read with the indexed reader.
 
 Retention: the policy decides whose frames and cloud are written (every part,
 failures only, or every n-th part plus all failures; results are always
 written, they are small), and the oldest files are deleted when the directory
-passes its size budget or a file its age limit.
+passes its size budget or a file its age limit, checked after every trigger.
 """
 
 from __future__ import annotations
 
+import fcntl
 import json
 import logging
+import os
 import threading
 import time
 from collections.abc import Iterable, Iterator, Mapping
@@ -171,6 +177,10 @@ class _File:
     def __init__(self, path: Path, metadata: Mapping[str, Mapping[str, str]]) -> None:
         self.path = path
         self.stream: IO[bytes] = path.open("wb")
+        # Held while the file is open: a recorder starting meanwhile (another
+        # worker, the same worker restarted) leaves this file alone.
+        fcntl.flock(self.stream.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        self.opened = time.monotonic()
         self.writer = McapWriter(
             self.stream,
             chunk_size=4 * 1024 * 1024,
@@ -243,6 +253,10 @@ class Recorder:
         One per camera: ``name``, ``width``, ``height``, ``K`` (9), ``D``, ``R``
         (9), ``P`` (12), ``distortion_model``; written once per file.
     rotate_bytes : int
+        A file is finished when it passes this size (at most half the
+        retention's budget, so the budget holds with the open file in it).
+    rotate_s : float, optional
+        ... or when it has been open this long.
     retention : Retention
     image_encoding : {"raw", "png"}
         ``raw`` writes foxglove.RawImage, ``png`` a lossless CompressedImage.
@@ -256,6 +270,7 @@ class Recorder:
         metadata: Mapping[str, Mapping[str, str]] | None = None,
         calibrations: list[dict[str, Any]] | None = None,
         rotate_bytes: int = 512 * 1024 * 1024,
+        rotate_s: float | None = None,
         retention: Retention | None = None,
         image_encoding: str = "raw",
     ) -> None:
@@ -266,8 +281,10 @@ class Recorder:
         self.run_id = run_id
         self.metadata = {k: dict(v) for k, v in (metadata or {}).items()}
         self.calibrations = calibrations or []
-        self.rotate_bytes = rotate_bytes
         self.retention = retention or Retention()
+        budget = self.retention.max_total_bytes
+        self.rotate_bytes = rotate_bytes if budget is None else min(rotate_bytes, budget // 2)
+        self.rotate_s = rotate_s
         self.image_encoding = image_encoding
         self._lock = threading.Lock()
         self._index = 0
@@ -276,6 +293,7 @@ class Recorder:
         self.files: list[Path] = []
         self.recorded = 0
         self.frames_recorded = 0
+        self.recovered = recover_unfinished(self.directory)
         self._open_next()
 
     # ------------------------------------------------------------------ files
@@ -293,10 +311,13 @@ class Recorder:
         log.info("recording to %s", path)
 
     def enforce_budget(self) -> list[Path]:
-        """Delete the oldest finished files beyond the size or age budget; returns them."""
+        """Delete the oldest finished files beyond the size or age budget; returns them.
+
+        Files another recorder is still writing are not finished, and not touched.
+        """
         current = self._file.path if self._file else None
         files = sorted(
-            (p for p in self.directory.glob("*.mcap") if p != current),
+            (p for p in self.directory.glob("*.mcap") if p != current and is_finished(p)),
             key=lambda p: p.stat().st_mtime,
         )
         removed = []
@@ -361,9 +382,12 @@ class Recorder:
             # being written, never the ones before it.
             f.flush()
             self.recorded += 1
-            if f.size() > self.rotate_bytes:
+            aged = self.rotate_s is not None and time.monotonic() - f.opened > self.rotate_s
+            if f.size() > self.rotate_bytes or aged:
                 f.close()
                 self._open_next()
+            else:
+                self.enforce_budget()
             return keep
 
     __call__ = record
@@ -500,6 +524,47 @@ def recover(path: str | Path, out: str | Path | None = None) -> Recovered:
         w.finish()
     log.info("recovered %d messages from %s into %s", n_msgs, src, dst)
     return Recovered(dst, n_msgs, len(channel_map), n_meta)
+
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+def is_finished(path: str | Path) -> bool:
+    """Whether an MCAP file ends with its footer's magic (a finished, indexed file)."""
+    try:
+        with Path(path).open("rb") as fh:
+            fh.seek(0, os.SEEK_END)
+            if fh.tell() < 2 * len(MCAP_MAGIC):
+                return False
+            fh.seek(-len(MCAP_MAGIC), os.SEEK_END)
+            return fh.read() == MCAP_MAGIC
+    except OSError:
+        return False
+
+
+def recover_unfinished(directory: str | Path) -> list[Recovered]:
+    """Rewrite, in place, every unfinished MCAP file in ``directory`` that no live recorder
+    holds: what a killed recorder left becomes a complete, indexed file of the same name."""
+    out = []
+    for path in sorted(Path(directory).glob("*.mcap")):
+        if is_finished(path):
+            continue
+        try:
+            with path.open("rb") as fh:
+                try:
+                    fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+                except BlockingIOError:
+                    continue  # being written by a live recorder
+                tmp = path.with_suffix(".recovering")
+                r = recover(path, tmp)
+                tmp.replace(path)
+        except OSError as exc:
+            log.error("%s: not recovered: %s", path, exc)
+            continue
+        log.warning("%s was left unfinished (a killed recorder): %d messages recovered",
+                    path.name, r.messages)  # fmt: skip
+        out.append(Recovered(path, r.messages, r.channels, r.metadata))
+    return out
 
 
 @dataclass(frozen=True, eq=False)

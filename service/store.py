@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from .models import InspectionResult, Status, Trend, TrendPoint, Verdict
-from .names import NAME_PATTERN
+from .names import ID_PATTERN
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +54,10 @@ MIGRATIONS: list[str] = [
     CREATE INDEX results_part_time ON results (part, triggered_ns, id);
     CREATE INDEX results_status_time ON results (status, triggered_ns, id);
     """,
+    # 2: a restarted worker asks for its station's last trigger.
+    """
+    CREATE INDEX results_station_seq ON results (line, station, seq);
+    """,
 ]
 """Schema migrations, in order; the database's version is the number applied."""
 
@@ -61,7 +65,7 @@ SCHEMA_VERSION = len(MIGRATIONS)
 
 MAX_LIMIT = 1000
 
-_ID_RE = re.compile(NAME_PATTERN)
+_ID_RE = re.compile(ID_PATTERN)
 
 
 class StoreError(Exception):
@@ -217,6 +221,45 @@ class ResultStore:
         with self._lock:
             row = self._db.execute("SELECT body FROM results WHERE id = ?", (id_,)).fetchone()
         return None if row is None else InspectionResult.model_validate_json(row[0])
+
+    def has(self, id_: str) -> bool:
+        """Whether a result with this id is stored."""
+        with self._lock:
+            row = self._db.execute("SELECT 1 FROM results WHERE id = ?", (id_,)).fetchone()
+        return row is not None
+
+    def last_trigger(self, line: str, station: str) -> tuple[int, int] | None:
+        """``(seq, triggered_ns)`` of the station's highest stored seq, or None.
+
+        Uploads (seq 0, another station name) never count: they are not triggers.
+        """
+        with self._lock:
+            row = self._db.execute(
+                "SELECT seq, triggered_ns FROM results WHERE line = ? AND station = ? "
+                "ORDER BY seq DESC LIMIT 1",
+                (line, station),
+            ).fetchone()
+        return None if row is None else (int(row[0]), int(row[1]))
+
+    def station_results(
+        self,
+        line: str,
+        station: str,
+        *,
+        seq: tuple[int, int] = (0, 2**63 - 1),
+        since_ns: int = 0,
+        until_ns: int = 2**63 - 1,
+        limit: int = MAX_LIMIT,
+    ) -> list[InspectionResult]:
+        """A station's results within a seq range (both ends included) and a trigger-time
+        range, lowest seq first, at most ``limit``."""
+        with self._lock:
+            rows = self._db.execute(
+                "SELECT body FROM results WHERE line = ? AND station = ? AND seq BETWEEN ? AND ? "
+                "AND triggered_ns BETWEEN ? AND ? ORDER BY seq, triggered_ns, id LIMIT ?",
+                (line, station, seq[0], seq[1], since_ns, until_ns, limit),
+            ).fetchall()
+        return [InspectionResult.model_validate_json(r[0]) for r in rows]
 
     def count(self, filters: Filters | None = None) -> int:
         where, params = _where(filters or Filters())

@@ -109,7 +109,21 @@ def test_ids_are_deterministic_and_safe_in_keys():
     a = make_result_id("line1", "st1", 3, 10)
     assert a == make_result_id("line1", "st1", 3, 10)
     assert a != make_result_id("line1", "st1", 4, 10)
-    result(id=a)  # passes the name pattern
+    result(id=a)  # passes the id pattern
+
+
+def test_ids_do_not_collide_when_names_hold_dots():
+    """Names may contain dots: line ``a.b`` station ``c`` and line ``a`` station ``b.c``
+    are different triggers, and so are seq 1 at time 23 and seq 12 at time 3."""
+    ids = {
+        make_result_id("a.b", "c", 1, 23),
+        make_result_id("a", "b.c", 1, 23),
+        make_result_id("a.b", "c", 12, 3),
+        make_result_id("a.b.c", "1", 2, 3),
+    }
+    assert len(ids) == 4
+    line, station, seq, ns = make_result_id("a.b", "c.d", 5, 6).split("~")
+    assert (line, station, seq, ns) == ("a.b", "c.d", "5", "6")
 
 
 def test_json_schema_describes_the_result():

@@ -174,6 +174,49 @@ def test_killed_recorder_leaves_a_readable_file_and_recover_repairs_it(tmp_path,
     with fixed.path.open("rb") as fh:
         summary = make_reader(fh).get_summary()
     assert summary.statistics.message_count == fixed.messages > 0
+    fixed.path.unlink()
+    # The next recorder in the directory finishes the torn file in place, while its own
+    # open file stays out of reach of another recorder's recovery.
+    nxt = Recorder(out, "next")
+    try:
+        assert [r.path for r in nxt.recovered] == [path]
+        with path.open("rb") as fh:
+            assert make_reader(fh).get_summary().statistics.message_count == fixed.messages
+        assert Recorder(out, "third").recovered == []  # "next" is open and locked
+    finally:
+        nxt.close()
+
+
+def test_rotation_by_time(tmp_path, outcomes):
+    """Files are finished after ``rotate_s`` too: every file but the open one is indexed."""
+    rec = Recorder(tmp_path, "aged", rotate_s=0.0)
+    try:
+        for o, fs in outcomes:
+            rec.record(o, fs)
+        finished = rec.files[:-1]
+        assert len(finished) == len(outcomes)
+        for path in finished:
+            with path.open("rb") as fh:
+                assert make_reader(fh).get_summary().statistics.message_count > 0
+    finally:
+        rec.close()
+
+
+def test_the_budget_holds_after_every_trigger_not_only_at_rotation(tmp_path, outcomes):
+    one = Recorder(tmp_path / "one", "one")
+    one.record(*outcomes[0])
+    one.close()
+    size = one.files[0].stat().st_size
+    budget = int(2.5 * size)
+    rec = Recorder(tmp_path / "kept", "budget", rotate_bytes=10**12,
+                   retention=Retention(max_total_bytes=budget))  # fmt: skip
+    try:
+        for o, fs in outcomes * 3:
+            rec.record(o, fs)
+            used = sum(p.stat().st_size for p in (tmp_path / "kept").glob("*.mcap"))
+            assert used <= budget
+    finally:
+        rec.close()
 
 
 def test_rotation_by_size(tmp_path, outcomes):

@@ -347,3 +347,222 @@ def test_worker_and_api_measure_with_the_same_loaded_part(tmp_path, trees):
         assert part.model.alignment is not None
     finally:
         station.close()
+
+
+# --------------------------------------------------------------------------- seq checked
+
+
+class Alarms:
+    def __init__(self) -> None:
+        self.got = []
+
+    def __call__(self, alarm) -> None:
+        self.got.append(alarm)
+
+    def kinds(self) -> list[str]:
+        return [a.kind.value for a in self.got]
+
+
+def checked_worker(p: Pipeline, **kw) -> tuple[Worker, Collect, Alarms]:
+    got, alarms = Collect(), Alarms()
+    w = Worker(p, JobQueue(4), [got], line=LINE, station=STATION, missed_part=PART,
+               alarms=[alarms], **kw)  # fmt: skip
+    return w, got, alarms
+
+
+def at(fs: FrameSet, seq: int, dt_ns: int = 0) -> FrameSet:
+    """``fs`` as if triggered with another seq (and later by ``dt_ns``)."""
+    return dataclasses.replace(fs, seq=seq, triggered_ns=fs.triggered_ns + dt_ns)
+
+
+def test_a_seq_jump_beyond_the_bound_is_refused_not_expanded(framesets, quick_part):
+    """A seq 10^12 ahead: one error result and an alarm, no missed records, and the
+    next part is measured as if the jump had not come."""
+    w, got, alarms = checked_worker(pipeline(quick_part), max_seq_jump=300)
+    w.handle(job(framesets[0]))
+    w.handle(job(at(framesets[1], 10**12)))
+    w.handle(job(framesets[1]))
+    assert [(r.seq, r.status) for r in got.results] == [
+        (0, got.results[0].status), (10**12, Status.error), (1, got.results[2].status)
+    ]  # fmt: skip
+    assert got.results[2].status in (Status.passed, Status.fail)
+    assert "jumped from 0 to 1000000000000" in got.results[1].reason
+    assert alarms.kinds() == ["seq_jump"] and alarms.got[0].seq == 10**12
+
+
+def test_a_jump_within_the_bound_is_answered_as_missed(framesets, quick_part):
+    w, got, alarms = checked_worker(pipeline(quick_part), max_seq_jump=3)
+    w.handle(job(framesets[0]))
+    w.handle(job(framesets[4]))  # 3 skipped: within the bound
+    w.handle(job(at(framesets[5], 9)))  # 4 skipped: beyond it
+    assert [(r.seq, r.status) for r in got.results][1:4] == [(s, Status.missed) for s in (1, 2, 3)]
+    assert got.results[-1].seq == 9 and got.results[-1].status is Status.error
+    assert alarms.kinds() == ["seq_jump"]
+
+
+def test_a_repeated_seq_is_refused_and_the_next_part_measured(framesets, quick_part):
+    w, got, alarms = checked_worker(pipeline(quick_part))
+    for fs in framesets[:2]:
+        w.handle(job(fs))
+    w.handle(job(at(framesets[1], 1, dt_ns=1_000)))  # seq 1 again, another trigger
+    w.handle(job(framesets[2]))
+    assert [(r.seq, r.status is Status.error) for r in got.results] == [
+        (0, False), (1, False), (1, True), (2, False)
+    ]  # fmt: skip
+    assert "seq 1 repeated" in got.results[2].reason
+    assert len({r.id for r in got.results}) == 4  # the refusal does not overwrite seq 1's result
+    assert alarms.kinds() == ["seq_repeat"]
+
+
+def test_a_trigger_delivered_twice_is_answered_once(tmp_path, framesets, quick_part):
+    """The same FrameSet twice: one result, one alarm; and a worker with a store does not
+    answer again a trigger that is stored already (a restart, another delivery)."""
+    from service.line import store_sink
+    from service.store import ResultStore
+
+    w, got, alarms = checked_worker(pipeline(quick_part))
+    w.handle(job(framesets[0]))
+    w.handle(job(framesets[0]))
+    assert len(got.results) == 1 and alarms.kinds() == ["seq_repeat"]
+    with ResultStore(tmp_path / "r.sqlite") as store:
+        store_sink(store)(type("O", (), {"result": got.results[0]})(), None)
+        w2, got2, alarms2 = checked_worker(pipeline(quick_part), is_stored=store.has)
+        w2.handle(job(framesets[0]))
+        w2.handle(job(framesets[1]))
+        assert [r.seq for r in got2.results] == [1] and alarms2.kinds() == ["seq_repeat"]
+
+
+def test_the_seq_of_an_undecodable_frameset_is_not_trusted(framesets, quick_part):
+    """Bytes that do not decode but claim seq 19: an error result and an alarm, no
+    missed records for 1..18, and parts 1..3 are measured when they come."""
+    w, got, alarms = checked_worker(pipeline(quick_part))
+    w.handle(job(framesets[0]))
+    broken = encode_frameset(at(framesets[1], 19))
+    w.handle(job(broken[: len(broken) // 2]))
+    for fs in framesets[1:4]:
+        w.handle(job(fs))
+    assert [(r.seq, r.status) for r in got.results][1] == (19, Status.error)
+    assert [r.seq for r in got.results] == [0, 19, 1, 2, 3]
+    assert all(r.status is not Status.missed for r in got.results)
+    assert alarms.kinds() == ["bad_frameset"]
+
+
+def test_a_source_that_counts_anew_is_followed_after_one_refusal(framesets, quick_part):
+    """A trigger source restarted without its state: its first seq is refused, the
+    next one (consecutive to it) is accepted with an alarm, and counting goes on."""
+    w, got, alarms = checked_worker(pipeline(quick_part))
+    for fs in framesets[:4]:
+        w.handle(job(fs))
+    later = 10**10
+    for seq in (0, 1, 2):
+        w.handle(job(at(framesets[seq], seq, dt_ns=later)))
+    assert [(r.seq, r.status is Status.error) for r in got.results][4:] == [
+        (0, True), (1, False), (2, False)
+    ]  # fmt: skip
+    assert alarms.kinds() == ["seq_repeat", "seq_rebased"]
+
+
+def test_a_restarted_worker_goes_on_from_the_stored_seq(framesets, quick_part):
+    w, got, _ = checked_worker(pipeline(quick_part), resume=(1, framesets[1].triggered_ns))
+    w.handle(job(framesets[4]))
+    assert [(r.seq, r.status is Status.missed) for r in got.results] == [
+        (2, True), (3, True), (4, False)
+    ]  # fmt: skip
+
+
+# --------------------------------------------------------------------------- journal
+
+
+def test_the_journal_keeps_frames_until_answered(tmp_path):
+    from service.journal import Journal
+
+    j = Journal(tmp_path / "j")
+    k1 = j.add(b"one", 5)
+    k2 = j.add(b"two", 7)
+    (tmp_path / "j" / "00000000000000000009-000009.tmp").write_bytes(b"torn")
+    j.remove(k1)
+    again = Journal(tmp_path / "j")  # a restart: the torn write is discarded
+    pending = again.pending()
+    assert [(e.key, e.payload, e.received_ns) for e in pending] == [(k2, b"two", 7)]
+    assert not list((tmp_path / "j").glob("*.tmp"))
+    assert Journal(tmp_path / "small", max_entry_bytes=2).add(b"abc", 1) is None
+
+
+def test_a_killed_worker_measures_its_journal_first(tmp_path, framesets, quick_part):
+    """Frames accepted before a kill are measured at the next start, before new ones; one
+    whose result was stored just before the kill is not answered again; the gap to the
+    first live frame is answered from the store's last seq."""
+    from service.journal import Journal
+    from service.line import store_sink
+    from service.store import ResultStore
+
+    journal = Journal(tmp_path / "journal")
+    with ResultStore(tmp_path / "r.sqlite") as store:
+        first = Worker(pipeline(quick_part), JobQueue(4), [store_sink(store)],
+                       line=LINE, station=STATION)  # fmt: skip
+        first.handle(job(framesets[0]))
+        for fs in framesets[:3]:  # 0 was answered; the kill came before its entry went
+            journal.add(encode_frameset(fs), fs.triggered_ns)
+        port = free_port()
+        got = Collect()
+        with bus.open_session(peer(port)) as wsess, bus.open_session(client(port)) as csess:
+            zw = ZenohWorker(wsess, Keys(LINE), STATION, pipeline(quick_part), queue_size=2,
+                             sinks=[store_sink(store), got], missed_part=PART, store=store,
+                             journal=journal)  # fmt: skip
+            try:
+                assert got.wait(2, 30)
+                pub = bus.frame_publisher(csess, Keys(LINE).frames(STATION))
+                assert bus.wait_for_subscribers(pub, 10)
+                pub.put(encode_frameset(framesets[5]))
+                assert got.wait(5, 30)
+                pub.undeclare()
+            finally:
+                zw.close()
+        assert [(r.seq, r.status is Status.missed) for r in got.results] == [
+            (1, False), (2, False), (3, True), (4, True), (5, False)
+        ]  # fmt: skip
+        assert zw.worker.stats.duplicates == 1 and zw.worker.stats.alarms == 0
+        assert len(journal) == 0
+        assert sorted(r.seq for r in store.station_results(LINE, STATION)) == [0, 1, 2, 3, 4, 5]
+
+
+def test_the_ingest_never_uses_a_seq_twice_across_restarts(tmp_path, quick_part):
+    from service.ingest import Ingest, SeqState
+    from service.protocol import decode_frameset
+
+    state = SeqState(tmp_path / "state" / "ingest-seq")
+    sent: list[bytes] = []
+    for n in (3, 2):  # two runs of the ingest, the second a restart
+        ingest = Ingest(rig(QUICK, quick_part), sent.append, period_s=1.0, seq_state=state)
+        for _ in range(n):
+            ingest.trigger()
+    assert [decode_frameset(b).seq for b in sent] == [0, 1, 2, 3, 4]
+    state.path.write_text("garbage")
+    with pytest.raises(ValueError, match="not a seq number"):
+        Ingest(rig(QUICK, quick_part), sent.append, period_s=0.01, seq_state=state)
+
+
+def test_alarms_are_published_on_the_station_alarm_key(framesets, quick_part):
+    from service.models import Alarm
+
+    port = free_port()
+    keys = Keys(LINE)
+    got = Collect()
+    with bus.open_session(peer(port)) as wsess, bus.open_session(client(port)) as csess:
+        alarms = csess.declare_subscriber(keys.alarms(), bus.zenoh.handlers.FifoChannel(16))
+        zw = ZenohWorker(wsess, keys, STATION, pipeline(quick_part), queue_size=4, sinks=[got])
+        try:
+            pub = bus.frame_publisher(csess, keys.frames(STATION))
+            assert bus.wait_for_subscribers(pub, 10)
+            pub.put(encode_frameset(framesets[0]))
+            pub.put(encode_frameset(at(framesets[1], 10**12)))
+            assert got.wait(2, 30)
+            sample = alarms.handler.recv()
+            pub.undeclare()
+        finally:
+            zw.close()
+            alarms.undeclare()
+    assert str(sample.key_expr) == keys.alarm(STATION)
+    alarm = Alarm.model_validate_json(sample.payload.to_bytes())
+    assert alarm.kind.value == "seq_jump" and alarm.seq == 10**12 and alarm.station == STATION
+    assert alarm.triggered_ns == framesets[1].triggered_ns
