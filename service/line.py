@@ -210,9 +210,12 @@ class Station:
 
 def stages_for(cfg: LineConfig) -> Stages:
     """The line's stages: the four-camera flash rig, calibrated as configured, whose
-    simulator renders the line as configured (belt speed, flash duration, slide)."""
+    simulator renders the line as configured (belt speed, flash duration, slide) at the
+    calibrated cameras' image size."""
+    path = cfg.rig_calibration_path()
+    cam = (Rig.load(path) if path else Rig.default()).cameras[0]
     truth = line_rig(
-        Rig.nominal(),
+        Rig.nominal(cam.width, cam.height),
         conveyor_speed_mm_s=cfg.line.conveyor_speed_mm_s,
         pattern_seed=cfg.projector.pattern_seed,
     )

@@ -150,28 +150,30 @@ class ResultStore:
     # ------------------------------------------------------------------ schema
 
     def _migrate(self) -> None:
+        # One write transaction from reading the version to the last step: a
+        # worker and an API opening a new file at once must not both migrate it.
         db = self._db
-        db.execute("CREATE TABLE IF NOT EXISTS schema_version (version INTEGER NOT NULL)")
-        row = db.execute("SELECT version FROM schema_version").fetchone()
-        version = 0 if row is None else int(row[0])
-        if row is None:
-            db.execute("INSERT INTO schema_version (version) VALUES (0)")
-        if version > SCHEMA_VERSION:
-            raise StoreError(
-                f"{self.path}: schema version {version} is newer than this software's "
-                f"({SCHEMA_VERSION}); upgrade the software"
-            )
-        for i in range(version, SCHEMA_VERSION):
-            log.info("%s: migrating schema %d -> %d", self.path, i, i + 1)
-            db.execute("BEGIN IMMEDIATE")
-            try:
+        db.execute("BEGIN IMMEDIATE")
+        try:
+            db.execute("CREATE TABLE IF NOT EXISTS schema_version (version INTEGER NOT NULL)")
+            row = db.execute("SELECT version FROM schema_version").fetchone()
+            version = 0 if row is None else int(row[0])
+            if row is None:
+                db.execute("INSERT INTO schema_version (version) VALUES (0)")
+            if version > SCHEMA_VERSION:
+                raise StoreError(
+                    f"{Path(self.path).name}: schema version {version} is newer than this "
+                    f"software's ({SCHEMA_VERSION}); upgrade the software"
+                )
+            for i in range(version, SCHEMA_VERSION):
+                log.info("%s: migrating schema %d -> %d", self.path, i, i + 1)
                 for stmt in _split_sql(MIGRATIONS[i]):
                     db.execute(stmt)
                 db.execute("UPDATE schema_version SET version = ?", (i + 1,))
-                db.execute("COMMIT")
-            except BaseException:
-                db.execute("ROLLBACK")
-                raise
+            db.execute("COMMIT")
+        except BaseException:
+            db.execute("ROLLBACK")
+            raise
 
     @property
     def schema_version(self) -> int:

@@ -448,6 +448,7 @@ class Worker:
             if not self._admit(check, seq, t_ns):
                 self._emit(Outcome(error_result(reason=_refusal(check), **fields)), None)
                 return
+        self._alarm(AlarmKind.queue_overflow, item.reason, t_ns, seq)
         self._emit(Outcome(missed_result(reason=item.reason, **fields)), None)
 
     def _job(self, item: Job) -> None:
