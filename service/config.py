@@ -293,6 +293,14 @@ class StationSection(_Strict):
     queue_size: int = Field(
         default=4, ge=1, le=1000, description="Frame sets waiting for the worker."
     )
+    metrics_port: int | None = Field(
+        default=9464,
+        ge=0,
+        le=65535,
+        description="A worker running on its own serves Prometheus metrics here, on the "
+        "HTTP host (0: any free port; unset: none). With the API in the same process they "
+        "are on the API's /metrics.",
+    )
     max_seq_jump: int = Field(
         default=300,
         ge=1,

@@ -36,6 +36,7 @@ from .api import ResultHub, create_app
 from .config import LineConfig, PartSpec, load_part_spec
 from .ingest import Ingest, SeqState, SimPart, SimulatedRig, SimulationSettings, line_rig
 from .journal import Journal
+from .metrics import Metrics
 from .models import software_version
 from .parts import LoadedPart, PartRegistry, load_part_cad
 from .pipeline import Outcome, Pipeline, Stages, flash_stages
@@ -380,6 +381,7 @@ def make_app(
     hub: ResultHub,
     checks: dict[str, Callable[[], bool]],
     registry: PartRegistry | None = None,
+    metrics: Metrics | None = None,
 ) -> Api | None:
     """The app of :func:`service.api.create_app`, or None when it could not be built.
 
@@ -392,7 +394,7 @@ def make_app(
     try:
         if own:
             reg.start()
-        app = create_app(cfg, store=store, parts=reg, bus=hub, checks=checks)
+        app = create_app(cfg, store=store, parts=reg, bus=hub, checks=checks, metrics=metrics)
     except Exception:
         # The line measures without the API; say so loudly rather than stop it.
         log.exception("the REST API could not be built; running without it")
@@ -469,6 +471,7 @@ def start_line(
         opened.append(recorder)
         counter = ResultCounter(parts_limit)
         hub = ResultHub()
+        metrics = Metrics()
         archive = DeviationArchive(cfg.storage.deviations_path())
         sinks = [archive_sink(archive), store_sink(store), *extra_sinks, hub_sink(hub)]
         worker = ZenohWorker(
@@ -481,6 +484,7 @@ def start_line(
             # Counted once recorded: stopping after N results stops with N recorded.
             after_publish=[recorder.record, counter],
             missed_part=station.missed_part(),
+            metrics=metrics,
             **worker_state(cfg, store),
         )
         opened.append(worker)
@@ -493,6 +497,7 @@ def start_line(
                 hub=hub,
                 checks={"zenoh": lambda: not session.is_closed()},
                 registry=station.registry,
+                metrics=metrics,
             )
             if made is not None:
                 opened.append(made)
@@ -568,6 +573,10 @@ def run_worker(cfg: LineConfig, stop: threading.Event) -> int:
     ):
         store = ResultStore(cfg.storage.database_path())
         recorder = station.recorder()
+        metrics = Metrics()
+        served = None
+        if cfg.station.metrics_port is not None:
+            served = metrics.serve(cfg.http.host, cfg.station.metrics_port)
         worker = ZenohWorker(
             session,
             station.keys,
@@ -580,6 +589,7 @@ def run_worker(cfg: LineConfig, stop: threading.Event) -> int:
             ],
             after_publish=[recorder.record],
             missed_part=station.missed_part(),
+            metrics=metrics,
             **worker_state(cfg, store),
         )
         try:
@@ -588,6 +598,8 @@ def run_worker(cfg: LineConfig, stop: threading.Event) -> int:
             worker.close()
             recorder.close()
             store.close()
+            if served is not None:
+                served.shutdown()
     return 0
 
 

@@ -44,6 +44,7 @@ import zenoh
 from . import bus
 from .history import HistoryQueryable
 from .journal import Journal
+from .metrics import LATENCY_BUCKETS_S, Metrics, worker_collector
 from .models import Alarm, AlarmKind, InspectionResult, Status, make_result_id
 from .pipeline import Outcome, Pipeline, error_result, missed_result
 from .protocol import FrameSet, Keys, ProtocolError, decode_frameset, peek_identity
@@ -328,6 +329,8 @@ class WorkerStats:
     duplicates: int = 0
     last_seq: int | None = None
     by_status: dict[str, int] = field(default_factory=dict)
+    missed_by_cause: dict[str, int] = field(default_factory=dict)
+    alarms_by_kind: dict[str, int] = field(default_factory=dict)
 
 
 class Worker:
@@ -356,6 +359,8 @@ class Worker:
     alarms : iterable of AlarmSink
     journal : Journal, optional
         Entries of answered jobs are removed from it.
+    metrics : Metrics, optional
+        Stage times and trigger-to-result latency are observed into it.
     """
 
     def __init__(
@@ -372,8 +377,10 @@ class Worker:
         is_stored: Callable[[str], bool] | None = None,
         alarms: Iterable[AlarmSink] = (),
         journal: Journal | None = None,
+        metrics: Metrics | None = None,
     ) -> None:
         self.pipeline = pipeline
+        self.metrics = metrics
         self.source = source
         self.sinks = list(sinks)
         self.line = line
@@ -449,7 +456,7 @@ class Worker:
                 self._emit(Outcome(error_result(reason=_refusal(check), **fields)), None)
                 return
         self._alarm(AlarmKind.queue_overflow, item.reason, t_ns, seq)
-        self._emit(Outcome(missed_result(reason=item.reason, **fields)), None)
+        self._emit(Outcome(missed_result(reason=item.reason, **fields)), None, "queue_full")
 
     def _job(self, item: Job) -> None:
         try:
@@ -532,6 +539,7 @@ class Worker:
                     )
                 ),
                 None,
+                "never_arrived",
             )
         return check.accepted
 
@@ -541,6 +549,7 @@ class Worker:
             station=self.station, seq=seq, raised_ns=time.time_ns(),
         )  # fmt: skip
         self.stats.alarms += 1
+        self.stats.alarms_by_kind[kind.value] = self.stats.alarms_by_kind.get(kind.value, 0) + 1
         log.warning("alarm %s: %s", kind.value, message)
         for sink in self.alarms:
             try:
@@ -548,13 +557,15 @@ class Worker:
             except Exception:
                 log.exception("alarm sink %r failed", sink)
 
-    def _emit(self, outcome: Outcome, fs: FrameSet | None) -> None:
+    def _emit(self, outcome: Outcome, fs: FrameSet | None, cause: str | None = None) -> None:
         r = outcome.result
         self.stats.processed += 1
         self.stats.last_seq = r.seq
         self.stats.by_status[r.status.value] = self.stats.by_status.get(r.status.value, 0) + 1
         if r.status is Status.missed:
             self.stats.missed += 1
+            cause = cause or "other"
+            self.stats.missed_by_cause[cause] = self.stats.missed_by_cause.get(cause, 0) + 1
             # Said out loud: a line that cannot keep up with its trigger must show it.
             log.warning(
                 "missed %s seq %d (%d missed of %d): %s",
@@ -570,6 +581,21 @@ class Worker:
         self._recent[r.id] = None
         if len(self._recent) > RECENT_IDS:
             self._recent.popitem(last=False)
+        if self.metrics is not None and r.status not in (Status.missed,):
+            self._observe(r)
+
+    def _observe(self, r: InspectionResult) -> None:
+        assert self.metrics is not None
+        for stage, ms in r.timings_ms.items():
+            self.metrics.observe(
+                "inspection_stage_seconds", "Time of a measuring stage.", ms / 1e3, stage=stage
+            )
+        latency_s = (time.time_ns() - r.triggered_ns) / 1e9
+        if 0 <= latency_s < 3600:  # a trigger clock far off says nothing of the latency
+            self.metrics.observe(
+                "inspection_latency_seconds", "Trigger to answered result.", latency_s,
+                buckets=LATENCY_BUCKETS_S,
+            )  # fmt: skip
 
     def status(self, worker_id: str, state: str) -> dict[str, Any]:
         return {
@@ -641,6 +667,7 @@ class ZenohWorker:
         store: ResultStore | None = None,
         journal: Journal | None = None,
         max_seq_jump: int = DEFAULT_MAX_SEQ_JUMP,
+        metrics: Metrics | None = None,
     ) -> None:
         self.id = bus.worker_id(station)
         self.session = session
@@ -666,7 +693,12 @@ class ZenohWorker:
             is_stored=store.has if store is not None else None,
             alarms=[zenoh_alarm_sink(session, keys)],
             journal=journal,
+            metrics=metrics,
         )
+        if metrics is not None:
+            metrics.collector(
+                worker_collector(self.worker.stats, self.source.depth, self.source.capacity)
+            )
         self._state = "ready"
         self.token = session.liveliness().declare_token(keys.worker_token(station, self.id))
         self.heartbeat = bus.Heartbeat(

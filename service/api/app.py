@@ -36,6 +36,7 @@ def create_app(
     bus: ResultHub | None = None,
     archive: DeviationArchive | None = None,
     checks: Mapping[str, Callable[[], bool]] | None = None,
+    metrics: Metrics | None = None,
 ) -> FastAPI:
     """Build the API.
 
@@ -60,13 +61,17 @@ def create_app(
     checks : mapping of name to callable() -> bool, optional
         Extra readiness checks (e.g. ``{"zenoh": bus_connected}``); the
         part registry's readiness is always checked.
+    metrics : Metrics, optional
+        The process's metrics, served on ``/metrics`` (a worker in the same
+        process adds its own to them); default: a new set.
     """
     if pipeline is None:
         pipeline = measure_upload
     hub = bus if bus is not None else ResultHub()
     if archive is None:
         archive = DeviationArchive(settings.storage.deviations_path())
-    metrics = Metrics()
+    if metrics is None:
+        metrics = Metrics()
     svc = Services(
         settings=settings,
         store=store,

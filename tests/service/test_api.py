@@ -469,17 +469,23 @@ def test_health_follows_the_checks(client, app_parts):
 
 
 def test_metrics_in_prometheus_text_format(client, app_parts):
+    from prometheus_client.parser import text_string_to_metric_families
+
     app_parts[1].put(stored_result(1))
     client.get("/v1/parts")
     text = client.get("/metrics")
-    assert text.headers["content-type"].startswith("text/plain; version=0.0.4")
-    body = text.text
-    assert 'inspection_results_stored{status="pass"} 1' in body
-    assert 'http_requests_total{code="200",method="GET",route="/v1/parts"} 1' in body
-    assert "# TYPE http_request_duration_seconds histogram" in body
-    assert f'inspection_parts{{part="{PART}",state="ready"}} 1' in body
-    for line_ in body.splitlines():
-        assert line_.startswith("#") or len(line_.rsplit(" ", 1)) == 2
+    assert text.headers["content-type"].startswith("text/plain; version=")
+    families = {f.name: f for f in text_string_to_metric_families(text.text)}
+    samples = {
+        (s.name, tuple(sorted(s.labels.items()))): s.value
+        for f in families.values()
+        for s in f.samples
+    }
+    assert samples[("inspection_results_stored", (("status", "pass"),))] == 1
+    key = (("code", "200"), ("method", "GET"), ("route", "/v1/parts"))
+    assert samples[("http_requests_total", key)] == 1
+    assert families["http_request_duration_seconds"].type == "histogram"
+    assert samples[("inspection_parts", (("part", PART), ("state", "ready")))] == 1
 
 
 def test_openapi_documents_the_routes(client):

@@ -27,13 +27,17 @@ HERE = Path(__file__).parent
 ENV = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
 
 
-def line_file(tmp_path: Path, trees: Path, period_s: float = 2.0, queue_size: int = 4) -> Path:
-    """A copy of the default line with the repo's parts and the session's tree cache."""
+def line_file(
+    tmp_path: Path, trees: Path, period_s: float = 2.0, queue_size: int = 4, metrics_port: int = 0
+) -> Path:
+    """A copy of the default line with the repo's parts and the session's tree cache; a
+    worker on its own serves its metrics on ``metrics_port`` (0: any free port)."""
     text = (ROOT / "configs" / "line.toml").read_text()
     text = text.replace('parts_dir = "parts"', f'parts_dir = "{ROOT / "configs" / "parts"}"')
     text = text.replace('trees_dir = "trees"', f'trees_dir = "{trees}"')
     text = text.replace("trigger_period_s = 2.0", f"trigger_period_s = {period_s}")
     text = text.replace("queue_size = 4 ", f"queue_size = {queue_size} ")
+    text = text.replace("metrics_port = 9464 ", f"metrics_port = {metrics_port} ")
     path = tmp_path / "line.toml"
     path.write_text(text)
     return path
@@ -176,9 +180,9 @@ def stop(proc: subprocess.Popen) -> int:
 
 
 def test_line_as_separate_processes(tmp_path, trees):
-    port, http_port = free_port(), free_port()
+    port, http_port, metrics_port = free_port(), free_port(), free_port()
     ep = f"tcp/127.0.0.1:{port}"
-    cfg_path = str(line_file(tmp_path, trees))
+    cfg_path = str(line_file(tmp_path, trees, metrics_port=metrics_port))
     common = ["--config", cfg_path, "--data-dir", str(tmp_path / "data")]
     keys = Keys(LINE)
     router = cli("router", "--zenoh-listen", ep)
@@ -208,6 +212,15 @@ def test_line_as_separate_processes(tmp_path, trees):
                 results.close()
         assert [r.seq for r in sorted(got, key=lambda r: r.seq)] == [0, 1, 2]
         assert all(r.status.value != "missed" for r in got)
+        # The worker has no API of its own: its metrics are on a port of their own.
+        from prometheus_client.parser import text_string_to_metric_families
+
+        with urllib.request.urlopen(f"http://127.0.0.1:{metrics_port}/metrics", timeout=10) as r:
+            families = {f.name: f for f in text_string_to_metric_families(r.read().decode())}
+        answered = sum(s.value for s in families["inspection_worker_results"].samples)
+        assert answered == 3  # the three triggers; the warm-up is not counted
+        assert families["inspection_stage_seconds"].type == "histogram"
+        assert families["inspection_worker_queue_capacity"].samples[0].value == 4
         for p in (worker, api):
             assert stop(p) == 0, p.stderr.read()[-2000:]
     finally:

@@ -170,6 +170,8 @@ def test_queue_overflow_drops_oldest_and_records_it_as_missed(framesets, quick_p
     ]
     assert got.results[0].serial == framesets[0].serial  # the real serial, read from the header
     assert "queue full" in got.results[0].reason and q.dropped == 2
+    assert w.stats.missed_by_cause == {"queue_full": 2}
+    assert w.stats.alarms_by_kind == {"queue_overflow": 2}
 
 
 def bad_payloads(fs: FrameSet) -> dict[str, bytes]:
@@ -398,6 +400,8 @@ def test_a_jump_within_the_bound_is_answered_as_missed(framesets, quick_part):
     assert [(r.seq, r.status) for r in got.results][1:4] == [(s, Status.missed) for s in (1, 2, 3)]
     assert got.results[-1].seq == 9 and got.results[-1].status is Status.error
     assert alarms.kinds() == ["seq_jump"]
+    assert w.stats.missed_by_cause == {"never_arrived": 3}
+    assert w.stats.alarms_by_kind == {"seq_jump": 1}
 
 
 def test_a_repeated_seq_is_refused_and_the_next_part_measured(framesets, quick_part):

@@ -1,0 +1,175 @@
+"""Prometheus metrics of every process of the line, with ``prometheus-client``.
+
+One :class:`Metrics` per process holds a registry of its own (several apps in
+one test process must not share the library's global one). The REST API
+serves it on ``/metrics``; a process without an HTTP server (a worker on its
+own) serves it on a port of its own (:meth:`Metrics.serve`). Names follow
+Prometheus conventions: base units (seconds), ``_total`` for counters.
+
+What a worker exposes (:func:`worker_collector`, read at each scrape, and
+the histograms it observes as it answers):
+
+==========================================  ===========================================
+``inspection_worker_results_total``         results answered, by ``status``
+``inspection_worker_missed_total``          missed triggers, by ``cause`` (``queue_full``,
+                                            ``never_arrived``)
+``inspection_worker_alarms_total``          alarms raised, by ``kind``
+``inspection_worker_duplicates_total``      triggers delivered again, answered once
+``inspection_worker_queue_depth``           FrameSets waiting (gauge), and ``_capacity``
+``inspection_stage_seconds``                time of each measuring stage, by ``stage``
+``inspection_latency_seconds``              trigger to answered result
+==========================================  ===========================================
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable, Iterable, Iterator
+from typing import Any
+
+from prometheus_client import (
+    CONTENT_TYPE_LATEST,
+    CollectorRegistry,
+    Counter,
+    Histogram,
+    generate_latest,
+    start_http_server,
+)
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
+from prometheus_client.registry import Collector
+
+log = logging.getLogger(__name__)
+
+CONTENT_TYPE = CONTENT_TYPE_LATEST
+
+DURATION_BUCKETS_S = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)
+"""Seconds; spans a sub-10 ms fit to a slow multi-second upload."""
+
+LATENCY_BUCKETS_S = (0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 5.0, 10.0, 30.0)
+"""Seconds from trigger to result: the line's goal is a median of 1 s."""
+
+Samples = Callable[[], Iterable[tuple[dict[str, str], float]]]
+
+
+class _Read(Collector):
+    """A collector whose samples a function returns at each scrape."""
+
+    def __init__(self, collect: Callable[[], Iterable[Metric]]) -> None:
+        self._collect = collect
+
+    def collect(self) -> Iterator[Metric]:
+        try:
+            yield from self._collect()
+        except Exception:  # a scrape must not fail because one source did
+            log.exception("metrics collector failed")
+
+
+class Metrics:
+    """One process's metrics: counters and histograms made on first use, gauges read
+    at scrape time."""
+
+    def __init__(self) -> None:
+        self.registry = CollectorRegistry(auto_describe=True)
+        self._lock = threading.Lock()
+        self._counters: dict[str, Counter] = {}
+        self._hists: dict[str, Histogram] = {}
+
+    def inc(self, name: str, help_: str, value: float = 1.0, **labels: str) -> None:
+        """Add ``value`` to counter ``name`` (its label names fixed by the first call)."""
+        with self._lock:
+            c = self._counters.get(name)
+            if c is None:
+                c = Counter(name, help_, sorted(labels), registry=self.registry)
+                self._counters[name] = c
+        (c.labels(**labels) if labels else c).inc(value)
+
+    def observe(
+        self,
+        name: str,
+        help_: str,
+        value: float,
+        *,
+        buckets: tuple[float, ...] = DURATION_BUCKETS_S,
+        **labels: str,
+    ) -> None:
+        """Add ``value`` to histogram ``name``."""
+        with self._lock:
+            h = self._hists.get(name)
+            if h is None:
+                h = Histogram(name, help_, sorted(labels), buckets=buckets, registry=self.registry)
+                self._hists[name] = h
+        (h.labels(**labels) if labels else h).observe(value)
+
+    def gauge(self, name: str, help_: str, read: Samples) -> None:
+        """Register a gauge whose samples ``read()`` returns at each scrape."""
+
+        def collect() -> Iterator[Metric]:
+            samples = list(read())
+            names = sorted(samples[0][0]) if samples else []
+            g = GaugeMetricFamily(name, help_, labels=names)
+            for labels, v in samples:
+                g.add_metric([labels[k] for k in names], v)
+            yield g
+
+        self.registry.register(_Read(collect))
+
+    def collector(self, collect: Callable[[], Iterable[Metric]]) -> None:
+        """Register a function returning whole metric families at each scrape."""
+        self.registry.register(_Read(collect))
+
+    def render(self) -> bytes:
+        """Everything, in the Prometheus text exposition format."""
+        return generate_latest(self.registry)
+
+    def serve(self, host: str, port: int) -> Any | None:
+        """Serve ``/metrics`` on ``host:port`` from a thread (0: any free port).
+
+        Returns the server (its ``server_port`` is the port), or None when the
+        port could not be bound: the process goes on without metrics, said in
+        the log, rather than stop measuring.
+        """
+        try:
+            server, _ = start_http_server(port, addr=host, registry=self.registry)
+        except OSError as exc:
+            log.error("metrics not served on %s:%d: %s", host, port, exc)
+            return None
+        log.info("metrics on http://%s:%d/metrics", host, server.server_port)
+        return server
+
+
+def worker_collector(stats: Any, depth: Callable[[], int], capacity: int) -> Callable[[], Any]:
+    """The metric families of a worker's :class:`~service.worker.WorkerStats`."""
+
+    def collect() -> Iterator[Metric]:
+        results = CounterMetricFamily(
+            "inspection_worker_results", "Results answered by the worker.", labels=["status"]
+        )
+        for status, n in sorted(stats.by_status.items()):
+            results.add_metric([status], n)
+        yield results
+        missed = CounterMetricFamily(
+            "inspection_worker_missed", "Triggers answered missed, by cause.", labels=["cause"]
+        )
+        for cause, n in sorted(stats.missed_by_cause.items()):
+            missed.add_metric([cause], n)
+        yield missed
+        alarms = CounterMetricFamily(
+            "inspection_worker_alarms", "Alarms raised, by kind.", labels=["kind"]
+        )
+        for kind, n in sorted(stats.alarms_by_kind.items()):
+            alarms.add_metric([kind], n)
+        yield alarms
+        yield CounterMetricFamily(
+            "inspection_worker_duplicates",
+            "Triggers delivered again and answered once.",
+            value=stats.duplicates,
+        )
+        yield GaugeMetricFamily(
+            "inspection_worker_queue_depth", "FrameSets waiting for the worker.", value=depth()
+        )
+        yield GaugeMetricFamily(
+            "inspection_worker_queue_capacity", "FrameSets that may wait.", value=capacity
+        )
+
+    return collect
