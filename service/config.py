@@ -496,11 +496,52 @@ class SimulatorSection(_Strict):
         return self
 
 
+class AuthScope(StrEnum):
+    none = "none"
+    writes = "writes"
+    all = "all"
+
+
 class HttpSection(_Strict):
+    """The REST API: where it listens, who may call it, what it takes.
+
+    API keys never live in this file (its contents go into every recording's
+    metadata): they come from ``$INSPECTION_API_KEYS`` or ``api_keys_file``.
+    """
+
     host: str = "127.0.0.1"
     port: int = Field(default=8000, ge=0, le=65535, description="0: any free port.")
     max_upload_mb: float = Field(default=100.0, gt=0, le=10_000)
     trend_window: int = Field(default=50, ge=2, le=100_000, description="Parts in a trend.")
+    auth: AuthScope = Field(
+        default=AuthScope.writes,
+        description="What needs an API key: writes (the default), all requests, or none.",
+    )
+    api_keys_file: str | None = Field(
+        default=None,
+        description="API keys, one per line, relative to the line file (besides "
+        "$INSPECTION_API_KEYS). Without any key, writes are open only on a loopback host.",
+    )
+    allowed_origins: list[str] = Field(
+        default_factory=list,
+        max_length=100,
+        description="Web origins (scheme://host[:port]) allowed to write and to read "
+        "cross-origin; the API's own origin always is.",
+    )
+    max_measurements: int = Field(
+        default=1, ge=1, le=64, description="Uploaded clouds measured at once."
+    )
+    max_waiting_measurements: int = Field(
+        default=2, ge=0, le=1000, description="Uploads waiting for a turn; more get 503."
+    )
+
+    @field_validator("allowed_origins")
+    @classmethod
+    def _origins(cls, v: list[str]) -> list[str]:
+        for o in v:
+            if not re.fullmatch(r"https?://[A-Za-z0-9.-]+(:\d{1,5})?/?", o):
+                raise ValueError(f"not a web origin (like https://host:8443): {o!r}")
+        return v
 
 
 class LineConfig(_Strict):
@@ -524,6 +565,12 @@ class LineConfig(_Strict):
         if self.station.rig_calibration is None:
             return None
         p = Path(self.station.rig_calibration)
+        return p if p.is_absolute() else Path(self.base_dir) / p
+
+    def api_keys_path(self) -> Path | None:
+        if self.http.api_keys_file is None:
+            return None
+        p = Path(self.http.api_keys_file)
         return p if p.is_absolute() else Path(self.base_dir) / p
 
     def parts_path(self) -> Path:

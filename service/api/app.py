@@ -7,24 +7,30 @@ and the part registry, and passes them to :func:`create_app`. Routes live in
 
 from __future__ import annotations
 
+import logging
 from collections.abc import AsyncIterator, Callable, Mapping
 from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
+from starlette.middleware.cors import CORSMiddleware
 
-from ..config import LineConfig
+from ..config import AuthScope, LineConfig
 from ..models import software_version
 from ..parts import PartRegistry
 from ..results import measure_upload
 from ..store import DeviationArchive, ResultStore
+from .access import Access, is_loopback, load_keys
 from .deps import Pipeline, Services
 from .errors import install_error_handlers
 from .events import ResultHub
+from .gate import MeasureGate
 from .limits import BodySizeLimit
 from .metrics import Metrics, RequestMetrics
 from .routes import inspections as inspection_routes
 from .routes import parts as part_routes
 from .routes import system as system_routes
+
+log = logging.getLogger(__name__)
 
 
 def create_app(
@@ -72,6 +78,13 @@ def create_app(
         archive = DeviationArchive(settings.storage.deviations_path())
     if metrics is None:
         metrics = Metrics()
+    http = settings.http
+    keys = load_keys(settings.api_keys_path())
+    loopback = is_loopback(http.host)
+    if not keys and http.auth is not AuthScope.none:
+        log.warning("no API key configured: writes are %s",
+                    "open to this machine only" if loopback else "refused")  # fmt: skip
+    gate = MeasureGate(http.max_measurements, http.max_waiting_measurements)
     svc = Services(
         settings=settings,
         store=store,
@@ -80,6 +93,7 @@ def create_app(
         hub=hub,
         archive=archive,
         metrics=metrics,
+        gate=gate,
         checks=dict(checks or {}),
     )
 
@@ -87,6 +101,7 @@ def create_app(
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         yield
         hub.close()  # ends open event streams so the server can stop
+        gate.close()
 
     app = FastAPI(
         title="Inspection",
@@ -104,8 +119,25 @@ def create_app(
     # A plain ASGI middleware (not BaseHTTPMiddleware): it does not buffer
     # streamed responses such as /v1/stream.
     app.add_middleware(RequestMetrics, metrics=svc.metrics)
-    # Outermost: refuses oversized bodies before any parser reads them.
+    # Refuses oversized bodies before any parser reads them.
     app.add_middleware(BodySizeLimit, max_bytes=int(settings.http.max_upload_mb * 1e6))
+    if http.allowed_origins:
+        app.add_middleware(
+            CORSMiddleware,
+            allow_origins=list(http.allowed_origins),
+            allow_methods=["GET", "POST", "DELETE"],
+            allow_headers=["Authorization", "X-API-Key", "Content-Type"],
+        )
+    # Outermost: who may ask is settled before anything else reads the request.
+    app.add_middleware(
+        Access, keys=keys, auth=http.auth.value, loopback=loopback,
+        allowed_origins=list(http.allowed_origins),
+    )  # fmt: skip
+    svc.metrics.gauge(
+        "inspection_api_measurements_admitted",
+        "Uploads measuring or waiting for a turn.",
+        lambda: [({}, float(gate.admitted))],
+    )
     return app
 
 

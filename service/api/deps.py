@@ -15,6 +15,7 @@ from ..names import NAME_MAX_LEN, NAME_PATTERN, NAME_RULE
 from ..parts import PartRegistry
 from ..store import DeviationArchive, ResultStore
 from .events import ResultHub
+from .gate import MeasureGate
 from .metrics import Metrics
 
 log = logging.getLogger(__name__)
@@ -46,6 +47,7 @@ class Services:
     hub: ResultHub
     archive: DeviationArchive | None
     metrics: Metrics
+    gate: MeasureGate
     checks: Mapping[str, Callable[[], bool]] = field(default_factory=dict)
 
     def record(self, result: InspectionResult, points: Any = None, distances: Any = None) -> None:

@@ -43,11 +43,15 @@ def _config(args: argparse.Namespace, *, mode: str | None = None) -> Any:
     if mode == "client":
         overrides[("zenoh", "listen")] = listen or []
         overrides[("zenoh", "connect")] = connect
+    from service.api.access import AccessError, load_keys
+
     try:
-        return line_config_from_env(args.config, overrides=overrides)
-    except ConfigError as exc:
+        cfg = line_config_from_env(args.config, overrides=overrides)
+        load_keys(cfg.api_keys_path())  # an unreadable key file stops here, not in the API
+    except (ConfigError, AccessError) as exc:
         print(f"inspection: {exc}", file=sys.stderr)
         return None
+    return cfg
 
 
 def cmd_run(args: argparse.Namespace) -> int:

@@ -21,6 +21,7 @@ from ..colormap import Marker, render_top_view
 from ..deps import PartQuery, Services, ServicesDep
 from ..errors import ApiError
 from ..forms import file_field, read_multipart, text_field
+from ..gate import Busy
 
 router = APIRouter(tags=["inspections"])
 
@@ -108,6 +109,21 @@ def parse_since(value: str | None) -> int | None:
     summary="Inspect an uploaded point cloud of a part; answers with the result",
 )
 async def create_inspection(svc: ServicesDep, request: Request) -> InspectionResult:
+    # A place is taken before the body is read: a busy API refuses at once.
+    try:
+        svc.gate.admit()
+    except Busy as exc:
+        raise ApiError(
+            503, "busy", "the API is measuring as many uploads as it may; retry shortly",
+            headers={"Retry-After": str(exc.retry_after_s)},
+        ) from None  # fmt: skip
+    try:
+        return await _inspect_upload(svc, request)
+    finally:
+        svc.gate.leave()
+
+
+async def _inspect_upload(svc: Services, request: Request) -> InspectionResult:
     form = await read_multipart(request)
     try:
         part_name = text_field(form, "part")
@@ -139,7 +155,7 @@ async def create_inspection(svc: ServicesDep, request: Request) -> InspectionRes
         )
     finally:
         await form.close()
-    outcome = await run_in_threadpool(svc.pipeline, part, points, trigger, frame=frame)
+    outcome = await svc.gate.run(svc.pipeline, part, points, trigger, frame=frame)
     await run_in_threadpool(svc.record, outcome.result, outcome.points_cad(), outcome.distances)
     return outcome.result
 

@@ -1,0 +1,156 @@
+"""Who may call the API, and how much it measures at once: a real uvicorn server each.
+
+Keys on writes (401 without, constant-time compare), reads open or not, no
+key configured beyond loopback (403), the browser's Origin on writes (403
+for a stranger's page), CORS for the allowed origins, and uploads beyond the
+API's measuring capacity refused at once (503 with Retry-After).
+"""
+
+from __future__ import annotations
+
+import socket
+import threading
+from contextlib import contextmanager
+
+import httpx2
+import numpy as np
+import pytest
+import uvicorn
+from test_api import PART, line, npy_bytes  # noqa: F401 - the module's built part
+
+from service.api import ResultHub, create_app
+from service.api.access import KEYS_ENV
+from service.results import measure_upload
+from service.store import DeviationArchive, ResultStore
+
+KEY = "k3y-0f-the-line"
+
+
+@contextmanager
+def serve(cfg, reg, tmp_path, *, pipeline=None, **http):
+    """The API with ``[http]`` changed by ``http``, on a real server on a loopback port."""
+    cfg = cfg.model_copy(
+        update={"http": type(cfg.http).model_validate(cfg.http.model_dump() | http)}
+    )
+    store = ResultStore(tmp_path / "results.sqlite")
+    hub = ResultHub()
+    app = create_app(cfg, store=store, parts=reg, bus=hub, pipeline=pipeline,
+                     archive=DeviationArchive(tmp_path / "deviations"))  # fmt: skip
+    sock = socket.socket()
+    sock.bind(("127.0.0.1", 0))
+    sock.listen(64)
+    srv = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="on"))
+    thread = threading.Thread(target=srv.run, kwargs={"sockets": [sock]}, daemon=True)
+    thread.start()
+    base = f"http://127.0.0.1:{sock.getsockname()[1]}"
+    try:
+        with httpx2.Client(base_url=base, timeout=60) as client:
+            yield client, base
+    finally:
+        hub.close()
+        srv.should_exit = True
+        thread.join(30)
+        sock.close()
+        store.close()
+
+
+def upload(client, headers=None, n=2000):
+    rng = np.random.default_rng(0)
+    cloud = npy_bytes(rng.uniform(-50, 50, (n, 3)))
+    return client.post("/v1/inspections", files={"file": ("c.npy", cloud)},
+                       data={"part": PART}, headers=headers or {})  # fmt: skip
+
+
+def code(r) -> str:
+    return r.json()["error"]["code"]
+
+
+def test_writes_need_a_key_reads_do_not(line, tmp_path, monkeypatch):  # noqa: F811
+    monkeypatch.setenv(KEYS_ENV, f"other-key, {KEY}")
+    with serve(*line, tmp_path) as (client, _):
+        r = upload(client)
+        assert r.status_code == 401 and code(r) == "unauthorized"
+        assert r.headers["www-authenticate"].startswith("Bearer")
+        assert code(upload(client, {"Authorization": "Bearer not-it"})) == "unauthorized"
+        assert client.delete(f"/v1/parts/{PART}").status_code == 401
+        assert client.get(f"/v1/parts/{PART}").status_code == 200  # the part is still there
+        assert upload(client, {"Authorization": f"Bearer {KEY}"}).status_code == 200
+        assert upload(client, {"X-API-Key": KEY}).status_code == 200
+        assert client.get("/v1/inspections").json()["items"]  # reads are open
+        assert client.get("/metrics").status_code == 200
+
+
+def test_with_auth_all_reads_need_a_key_too_but_probes_do_not(line, tmp_path, monkeypatch):  # noqa: F811
+    monkeypatch.setenv(KEYS_ENV, KEY)
+    with serve(*line, tmp_path, auth="all") as (client, _):
+        assert client.get("/v1/inspections").status_code == 401
+        assert client.get("/metrics").status_code == 401
+        assert client.get("/v1/health/live").status_code == 200
+        r = client.get("/v1/inspections", headers={"Authorization": f"Bearer {KEY}"})
+        assert r.status_code == 200
+
+
+def test_without_keys_writes_are_refused_beyond_loopback(line, tmp_path, monkeypatch):  # noqa: F811
+    monkeypatch.delenv(KEYS_ENV, raising=False)
+    with serve(*line, tmp_path, host="0.0.0.0") as (client, _):
+        r = upload(client)
+        assert r.status_code == 403 and code(r) == "writes_disabled"
+        assert KEYS_ENV in r.json()["error"]["message"]
+    with serve(*line, tmp_path, host="127.0.0.1") as (client, _):
+        assert upload(client).status_code == 200  # this machine's own user, as `make run` has it
+
+
+def test_a_write_from_another_origin_is_refused(line, tmp_path, monkeypatch):  # noqa: F811
+    """A page an operator opens cannot post to the line, key or not; the API's own pages
+    and the configured origins can, and only those get CORS headers on reads."""
+    monkeypatch.setenv(KEYS_ENV, KEY)
+    auth = {"Authorization": f"Bearer {KEY}"}
+    friend = "https://qa-desk.plant.example"
+    with serve(*line, tmp_path, allowed_origins=[friend]) as (client, base):
+        r = upload(client, {**auth, "Origin": "https://evil.example"})
+        assert r.status_code == 403 and code(r) == "origin_refused"
+        r = client.delete(f"/v1/parts/{PART}", headers={"Origin": "null"})
+        assert r.status_code == 403 and code(r) == "origin_refused"
+        assert upload(client, {**auth, "Origin": base}).status_code == 200
+        assert upload(client, {**auth, "Origin": friend}).status_code == 200
+        r = client.get("/v1/inspections", headers={"Origin": friend})
+        assert r.headers["access-control-allow-origin"] == friend
+        r = client.get("/v1/inspections", headers={"Origin": "https://evil.example"})
+        assert "access-control-allow-origin" not in r.headers
+
+
+def test_uploads_beyond_the_capacity_get_503_at_once(line, tmp_path, monkeypatch):  # noqa: F811
+    """One measuring, none waiting: a second upload is refused before its body is read,
+    and the first one's result comes back when it is done."""
+    monkeypatch.delenv(KEYS_ENV, raising=False)
+    started, release = threading.Event(), threading.Event()
+
+    def slow(part, points, trigger, *, frame):
+        started.set()
+        release.wait(60)
+        return measure_upload(part, points, trigger, frame=frame)
+
+    with serve(*line, tmp_path, pipeline=slow, max_measurements=1,
+               max_waiting_measurements=0) as (client, _):  # fmt: skip
+        first: dict = {}
+        t = threading.Thread(target=lambda: first.setdefault("r", upload(client)))
+        t.start()
+        try:
+            assert started.wait(30)
+            r = upload(client)
+            assert r.status_code == 503 and code(r) == "busy"
+            assert int(r.headers["retry-after"]) > 0
+        finally:
+            release.set()
+            t.join(60)
+        assert first["r"].status_code == 200
+        assert upload(client).status_code == 200  # the place was given back
+
+
+@pytest.mark.parametrize("origin", ["ftp://x", "https://host/path", "evil"])
+def test_allowed_origins_are_checked_in_the_config(line, origin):  # noqa: F811
+    from pydantic import ValidationError
+
+    cfg, _ = line
+    with pytest.raises(ValidationError, match="not a web origin"):
+        type(cfg.http).model_validate({"allowed_origins": [origin]})
