@@ -426,6 +426,18 @@ class RetentionSection(_Strict):
     every_nth: int = Field(default=10, ge=1, le=1_000_000)
     max_total_mb: float | None = Field(default=10_000.0, gt=0)
     max_age_h: float | None = Field(default=None, gt=0)
+    deviations_max_mb: float | None = Field(
+        default=5_000.0,
+        gt=0,
+        description="The per-point deviations behind the colour maps: the oldest go beyond this.",
+    )
+    deviations_max_age_h: float | None = Field(default=None, gt=0)
+    results_max_mb: float | None = Field(
+        default=2_000.0,
+        gt=0,
+        description="The results in the store (their JSON): the oldest rows go beyond this.",
+    )
+    results_max_age_d: float | None = Field(default=None, gt=0)
 
 
 class SimulatorSection(_Strict):

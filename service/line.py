@@ -42,6 +42,7 @@ from .parts import LoadedPart, PartRegistry, load_part_cad
 from .pipeline import Outcome, Pipeline, Stages, flash_stages
 from .protocol import FrameSet, Keys
 from .recorder import Recorder, Retention
+from .retention import Janitor
 from .store import DeviationArchive, ResultStore
 from .worker import ZenohWorker, result_from_json
 
@@ -428,6 +429,7 @@ class LineHandles:
     api: ApiServer | None
     hub: ResultHub
     app: Api | None = None
+    janitor: Janitor | None = None
 
     def close(self) -> None:
         """Stop triggering, let the worker finish what was triggered, close everything."""
@@ -437,6 +439,8 @@ class LineHandles:
             log.warning("stopping before the result of seq %d arrived", last)
         self.worker.close()
         self.recorder.close()
+        if self.janitor is not None:
+            self.janitor.close()
         if self.api is not None:
             self.api.close()
         if self.app is not None:
@@ -473,6 +477,8 @@ def start_line(
         hub = ResultHub()
         metrics = Metrics()
         archive = DeviationArchive(cfg.storage.deviations_path())
+        janitor = Janitor(store, archive, cfg.retention)
+        opened.append(janitor)
         sinks = [archive_sink(archive), store_sink(store), *extra_sinks, hub_sink(hub)]
         worker = ZenohWorker(
             session,
@@ -511,7 +517,9 @@ def start_line(
     except BaseException:
         bus.close_all(reversed(opened))
         raise
-    return LineHandles(session, station, store, recorder, worker, ingest, counter, api, hub, made)
+    return LineHandles(
+        session, station, store, recorder, worker, ingest, counter, api, hub, made, janitor
+    )
 
 
 def run_line(
@@ -572,6 +580,8 @@ def run_worker(cfg: LineConfig, stop: threading.Event) -> int:
         contextlib.closing(bus.open_session(bus_settings(cfg))) as session,
     ):
         store = ResultStore(cfg.storage.database_path())
+        archive = DeviationArchive(cfg.storage.deviations_path())
+        janitor = Janitor(store, archive, cfg.retention)
         recorder = station.recorder()
         metrics = Metrics()
         served = None
@@ -583,10 +593,7 @@ def run_worker(cfg: LineConfig, stop: threading.Event) -> int:
             station.name,
             station.pipeline(),
             queue_size=cfg.station.queue_size,
-            sinks=[
-                archive_sink(DeviationArchive(cfg.storage.deviations_path())),
-                store_sink(store),
-            ],
+            sinks=[archive_sink(archive), store_sink(store)],
             after_publish=[recorder.record],
             missed_part=station.missed_part(),
             metrics=metrics,
@@ -597,6 +604,7 @@ def run_worker(cfg: LineConfig, stop: threading.Event) -> int:
         finally:
             worker.close()
             recorder.close()
+            janitor.close()
             store.close()
             if served is not None:
                 served.shutdown()

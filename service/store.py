@@ -20,6 +20,7 @@ import base64
 import binascii
 import logging
 import math
+import os
 import re
 import sqlite3
 import threading
@@ -210,6 +211,42 @@ class ResultStore:
                     time.time_ns(),
                 ),
             )
+
+    def enforce(self, max_bytes: int | None, max_age_s: float | None) -> int:
+        """Delete the oldest rows beyond ``max_bytes`` of result JSON or older than
+        ``max_age_s`` (by trigger time); returns how many went.
+
+        The pages freed are reused by new rows, so the file stops growing.
+        """
+        removed = 0
+        with self._lock:
+            if max_age_s is not None:
+                cutoff = time.time_ns() - int(max_age_s * 1e9)
+                removed += self._db.execute(
+                    "DELETE FROM results WHERE triggered_ns < ?", (cutoff,)
+                ).rowcount
+            if max_bytes is not None:
+                total = self._db.execute("SELECT TOTAL(LENGTH(body)) FROM results").fetchone()[0]
+                excess = int(total) - max_bytes
+                if excess > 0:
+                    # The oldest rows whose bodies add up to the excess, in one pass.
+                    row = self._db.execute(
+                        """
+                        SELECT triggered_ns, id FROM (
+                            SELECT triggered_ns, id, SUM(LENGTH(body)) OVER (
+                                ORDER BY triggered_ns, id ROWS UNBOUNDED PRECEDING) AS upto
+                            FROM results)
+                        WHERE upto >= ? ORDER BY triggered_ns, id LIMIT 1
+                        """,
+                        (excess,),
+                    ).fetchone()
+                    if row is not None:
+                        removed += self._db.execute(
+                            "DELETE FROM results WHERE triggered_ns < ? "
+                            "OR (triggered_ns = ? AND id <= ?)",
+                            (row[0], row[0], row[1]),
+                        ).rowcount
+        return removed
 
     def delete_part(self, part: str) -> int:
         """Delete every result of ``part``; returns how many rows went."""
@@ -473,3 +510,29 @@ class DeviationArchive:
 
     def delete(self, id_: str) -> None:
         self.path(id_).unlink(missing_ok=True)
+
+    def enforce(self, max_bytes: int | None, max_age_s: float | None) -> int:
+        """Delete the oldest files beyond ``max_bytes`` or older than ``max_age_s``
+        (by modification time); returns how many went."""
+        try:
+            entries = [
+                (st.st_mtime, st.st_size, e.path)
+                for e in os.scandir(self.directory)
+                if e.name.endswith(".npz") and e.is_file()
+                for st in (e.stat(),)
+            ]
+        except FileNotFoundError:
+            return 0
+        entries.sort()
+        now = time.time()
+        total = sum(size for _, size, _ in entries)
+        removed = 0
+        for mtime, size, path in entries:
+            old = max_age_s is not None and now - mtime > max_age_s
+            over = max_bytes is not None and total > max_bytes
+            if not (old or over):
+                break
+            Path(path).unlink(missing_ok=True)
+            total -= size
+            removed += 1
+        return removed

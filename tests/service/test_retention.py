@@ -1,0 +1,66 @@
+"""Bounded disk: the oldest results and deviation files go beyond their budgets."""
+
+from __future__ import annotations
+
+import os
+import time
+
+import numpy as np
+from test_store import T0, res
+
+from service.config import RetentionSection
+from service.retention import Janitor
+from service.store import DeviationArchive, ResultStore
+
+
+def test_the_oldest_rows_go_beyond_the_size_budget(tmp_path):
+    with ResultStore(tmp_path / "r.sqlite") as store:
+        for seq in range(50):
+            store.put(res(seq))
+        body = len(store.get(res(0).id).model_dump_json())
+        removed = store.enforce(max_bytes=20 * body + body // 2, max_age_s=None)
+        assert removed == 30
+        kept = sorted(r.seq for r in store.iter_all())
+        assert kept == list(range(30, 50))  # the newest, by trigger time
+        assert store.enforce(max_bytes=20 * body + body // 2, max_age_s=None) == 0
+
+
+def test_rows_older_than_the_age_limit_go(tmp_path):
+    now = time.time_ns()
+    with ResultStore(tmp_path / "r.sqlite") as store:
+        store.put(res(1, t=now - 3 * 86400 * 10**9))
+        store.put(res(2, t=now - 3600 * 10**9))
+        assert store.enforce(max_bytes=None, max_age_s=86400) == 1
+        assert [r.seq for r in store.iter_all()] == [2]
+
+
+def test_the_archive_keeps_within_its_budget_newest_first(tmp_path):
+    arc = DeviationArchive(tmp_path / "dev")
+    rng = np.random.default_rng(0)
+    for i in range(10):
+        p = arc.save(f"r{i}", rng.normal(size=(500, 3)), rng.normal(size=500))
+        os.utime(p, (T0 / 1e9 + i, T0 / 1e9 + i))  # written one second apart
+    size = (tmp_path / "dev" / "r0.npz").stat().st_size
+    assert arc.enforce(max_bytes=int(4.5 * size), max_age_s=None) == 6
+    assert sorted(p.stem for p in (tmp_path / "dev").glob("*.npz")) == [
+        f"r{i}" for i in range(6, 10)
+    ]
+    assert arc.enforce(max_bytes=None, max_age_s=1.0) == 4  # all older than a second
+
+
+def test_the_janitor_applies_the_config(tmp_path):
+    store = ResultStore(tmp_path / "r.sqlite")
+    arc = DeviationArchive(tmp_path / "dev")
+    for seq in range(5):
+        store.put(res(seq))
+        arc.save(res(seq).id, np.zeros((100, 3)), np.zeros(100))
+    policy = RetentionSection(results_max_mb=1e-6, deviations_max_mb=1e-6)
+    janitor = Janitor(store, arc, policy, period_s=3600)
+    try:
+        deadline = time.monotonic() + 10
+        while (store.count() or list(arc.directory.glob("*.npz"))) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert store.count() == 0 and not list(arc.directory.glob("*.npz"))
+    finally:
+        janitor.close()
+        store.close()
