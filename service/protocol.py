@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import json
 import struct
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -430,14 +430,26 @@ def _decode_image(payload: memoryview, meta: dict[str, Any], i: int) -> np.ndarr
     raise ProtocolError(f"image {i}: unknown encoding {meta['encoding']!r}")
 
 
-def decode_frameset(data: bytes | bytearray | memoryview) -> FrameSet:
+def decode_frameset(
+    data: bytes | bytearray | memoryview,
+    *,
+    cameras: Sequence[tuple[str, int, int]] | None = None,
+) -> FrameSet:
     """Parse wire bytes into a FrameSet, validating everything.
+
+    Parameters
+    ----------
+    data : bytes
+    cameras : list of (name, width, height), optional
+        The station's cameras: the header must announce one image of each
+        one's size, checked before any image is decoded (a small PNG can
+        decode to a gigabyte).
 
     Raises
     ------
     ProtocolError
         Wrong magic or version, truncated data, a header that does not match
-        the payload, invalid names, undecodable images.
+        the payload or the cameras, invalid names, undecodable images.
     """
     header, offset = read_header(data)
     buf = memoryview(data)
@@ -445,8 +457,10 @@ def decode_frameset(data: bytes | bytearray | memoryview) -> FrameSet:
         metas = header["images"]
         if not isinstance(metas, list) or not 1 <= len(metas) <= MAX_IMAGES:
             raise ProtocolError(f"header.images must list 1..{MAX_IMAGES} images")
+        if cameras is not None:
+            _check_cameras(metas, cameras)
         images = []
-        cameras = []
+        names = []
         for i, meta in enumerate(metas):
             if not isinstance(meta, dict):
                 raise ProtocolError(f"image {i}: metadata must be an object")
@@ -460,7 +474,7 @@ def decode_frameset(data: bytes | bytearray | memoryview) -> FrameSet:
             if end > len(buf):
                 raise ProtocolError(f"truncated FrameSet: image {i} ends past the data")
             images.append(_decode_image(buf[offset:end], meta, i))
-            cameras.append(meta.get("camera", f"cam{i}"))
+            names.append(meta.get("camera", f"cam{i}"))
             offset = end
         if offset != len(buf):
             raise ProtocolError(f"{len(buf) - offset} trailing bytes after the last image")
@@ -474,11 +488,21 @@ def decode_frameset(data: bytes | bytearray | memoryview) -> FrameSet:
             triggered_ns=header["triggered_ns"],
             calibration_id=header.get("calibration_id", ""),
             images=images,
-            cameras=cameras,
+            cameras=names,
             truth=None if truth is None else Truth.from_json(truth),
         )
     except KeyError as exc:
         raise ProtocolError(f"FrameSet header lacks the field {exc.args[0]!r}") from exc
+
+
+def _check_cameras(metas: list[Any], cameras: Sequence[tuple[str, int, int]]) -> None:
+    if len(metas) != len(cameras):
+        raise ProtocolError(f"the FrameSet carries {len(metas)} images; the rig has {len(cameras)}")
+    for i, (meta, (name, w, h)) in enumerate(zip(metas, cameras, strict=True)):
+        size = (meta.get("width"), meta.get("height")) if isinstance(meta, dict) else None
+        if size != (w, h):
+            shown = f"{size[0]} x {size[1]} px" if size else "not described"
+            raise ProtocolError(f"image {i} is {shown}; camera {name} takes {w} x {h} px")
 
 
 def peek_identity(data: bytes | bytearray | memoryview) -> dict[str, Any]:

@@ -361,6 +361,9 @@ class Worker:
         Entries of answered jobs are removed from it.
     metrics : Metrics, optional
         Stage times and trigger-to-result latency are observed into it.
+    cameras : list of (name, width, height), optional
+        The station's cameras: a FrameSet announcing other images is refused
+        before its images are decoded.
     """
 
     def __init__(
@@ -378,9 +381,11 @@ class Worker:
         alarms: Iterable[AlarmSink] = (),
         journal: Journal | None = None,
         metrics: Metrics | None = None,
+        cameras: list[tuple[str, int, int]] | None = None,
     ) -> None:
         self.pipeline = pipeline
         self.metrics = metrics
+        self.cameras = cameras
         self.source = source
         self.sinks = list(sinks)
         self.line = line
@@ -460,7 +465,7 @@ class Worker:
 
     def _job(self, item: Job) -> None:
         try:
-            fs = decode_frameset(item.payload)
+            fs = decode_frameset(item.payload, cameras=self.cameras)
         except ProtocolError as exc:
             ident = peek_identity(item.payload)
             seq = ident.get("seq")
@@ -678,6 +683,7 @@ class ZenohWorker:
             HistoryQueryable(session, keys, station, store) if store is not None else None
         )
         self.source = ZenohFrameSource(session, keys.frames(station), queue_size, journal)
+        cals = pipeline.stages.calibrations()
         self.worker = Worker(
             pipeline,
             self.source,
@@ -694,6 +700,7 @@ class ZenohWorker:
             alarms=[zenoh_alarm_sink(session, keys)],
             journal=journal,
             metrics=metrics,
+            cameras=[(c["name"], c["width"], c["height"]) for c in cals] or None,
         )
         if metrics is not None:
             metrics.collector(

@@ -570,3 +570,76 @@ def test_alarms_are_published_on_the_station_alarm_key(framesets, quick_part):
     alarm = Alarm.model_validate_json(sample.payload.to_bytes())
     assert alarm.kind.value == "seq_jump" and alarm.seq == 10**12 and alarm.station == STATION
     assert alarm.triggered_ns == framesets[1].triggered_ns
+
+
+def bomb_png(side: int) -> bytes:
+    """A valid black PNG of ``side`` x ``side`` px, made row by row (about 1 MB for 16384)."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return (
+            struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+        )
+
+    z = zlib.compressobj(9)
+    row = bytes(side + 1)  # filter byte and one byte a pixel
+    idat = b"".join(z.compress(row) for _ in range(side)) + z.flush()
+    ihdr = struct.pack(">IIBBBBB", side, side, 8, 0, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", idat) + chunk(b"IEND", b"")
+
+
+def test_a_decompression_bomb_is_refused_before_decoding(framesets, quick_part):
+    """Four 16384 x 16384 PNGs (4 MB on the wire, 1 GB decoded) announced for a rig of
+    16 x 16 px cameras: refused from the header, with the trigger's identity."""
+    import json
+    import struct
+
+    from service.protocol import MAGIC, PREAMBLE, VERSION
+
+    png = bomb_png(16384)
+    fs = framesets[1]
+    header = {
+        "line": fs.line, "station": fs.station, "part": fs.part, "serial": fs.serial,
+        "seq": fs.seq, "triggered_ns": fs.triggered_ns, "calibration_id": fs.calibration_id,
+        "images": [{"camera": f"cam{i}", "width": 16384, "height": 16384,
+                    "pixel_format": "mono8", "encoding": "png", "length": len(png)}
+                   for i in range(4)],
+    }  # fmt: skip
+    head = json.dumps(header).encode()
+    bomb = PREAMBLE.pack(MAGIC, VERSION, 0, len(head)) + head + png * 4
+    assert struct.unpack(">II", png[16:24]) == (16384, 16384)
+    cams = [(f"cam{i}", 16, 16) for i in range(4)]
+    got, alarms = Collect(), Alarms()
+    w = Worker(pipeline(quick_part), JobQueue(4), [got], line=LINE, station=STATION,
+               alarms=[alarms], cameras=cams)  # fmt: skip
+    w.handle(job(framesets[0]))
+    w.handle(job(bomb))
+    w.handle(job(framesets[2]))
+    err = got.results[1]
+    assert err.status is Status.error and err.seq == 1 and err.serial == fs.serial
+    assert "image 0 is 16384 x 16384 px; camera cam0 takes 16 x 16 px" in err.reason
+    assert got.results[2].seq == 2 and got.results[2].status is not Status.error
+    assert alarms.kinds() == ["bad_frameset"]
+
+
+def test_a_burst_of_garbage_gets_a_result_each(framesets, quick_part):
+    """Thirty undecodable payloads at once, then a good FrameSet: thirty-one results."""
+    port = free_port()
+    keys = Keys(LINE)
+    got = Collect()
+    with bus.open_session(peer(port)) as wsess, bus.open_session(client(port)) as csess:
+        zw = ZenohWorker(wsess, keys, STATION, pipeline(quick_part), queue_size=4, sinks=[got])
+        try:
+            pub = bus.frame_publisher(csess, keys.frames(STATION))
+            assert bus.wait_for_subscribers(pub, 10)
+            for i in range(30):
+                pub.put(b"garbage %d" % i)
+            pub.put(encode_frameset(framesets[0]))
+            assert got.wait(31, 60), len(got.results)
+            pub.undeclare()
+        finally:
+            zw.close()
+    assert len(got.results) == 31
+    assert sum(r.status in (Status.error, Status.missed) for r in got.results) == 30
+    assert got.results[-1].seq == 0 and got.results[-1].status is not Status.error
