@@ -80,6 +80,10 @@ class Access:
         The server listens on a loopback address only.
     allowed_origins : list of str
         Origins (``scheme://host[:port]``) allowed to write, besides the API's own.
+    max_drain_bytes : int
+        A refused request's body is read and dropped up to this much (the
+        upload cap), unparsed, so that the client, still sending, gets the
+        answer instead of a reset connection.
     """
 
     def __init__(
@@ -90,8 +94,10 @@ class Access:
         auth: str,
         loopback: bool,
         allowed_origins: list[str],
+        max_drain_bytes: int = 0,
     ) -> None:
         self.app = app
+        self.max_drain_bytes = max_drain_bytes
         self.keys = keys
         self.auth = auth
         self.loopback = loopback
@@ -105,6 +111,7 @@ class Access:
         if refusal is not None:
             status, code, message = refusal
             headers = {"WWW-Authenticate": 'Bearer realm="inspection"'} if status == 401 else None
+            await drain(receive, self.max_drain_bytes)
             await error_response(status, code, message, headers)(scope, receive, send)
             return
         await self.app(scope, receive, send)
@@ -158,6 +165,18 @@ class Access:
             return False
         scheme = scope.get("scheme", "http")
         return o == f"{scheme}://{host}".lower()
+
+
+async def drain(receive: Receive, max_bytes: int) -> None:
+    """Read and drop a request body, up to ``max_bytes`` (then the connection closes)."""
+    seen = 0
+    while seen <= max_bytes:
+        message = await receive()
+        if message["type"] != "http.request":
+            return
+        seen += len(message.get("body", b""))
+        if not message.get("more_body", False):
+            return
 
 
 def _presented_key(headers: Mapping[str, str]) -> bytes | None:

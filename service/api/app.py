@@ -130,8 +130,8 @@ def create_app(
         )
     # Outermost: who may ask is settled before anything else reads the request.
     app.add_middleware(
-        Access, keys=keys, auth=http.auth.value, loopback=loopback,
-        allowed_origins=list(http.allowed_origins),
+        Access, keys=keys, auth=AuthScope(http.auth).value, loopback=loopback,
+        allowed_origins=list(http.allowed_origins), max_drain_bytes=int(http.max_upload_mb * 1e6),
     )  # fmt: skip
     svc.metrics.gauge(
         "inspection_api_measurements_admitted",

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import socket
 import threading
+import time
 from contextlib import contextmanager
 
 import httpx2
@@ -145,6 +146,63 @@ def test_uploads_beyond_the_capacity_get_503_at_once(line, tmp_path, monkeypatch
             t.join(60)
         assert first["r"].status_code == 200
         assert upload(client).status_code == 200  # the place was given back
+
+
+def post_whole(url: str, n: int) -> tuple[int, str]:
+    """An upload as urllib sends it: the whole body before reading any answer."""
+    import json
+    import urllib.error
+    import urllib.request
+
+    rng = np.random.default_rng(1)
+    payload = npy_bytes(rng.uniform(-50, 50, (n, 3)))
+    boundary = "b0undary"
+    body = (
+        (
+            f'--{boundary}\r\nContent-Disposition: form-data; name="part"\r\n\r\n{PART}\r\n'
+            f'--{boundary}\r\nContent-Disposition: form-data; name="file"; filename="c.npy"\r\n'
+            "Content-Type: application/octet-stream\r\n\r\n"
+        ).encode()
+        + payload
+        + f"\r\n--{boundary}--\r\n".encode()
+    )
+    req = urllib.request.Request(
+        url, data=body, method="POST",
+        headers={"Content-Type": f"multipart/form-data; boundary={boundary}"},
+    )  # fmt: skip
+    try:
+        with urllib.request.urlopen(req, timeout=60) as resp:
+            return resp.status, ""
+    except urllib.error.HTTPError as exc:
+        return exc.code, json.loads(exc.read())["error"]["code"]
+
+
+def test_a_large_upload_refused_unparsed_still_gets_its_answer(line, tmp_path, monkeypatch):  # noqa: F811
+    """Refused before it is parsed, a 14 MB upload's body is read and dropped, so that a
+    client that sends it whole before reading gets the 401 or 503, not a reset connection."""
+    monkeypatch.setenv(KEYS_ENV, KEY)
+    with serve(*line, tmp_path, max_upload_mb=30.0) as (_, base):
+        assert post_whole(f"{base}/v1/inspections", 600_000) == (401, "unauthorized")
+    monkeypatch.delenv(KEYS_ENV)
+    release = threading.Event()
+
+    def held(part, points, trigger, *, frame):
+        release.wait(60)
+        return measure_upload(part, points, trigger, frame=frame)
+
+    with serve(*line, tmp_path, pipeline=held, max_upload_mb=30.0, max_measurements=1,
+               max_waiting_measurements=0) as (client, base):  # fmt: skip
+        t = threading.Thread(target=upload, args=(client,))
+        t.start()
+        try:
+            deadline = time.monotonic() + 30
+            while client.get("/metrics").text.find("inspection_api_measurements_admitted 1") < 0:
+                assert time.monotonic() < deadline
+                time.sleep(0.05)
+            assert post_whole(f"{base}/v1/inspections", 600_000) == (503, "busy")
+        finally:
+            release.set()
+            t.join(60)
 
 
 @pytest.mark.parametrize("origin", ["ftp://x", "https://host/path", "evil"])

@@ -9,6 +9,7 @@ from datetime import UTC, datetime
 from fastapi import APIRouter, Query, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response
+from starlette.requests import ClientDisconnect
 
 from inspection.measure import validate_cloud
 
@@ -109,10 +110,16 @@ def parse_since(value: str | None) -> int | None:
     summary="Inspect an uploaded point cloud of a part; answers with the result",
 )
 async def create_inspection(svc: ServicesDep, request: Request) -> InspectionResult:
-    # A place is taken before the body is read: a busy API refuses at once.
+    # A place is taken before the body is parsed: a busy API refuses at once. The
+    # body is still read and dropped, so that the client gets the answer.
     try:
         svc.gate.admit()
     except Busy as exc:
+        try:
+            async for _ in request.stream():
+                pass
+        except ClientDisconnect:
+            pass
         raise ApiError(
             503, "busy", "the API is measuring as many uploads as it may; retry shortly",
             headers={"Retry-After": str(exc.retry_after_s)},
