@@ -5,6 +5,11 @@ notes):
 
 - multicast scouting is off unless asked for, and a session listens only on
   the endpoints it is given;
+- with :class:`TlsSettings`, the session speaks TLS only (``tls/`` endpoints,
+  zenoh's protocol whitelist set to ``["tls"]``) and trusts only the line's
+  CA, not the system's roots; with :class:`AccessControl`, a listening
+  session lets each remote process do only what its certificate's common
+  name allows (:func:`access_control_config`);
 - frames are published with congestion control BLOCK, so a slow subscriber
   slows the publisher down instead of silently losing FrameSets;
 - subscribers get a bounded :class:`zenoh.handlers.RingChannel`, read from a
@@ -22,6 +27,7 @@ import threading
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import zenoh
@@ -29,6 +35,153 @@ import zenoh
 log = logging.getLogger(__name__)
 
 MODES = ("peer", "client", "router")
+
+
+@dataclass(frozen=True)
+class TlsSettings:
+    """TLS on a session's links, as zenoh's ``transport/link/tls`` keys.
+
+    Attributes
+    ----------
+    ca_certificate : Path
+        PEM certificate of the CA that signs the line's certificates; the
+        certificates of the other end are checked against it alone.
+    certificate, private_key : Path or None
+        This process's PEM certificate and key: needed to listen, and to
+        connect when ``mutual``.
+    mutual : bool
+        Present the certificate when connecting and require one, signed by
+        the CA, from whoever connects (zenoh's ``enable_mtls`` does both).
+    verify_name : bool
+        The certificate of the endpoint connected to must name its host
+        (a subjectAltName matching the IP or DNS name of the endpoint).
+    """
+
+    ca_certificate: Path
+    certificate: Path | None = None
+    private_key: Path | None = None
+    mutual: bool = True
+    verify_name: bool = True
+
+    def __post_init__(self) -> None:
+        if (self.certificate is None) != (self.private_key is None):
+            raise ValueError("a TLS certificate and its private key go together")
+        if self.mutual and self.certificate is None:
+            raise ValueError("mutual TLS needs this process's certificate and private key")
+
+
+@dataclass(frozen=True)
+class AccessControl:
+    """Who may do what on one line's keys, by the common name of their certificate.
+
+    Enforced by the session that has it, on what remote sessions send it and
+    on what it forwards to them; its own puts and subscriptions are not
+    filtered. Everything not allowed here is denied, including to names in no
+    list (a certificate of the line's CA issued to someone else).
+
+    Attributes
+    ----------
+    line_prefix : str
+        ``<prefix>/<line>``: the keys the rules cover.
+    ingest : tuple of str
+        May put FrameSets (``*/frames``).
+    worker : tuple of str
+        May put results, status and alarms, answer history queries
+        (``*/results``) and hold worker liveliness tokens.
+    subscriber : tuple of str
+        May only subscribe, query and watch liveliness tokens (what every
+        role may do).
+    """
+
+    line_prefix: str
+    ingest: tuple[str, ...] = ()
+    worker: tuple[str, ...] = ()
+    subscriber: tuple[str, ...] = ()
+
+
+def access_control_config(acl: AccessControl) -> dict[str, Any]:
+    """The ``access_control`` block of zenoh's config for ``acl``.
+
+    ``ingress`` rules filter what a remote session sends to this one,
+    ``egress`` rules what this one forwards to it; a subscriber needs both
+    (its declaration in, the samples out).
+    """
+    p = acl.line_prefix
+    everything = [f"{p}/**", f"@{p}/**"]
+    rules = [
+        {
+            "id": "observe",
+            "permission": "allow",
+            "flows": ["ingress"],
+            "messages": [
+                "declare_subscriber",
+                "query",
+                "declare_liveliness_subscriber",
+                "liveliness_query",
+            ],
+            "key_exprs": everything,
+        },
+        {
+            "id": "receive",
+            "permission": "allow",
+            "flows": ["egress"],
+            # Declarations too: without them a publisher never learns of its
+            # subscribers (matching status stays false, wait_for_subscribers times out).
+            "messages": [
+                "put",
+                "reply",
+                "liveliness_token",
+                "declare_subscriber",
+                "declare_queryable",
+                "declare_liveliness_subscriber",
+            ],
+            "key_exprs": everything,
+        },
+        {
+            "id": "frames",
+            "permission": "allow",
+            "flows": ["ingress"],
+            "messages": ["put"],
+            "key_exprs": [f"{p}/*/frames"],
+        },
+        {
+            "id": "results",
+            "permission": "allow",
+            "flows": ["ingress"],
+            "messages": ["put"],
+            "key_exprs": [f"{p}/*/result/**", f"{p}/*/status", f"{p}/*/alarm"],
+        },
+        {
+            "id": "serve",
+            "permission": "allow",
+            "flows": ["ingress"],
+            "messages": ["declare_queryable", "reply", "liveliness_token"],
+            "key_exprs": [f"{p}/*/results", f"@{p}/*/worker/*"],
+        },
+        {
+            "id": "asked",
+            "permission": "allow",
+            "flows": ["egress"],
+            "messages": ["query"],
+            "key_exprs": [f"{p}/*/results"],
+        },
+    ]
+    roles = {"ingest": acl.ingest, "worker": acl.worker, "subscriber": acl.subscriber}
+    grants = {"ingest": ["frames"], "worker": ["results", "serve", "asked"], "subscriber": []}
+    # zenoh refuses a subject with an empty list: a role nobody holds is left out.
+    held = [role for role, names in roles.items() if names]
+    subjects = [{"id": role, "cert_common_names": list(roles[role])} for role in held]
+    policies: list[dict[str, Any]] = []
+    if held:
+        policies.append({"rules": ["observe", "receive"], "subjects": held})
+    policies += [{"rules": grants[r], "subjects": [r]} for r in held if grants[r]]
+    return {
+        "enabled": True,
+        "default_permission": "deny",
+        "rules": rules,
+        "subjects": subjects,
+        "policies": policies,
+    }
 
 
 @dataclass(frozen=True)
@@ -44,6 +197,10 @@ class BusSettings:
         Endpoints to connect to.
     multicast_scouting : bool
         Off by default: on a shared network it would discover strangers.
+    tls : TlsSettings or None
+        With it every endpoint must be ``tls/``; without it none may be.
+    access : AccessControl or None
+        Needs mutual TLS: the common names it names come from the certificates.
     extra : dict
         Further zenoh settings as ``{json5 path: value}``, applied last.
     """
@@ -52,6 +209,8 @@ class BusSettings:
     listen: tuple[str, ...] = ()
     connect: tuple[str, ...] = ()
     multicast_scouting: bool = False
+    tls: TlsSettings | None = None
+    access: AccessControl | None = None
     extra: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -60,8 +219,16 @@ class BusSettings:
         for ep in (*self.listen, *self.connect):
             if not isinstance(ep, str) or "/" not in ep:
                 raise ValueError(f"a zenoh endpoint looks like tcp/127.0.0.1:7447, got {ep!r}")
+            if (self.tls is not None) != ep.startswith("tls/"):
+                raise ValueError(
+                    f"zenoh endpoint {ep!r}: tls/ endpoints go with TLS settings, others without"
+                )
         if self.mode == "client" and not self.connect:
             raise ValueError("a zenoh client needs at least one --zenoh-connect endpoint")
+        if self.listen and self.tls is not None and self.tls.certificate is None:
+            raise ValueError("listening on TLS needs this process's certificate and private key")
+        if self.access is not None and (self.tls is None or not self.tls.mutual):
+            raise ValueError("access control needs mutual TLS (it goes by certificate names)")
 
 
 def make_config(settings: BusSettings) -> zenoh.Config:
@@ -71,6 +238,28 @@ def make_config(settings: BusSettings) -> zenoh.Config:
     cfg.insert_json5("scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
     cfg.insert_json5("listen/endpoints", json.dumps(list(settings.listen)))
     cfg.insert_json5("connect/endpoints", json.dumps(list(settings.connect)))
+    if settings.tls is not None:
+        t = settings.tls
+        # Without root_ca_certificate zenoh would trust the system's web roots.
+        tls: dict[str, Any] = {
+            "root_ca_certificate": str(t.ca_certificate),
+            "enable_mtls": t.mutual,
+            "verify_name_on_connect": t.verify_name,
+        }
+        if t.certificate is not None and t.private_key is not None:
+            # One certificate for both sides: a peer listens and connects.
+            tls |= {
+                "listen_certificate": str(t.certificate),
+                "listen_private_key": str(t.private_key),
+                "connect_certificate": str(t.certificate),
+                "connect_private_key": str(t.private_key),
+            }
+        for key, value in tls.items():
+            cfg.insert_json5(f"transport/link/tls/{key}", json.dumps(value))
+        # TLS links only: a plain endpoint added later (extra, gossip) is refused, not opened.
+        cfg.insert_json5("transport/link/protocols", json.dumps(["tls"]))
+    if settings.access is not None:
+        cfg.insert_json5("access_control", json.dumps(access_control_config(settings.access)))
     for path, value in settings.extra.items():
         cfg.insert_json5(path, json.dumps(value))
     return cfg
@@ -81,16 +270,28 @@ def open_session(settings: BusSettings) -> zenoh.Session:
     try:
         session = zenoh.open(make_config(settings))
     except zenoh.ZError as exc:
+        # A certificate refused by either end surfaces as "Unable to connect",
+        # exactly like a router that is down; only zenoh's own log says which.
+        hint = (
+            "; with TLS a certificate refused at either end fails the same way "
+            "(RUST_LOG=warn shows zenoh's reason)"
+            if settings.tls is not None and settings.connect
+            else ""
+        )
         raise RuntimeError(
             f"cannot open a zenoh {settings.mode} session "
-            f"(listen {list(settings.listen)}, connect {list(settings.connect)}): {exc}"
+            f"(listen {list(settings.listen)}, connect {list(settings.connect)}): {exc}{hint}"
         ) from exc
     log.info(
-        "zenoh %s session %s (listen %s, connect %s)",
+        "zenoh %s session %s (listen %s, connect %s, %s, %s)",
         settings.mode,
         session.zid(),
         list(settings.listen),
         list(settings.connect),
+        "no TLS"
+        if settings.tls is None
+        else ("mutual TLS" if settings.tls.mutual else "TLS (server certificate only)"),
+        "access control" if settings.access is not None else "no access control",
     )
     return session
 

@@ -58,6 +58,12 @@ def configure_logging(verbosity: int) -> None:
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
         stream=sys.stderr,
     )
+    if os.environ.get("RUST_LOG"):
+        # zenoh logs nothing unless asked; its log alone says why a TLS link was
+        # refused (no certificate, unknown CA, wrong host name).
+        import zenoh
+
+        zenoh.init_log_from_env_or("warn")
 
 
 def main(argv: list[str] | None = None) -> int:

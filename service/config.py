@@ -344,12 +344,66 @@ class ZenohMode(StrEnum):
     router = "router"
 
 
+CommonName = Annotated[str, Field(pattern=r"^[^\x00-\x1f\x7f]+$", min_length=1, max_length=64)]
+"""A certificate's subject common name (X.509 bounds it to 64 characters)."""
+
+
+class AccessControlSection(_Strict):
+    """Who may do what on the line's keys, by certificate common name (``bus.AccessControl``).
+
+    Enforced by the session that listens (the router, or the peer of
+    ``inspection run``); everything not listed is denied, so a certificate of
+    the line's CA issued to a name in no list connects and can do nothing.
+    """
+
+    ingest: list[CommonName] = Field(default_factory=list, description="May publish FrameSets.")
+    worker: list[CommonName] = Field(
+        default_factory=list,
+        description="May publish results, status and alarms, answer history queries and "
+        "hold worker liveliness tokens.",
+    )
+    subscriber: list[CommonName] = Field(
+        default_factory=list,
+        description="May only subscribe, query and watch tokens (as every role may).",
+    )
+
+
 class ZenohSection(_Strict):
+    """The bus: mode, endpoints, and optionally TLS and access control.
+
+    The ``tls_*`` paths are relative to the line file (installation paths);
+    with ``tls_ca_certificate`` set, every endpoint must be ``tls/``.
+    """
+
     prefix: str = Field(default="insp/v1", pattern=KEY_PREFIX_PATTERN)
     mode: ZenohMode = ZenohMode.peer
     listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
     connect: list[str] = Field(default_factory=list)
     multicast_scouting: bool = False
+    tls_ca_certificate: str | None = Field(
+        default=None,
+        min_length=1,
+        description="PEM certificate of the CA that signs the line's certificates; set: TLS "
+        "on every endpoint, peers checked against this CA alone.",
+    )
+    tls_certificate: str | None = Field(
+        default=None, min_length=1, description="This process's PEM certificate."
+    )
+    tls_private_key: str | None = Field(
+        default=None, min_length=1, description="This process's PEM private key."
+    )
+    tls_mutual: bool = Field(
+        default=True,
+        description="Mutual TLS: present the certificate and require one from whoever "
+        "connects (without it anyone who trusts the CA may connect).",
+    )
+    tls_verify_name: bool = Field(
+        default=True,
+        description="The certificate of the endpoint connected to must name its host.",
+    )
+    access_control: AccessControlSection | None = Field(
+        default=None, description="Unset: whoever may connect may do anything."
+    )
 
     @field_validator("listen", "connect")
     @classmethod
@@ -358,6 +412,34 @@ class ZenohSection(_Strict):
             if not re.fullmatch(r"[a-z0-9]+/\S+", e):
                 raise ValueError(f"not a zenoh endpoint (like tcp/127.0.0.1:7447): {e!r}")
         return v
+
+    @model_validator(mode="after")
+    def _tls_consistent(self) -> ZenohSection:
+        tls = self.tls_ca_certificate is not None
+        if (self.tls_certificate is None) != (self.tls_private_key is None):
+            raise ValueError("tls_certificate and tls_private_key are set together")
+        if self.tls_certificate is not None and not tls:
+            raise ValueError("tls_certificate needs tls_ca_certificate")
+        for key in ("listen", "connect"):
+            for e in getattr(self, key):
+                if tls and not e.startswith("tls/"):
+                    raise ValueError(
+                        f"{key}: {e!r} is not a tls/ endpoint; with tls_ca_certificate set "
+                        "a plain one would let anyone in"
+                    )
+                if not tls and e.startswith("tls/"):
+                    raise ValueError(f"{key}: {e!r} needs tls_ca_certificate")
+        if tls and self.tls_certificate is None and (self.tls_mutual or self.listen):
+            raise ValueError(
+                "tls_certificate and tls_private_key are needed "
+                + ("to listen" if self.listen else "with tls_mutual")
+            )
+        if self.access_control is not None and not (tls and self.tls_mutual):
+            raise ValueError(
+                "access_control needs tls_ca_certificate and tls_mutual = true: "
+                "it goes by the common names of client certificates"
+            )
+        return self
 
 
 class StorageSection(_Strict):
@@ -556,6 +638,10 @@ class HttpSection(_Strict):
         return v
 
 
+ZENOH_TLS_FILES = ("tls_ca_certificate", "tls_certificate", "tls_private_key")
+"""The keys of ``[zenoh]`` that name files (relative to the line file)."""
+
+
 class LineConfig(_Strict):
     """The whole line: ``configs/line.toml``.
 
@@ -589,6 +675,23 @@ class LineConfig(_Strict):
         p = Path(self.station.parts_dir)
         return p if p.is_absolute() else Path(self.base_dir) / p
 
+    def zenoh_tls_path(self, key: str) -> Path | None:
+        """A ``zenoh.tls_*`` file (``tls_ca_certificate``, ...) resolved against the line file."""
+        value = getattr(self.zenoh, key)
+        if value is None:
+            return None
+        p = Path(value)
+        return p if p.is_absolute() else Path(self.base_dir) / p
+
+    @model_validator(mode="after")
+    def _zenoh_tls_files(self) -> LineConfig:
+        # Checked here, not left to zenoh: its error names neither the key nor the file.
+        for key in ZENOH_TLS_FILES:
+            p = self.zenoh_tls_path(key)
+            if p is not None and not p.is_file():
+                raise ValueError(f"zenoh.{key}: no such file {str(p)!r}")
+        return self
+
     def part_spec_paths(self) -> list[Path]:
         """The spec file of every part of the station (``<parts_dir>/<name>.toml``)."""
         return [self.parts_path() / f"{name}.toml" for name in self.station.parts]
@@ -619,13 +722,18 @@ ENV_OVERRIDES: dict[str, tuple[str, str]] = {
     "INSPECTION_ZENOH_MODE": ("zenoh", "mode"),
     "INSPECTION_ZENOH_LISTEN": ("zenoh", "listen"),
     "INSPECTION_ZENOH_CONNECT": ("zenoh", "connect"),
+    "INSPECTION_ZENOH_TLS_CA_CERTIFICATE": ("zenoh", "tls_ca_certificate"),
+    "INSPECTION_ZENOH_TLS_CERTIFICATE": ("zenoh", "tls_certificate"),
+    "INSPECTION_ZENOH_TLS_PRIVATE_KEY": ("zenoh", "tls_private_key"),
     "INSPECTION_TRIGGER_PERIOD_S": ("line", "trigger_period_s"),
     "INSPECTION_DEFECT_RATE": ("simulator", "defect_rate"),
 }
 """Environment variables that override deployment values: variable -> (section, key).
 
 List values (zenoh endpoints) are comma-separated; an empty value means an
-empty list.
+empty list. Each process of a line gives its own certificate and key this way
+(one line file, one certificate per process); relative paths are still
+resolved against the line file.
 """
 
 _LIST_KEYS = {("zenoh", "listen"), ("zenoh", "connect")}

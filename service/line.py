@@ -230,12 +230,39 @@ def stages_for(cfg: LineConfig) -> Stages:
 
 
 def bus_settings(cfg: LineConfig, mode: str | None = None) -> bus.BusSettings:
+    """The line's zenoh settings: endpoints, TLS files resolved against the line file, and
+    access control over the line's keys."""
     z = cfg.zenoh
+    ca = cfg.zenoh_tls_path("tls_ca_certificate")
+    tls = (
+        None
+        if ca is None
+        else bus.TlsSettings(
+            ca_certificate=ca,
+            certificate=cfg.zenoh_tls_path("tls_certificate"),
+            private_key=cfg.zenoh_tls_path("tls_private_key"),
+            mutual=z.tls_mutual,
+            verify_name=z.tls_verify_name,
+        )
+    )
+    acl = z.access_control
+    access = (
+        None
+        if acl is None
+        else bus.AccessControl(
+            line_prefix=f"{z.prefix}/{cfg.line.name}",
+            ingest=tuple(acl.ingest),
+            worker=tuple(acl.worker),
+            subscriber=tuple(acl.subscriber),
+        )
+    )
     return bus.BusSettings(
         mode=mode or str(z.mode.value),
         listen=tuple(z.listen),
         connect=tuple(z.connect),
         multicast_scouting=z.multicast_scouting,
+        tls=tls,
+        access=access,
     )
 
 

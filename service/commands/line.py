@@ -43,6 +43,8 @@ def _config(args: argparse.Namespace, *, mode: str | None = None) -> Any:
     if mode == "client":
         overrides[("zenoh", "listen")] = listen or []
         overrides[("zenoh", "connect")] = connect
+    if mode == "router":
+        overrides[("zenoh", "connect")] = []  # the router listens; the others connect to it
     from service.api.access import AccessError, load_keys
 
     try:
@@ -66,9 +68,18 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def cmd_router(args: argparse.Namespace) -> int:
     from service.bus import BusSettings
-    from service.line import run_router
+    from service.line import bus_settings, run_router
 
-    settings = BusSettings(mode="router", listen=tuple(args.zenoh_listen))
+    if args.config is None:
+        if not args.zenoh_listen:
+            print("inspection router: --zenoh-listen or --config is needed", file=sys.stderr)
+            return 2
+        settings = BusSettings(mode="router", listen=tuple(args.zenoh_listen))
+    else:
+        cfg = _config(args, mode="router")
+        if cfg is None:
+            return 2
+        settings = bus_settings(cfg)
     stop = _stop_on_signals()
     return run_router(settings, stop, out=lambda text: print(text, flush=True))
 
@@ -114,8 +125,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--parts", type=int, metavar="N", help="stop cleanly after N results")
     p.set_defaults(func=cmd_run)
 
-    p = subparsers.add_parser("router", help="a zenoh router for the line's separate processes")
-    p.add_argument("--zenoh-listen", action="append", required=True, metavar="ENDPOINT")
+    p = subparsers.add_parser(
+        "router",
+        help="a zenoh router for the line's separate processes",
+        description="A zenoh router listening on --zenoh-listen. With --config it takes the "
+        "line's TLS certificates and access control from the [zenoh] section (and listens "
+        "where it says unless --zenoh-listen is given).",
+    )
+    p.add_argument(
+        "--config", help="line config whose [zenoh] TLS and access control the router applies"
+    )
+    p.add_argument("--zenoh-listen", action="append", metavar="ENDPOINT")
     p.set_defaults(func=cmd_router)
 
     for name, text in (
