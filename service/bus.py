@@ -37,6 +37,10 @@ log = logging.getLogger(__name__)
 MODES = ("peer", "client", "router")
 
 
+class BusError(RuntimeError):
+    """A zenoh session could not be opened (nothing to connect to, a refused link)."""
+
+
 @dataclass(frozen=True)
 class TlsSettings:
     """TLS on a session's links, as zenoh's ``transport/link/tls`` keys.
@@ -278,7 +282,7 @@ def open_session(settings: BusSettings) -> zenoh.Session:
             if settings.tls is not None and settings.connect
             else ""
         )
-        raise RuntimeError(
+        raise BusError(
             f"cannot open a zenoh {settings.mode} session "
             f"(listen {list(settings.listen)}, connect {list(settings.connect)}): {exc}{hint}"
         ) from exc

@@ -688,8 +688,18 @@ class LineConfig(_Strict):
         # Checked here, not left to zenoh: its error names neither the key nor the file.
         for key in ZENOH_TLS_FILES:
             p = self.zenoh_tls_path(key)
-            if p is not None and not p.is_file():
+            if p is None:
+                continue
+            if not p.is_file():
                 raise ValueError(f"zenoh.{key}: no such file {str(p)!r}")
+            try:
+                head = p.read_bytes()[:1_000_000]
+            except OSError as exc:
+                raise ValueError(f"zenoh.{key}: {p.name}: {exc.strerror}") from None
+            want = b"PRIVATE KEY-----" if key == "tls_private_key" else b"BEGIN CERTIFICATE-----"
+            if want not in head:
+                what = "a PEM private key" if key == "tls_private_key" else "a PEM certificate"
+                raise ValueError(f"zenoh.{key}: {p.name} is not {what}")
         return self
 
     def part_spec_paths(self) -> list[Path]:

@@ -63,7 +63,19 @@ def cmd_run(args: argparse.Namespace) -> int:
     if cfg is None:
         return 2
     stop = _stop_on_signals()
-    return run_line(cfg, stop, parts_limit=args.parts, out=lambda s: print(s, flush=True))
+    return _on_bus(lambda: run_line(cfg, stop, parts_limit=args.parts,
+                                    out=lambda s: print(s, flush=True)))  # fmt: skip
+
+
+def _on_bus(run: Any) -> int:
+    """Run a piece of the line; a zenoh session that cannot open is said, not a traceback."""
+    from service.bus import BusError
+
+    try:
+        return int(run())
+    except BusError as exc:
+        print(f"inspection: {exc}", file=sys.stderr)
+        return 1
 
 
 def cmd_router(args: argparse.Namespace) -> int:
@@ -81,7 +93,7 @@ def cmd_router(args: argparse.Namespace) -> int:
             return 2
         settings = bus_settings(cfg)
     stop = _stop_on_signals()
-    return run_router(settings, stop, out=lambda text: print(text, flush=True))
+    return _on_bus(lambda: run_router(settings, stop, out=lambda text: print(text, flush=True)))
 
 
 def cmd_piece(args: argparse.Namespace) -> int:
@@ -92,10 +104,10 @@ def cmd_piece(args: argparse.Namespace) -> int:
         return 2
     stop = _stop_on_signals()
     if args.command == "ingest":
-        return line.run_ingest(cfg, stop, count=args.count)
+        return _on_bus(lambda: line.run_ingest(cfg, stop, count=args.count))
     if args.command == "worker":
-        return line.run_worker(cfg, stop)
-    return line.run_api(cfg, stop)
+        return _on_bus(lambda: line.run_worker(cfg, stop))
+    return _on_bus(lambda: line.run_api(cfg, stop))
 
 
 def _common(p: argparse.ArgumentParser) -> None:

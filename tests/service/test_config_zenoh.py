@@ -109,6 +109,16 @@ def test_without_tls_keys_the_bus_is_plain_as_before(line_dir):
             "tls_mutual = false\n[zenoh.access_control]\nworker = ['w']\n",
             "access_control needs tls_ca_certificate and tls_mutual = true",
         ),
+        (
+            '[zenoh]\nlisten = ["tls/127.0.0.1:7447"]\ntls_ca_certificate = "certs/line.key"\n'
+            'tls_certificate = "certs/line.pem"\ntls_private_key = "certs/line.key"\n',
+            "zenoh.tls_ca_certificate: line.key is not a PEM certificate",
+        ),
+        (
+            '[zenoh]\nlisten = ["tls/127.0.0.1:7447"]\ntls_ca_certificate = "certs/ca.pem"\n'
+            'tls_certificate = "certs/line.pem"\ntls_private_key = "certs/line.pem"\n',
+            "zenoh.tls_private_key: line.pem is not a PEM private key",
+        ),
         ("[zenoh.access_control]\nworker = ['w']\n", "access_control needs"),
         ("[zenoh.access_control]\nreaders = ['r']\n", "zenoh.access_control.readers"),
         ("[zenoh.access_control]\nworker = ['']\n", "zenoh.access_control.worker.0"),
@@ -127,3 +137,14 @@ def test_the_router_takes_the_line_file_and_refuses_a_bad_one_with_exit_code_2(l
     assert "needs tls_ca_certificate" in err and "Traceback" not in err
     assert main(["router"]) == 2
     assert "--zenoh-listen or --config" in capsys.readouterr().err
+
+
+def test_a_bus_that_cannot_open_is_said_without_a_traceback(capsys):
+    """An ingest whose router is not there: exit code 1 and zenoh's reason, no traceback."""
+    from linekit import ROOT, free_port
+
+    code = main(["ingest", "--config", str(ROOT / "configs" / "line.toml"),
+                 "--zenoh-connect", f"tcp/127.0.0.1:{free_port()}", "--count", "1"])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 1, err
+    assert "cannot open a zenoh client session" in err and "Traceback" not in err
