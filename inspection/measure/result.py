@@ -93,6 +93,10 @@ class Measurement:
         Each matching pass's cloud and fit, in order (frames only).
     timings_ms : dict of str to float
         Per stage: ``reconstruct``, ``guide``, ``align``, ``deviations``, ``total``.
+    cpu_ms : dict of str to float
+        The same stages' CPU time, ms: the whole process's, every thread (the
+        reconstruction's pool included), so the sequence's own in a process
+        that does nothing else.
     """
 
     verdict: Verdict | None
@@ -105,6 +109,7 @@ class Measurement:
     points: np.ndarray = field(default_factory=lambda: np.empty((0, 3)), repr=False)
     passes: tuple[Pass, ...] = field(default=(), repr=False)
     timings_ms: dict[str, float] = field(default_factory=dict)
+    cpu_ms: dict[str, float] = field(default_factory=dict)
 
     def points_cad(self) -> np.ndarray | None:
         """``points`` mapped into the CAD frame (None without a transform)."""

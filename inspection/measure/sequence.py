@@ -99,13 +99,13 @@ def measure_frames(
 def _measure_frames(
     part: PartModel, rec: Reconstructor, frames: Sequence[npt.NDArray[np.uint8]], p: MeasureParams
 ) -> Measurement:
-    timings: dict[str, float] = {}
-    t_start = time.perf_counter()
+    timings = _Laps()
+    t_start = _mark()
 
     # 1. The cloud, and (guided) what its matching found: where the guided pass starts.
-    t = time.perf_counter()
+    t = _mark()
     cloud, matching = rec.match(frames) if p.guided else (rec(frames), None)
-    timings["reconstruct"] = _ms(t)
+    _lap(timings, "reconstruct", t)
     first = _pass("first", cloud)
     if len(first.points) == 0:
         return _unmeasured("empty cloud: no surface seen in the frames", timings, t_start, first)
@@ -115,7 +115,7 @@ def _measure_frames(
     start: np.ndarray | None = None
     final: Registration | None = None
     if matching is not None:  # p.guided
-        t = time.perf_counter()
+        t = _mark()
         fit = _try_align(part, first, p)
         passes[0] = dataclasses.replace(first, fit=fit)
         if fit is not None and _trusted(fit, p):
@@ -129,18 +129,18 @@ def _measure_frames(
         else:
             log.debug("no guided pass: the first fit is not trusted")
             final = fit
-        timings["guide"] = _ms(t)
+        _lap(timings, "guide", t)
 
     # 4. The final fit.
     last = passes[-1]
-    t = time.perf_counter()
+    t = _mark()
     try:
         if final is None:
             final = _fit(part, last.points, last.weights, p, start=start)
     except InspectionError as exc:
-        timings["align"] = _ms(t)
+        _lap(timings, "align", t)
         return _unmeasured(f"alignment failed: {exc}", timings, t_start, *passes)
-    timings["align"] = _ms(t)
+    _lap(timings, "align", t)
     passes[-1] = dataclasses.replace(last, fit=final)
     search = passes[0].fit if start is not None else None
     cameras = np.array([cam.centre for cam in rec.rig.cameras], dtype=np.float64)
@@ -193,15 +193,15 @@ def measure_cloud(
     w = np.ones(len(cloud)) if weights is None else np.asarray(weights, dtype=np.float64)
     if w.shape != (len(cloud),) or not np.isfinite(w).all() or (w < 0).any():
         raise InvalidInput(f"weights must be ({len(cloud)},) finite and >= 0")
-    timings: dict[str, float] = {}
-    t_start = time.perf_counter()
-    t = time.perf_counter()
+    timings = _Laps()
+    t_start = _mark()
+    t = _mark()
     try:
         fit = _fit(part, cloud, w, p, frame=frame)
     except InspectionError as exc:
-        timings["align"] = _ms(t)
+        _lap(timings, "align", t)
         return _unmeasured(f"alignment failed: {exc}", timings, t_start, frame=frame)
-    timings["align"] = _ms(t)
+    _lap(timings, "align", t)
     return _judge(part, cloud, fit, p, frame, timings, t_start, ())
 
 
@@ -353,8 +353,8 @@ def _judge(
     fit: Registration,
     p: MeasureParams,
     frame: Frame,
-    timings: dict[str, float],
-    t_start: float,
+    timings: _Laps,
+    t_start: tuple[float, float],
     passes: tuple[Pass, ...],
     search: Registration | None = None,
     *,
@@ -383,7 +383,7 @@ def _judge(
             f"(score {quality.runner_up_score:.2f} of the chosen one's; a symmetric-looking part)"
         )
 
-    t = time.perf_counter()
+    t = _mark()
     viewpoints = directions = None
     if cameras is not None:
         viewpoints = apply(T, cameras)
@@ -402,8 +402,8 @@ def _judge(
         view_directions=directions,
     )
     devs = _held_to_the_pose(devs, part.comparison_points, fit, p)
-    timings["deviations"] = _ms(t)
-    timings["total"] = _ms(t_start)
+    _lap(timings, "deviations", t)
+    _lap(timings, "total", t_start)
     return Measurement(
         verdict=devs.verdict,
         reason=_reason(devs, note),
@@ -414,7 +414,8 @@ def _judge(
         deviations=devs,
         points=points,
         passes=passes,
-        timings_ms=timings,
+        timings_ms=dict(timings),
+        cpu_ms=dict(timings.cpu),
     )
 
 
@@ -425,9 +426,9 @@ def rejection_mm(fit: Registration) -> float:
 
 
 def _unmeasured(
-    reason: str, timings: dict[str, float], t_start: float, *passes: Pass, frame: Frame = "rig"
+    reason: str, timings: _Laps, t_start: tuple[float, float], *passes: Pass, frame: Frame = "rig"
 ) -> Measurement:
-    timings["total"] = _ms(t_start)
+    _lap(timings, "total", t_start)
     log.debug("not measured: %s", reason)
     return Measurement(
         verdict=None,
@@ -435,7 +436,8 @@ def _unmeasured(
         frame=frame,
         points=passes[-1].points if passes else np.empty((0, 3)),
         passes=passes,
-        timings_ms=timings,
+        timings_ms=dict(timings),
+        cpu_ms=dict(timings.cpu),
     )
 
 
@@ -449,5 +451,18 @@ def _check_part(part: PartModel, frame: Frame) -> None:
         )
 
 
-def _ms(t0: float) -> float:
-    return (time.perf_counter() - t0) * 1e3
+class _Laps(dict[str, float]):
+    """Wall time per stage, ms, and beside it (``cpu``) the process's CPU time, ms."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.cpu: dict[str, float] = {}
+
+
+def _mark() -> tuple[float, float]:
+    return time.perf_counter(), time.process_time()
+
+
+def _lap(laps: _Laps, stage: str, since: tuple[float, float]) -> None:
+    laps[stage] = (time.perf_counter() - since[0]) * 1e3
+    laps.cpu[stage] = (time.process_time() - since[1]) * 1e3

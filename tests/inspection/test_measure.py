@@ -198,6 +198,9 @@ def test_a_flat_plate_passes_and_names_its_three_free_directions(plate):
     assert q.observability < 1e-3 and q.ambiguous is None
     assert [c.verdict for c in m.deviations.comparison] == [Verdict.PASS, Verdict.PASS]
     assert all(abs(c.deviation_mm) < 0.005 for c in m.deviations.comparison)
+    # Every stage's CPU time beside its wall time, the total covering the stages.
+    assert set(m.cpu_ms) == set(m.timings_ms) == {"align", "deviations", "total"}
+    assert 0 < m.cpu_ms["align"] + m.cpu_ms["deviations"] <= m.cpu_ms["total"] + 1.0
 
 
 def step_cloud(wall_points: int, sigma: float = 0.005) -> np.ndarray:
