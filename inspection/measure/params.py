@@ -38,6 +38,11 @@ class MeasureParams:
         Fit with the reconstruction's per-point quality as input weights.
     max_points : int
         Clouds are subsampled (evenly strided) to this size to fit.
+    guide_points : int
+        ... and to this size for the fits that only place the CAD guide of the
+        next matching pass (the first pass's, the guided pass's before its
+        bends are matched again): the guide needs the pose, not its last
+        micrometre, which the final fit on ``max_points`` gives.
     min_inlier_fraction : float
         A fit keeping fewer of the points is an error.
     max_rms_mm : float
@@ -63,6 +68,7 @@ class MeasureParams:
     guided: bool = True
     use_weights: bool = True
     max_points: int = 150_000
+    guide_points: int = 60_000
     min_inlier_fraction: float = 0.5
     max_rms_mm: float = 1.0
     ambiguous_is_error: bool = False
@@ -81,6 +87,8 @@ class MeasureParams:
             raise InvalidInput(f"path must be 'cloud' or 'comparison_points', got {self.path!r}")
         if not (isinstance(self.max_points, int) and self.max_points >= 100):
             raise InvalidInput(f"max_points must be an integer >= 100, got {self.max_points}")
+        if not (isinstance(self.guide_points, int) and self.guide_points >= 100):
+            raise InvalidInput(f"guide_points must be an integer >= 100, got {self.guide_points}")
         if not 0.0 <= self.min_inlier_fraction <= 1.0:
             raise InvalidInput(
                 f"min_inlier_fraction must lie in [0, 1], got {self.min_inlier_fraction}"

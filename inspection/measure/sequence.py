@@ -261,11 +261,13 @@ def _pass(name: str, cloud: Cloud) -> Pass:
 
 
 def _fit_inputs(
-    points: np.ndarray, weights: np.ndarray, p: MeasureParams
+    points: np.ndarray, weights: np.ndarray, p: MeasureParams, max_points: int | None = None
 ) -> tuple[np.ndarray, np.ndarray | None]:
-    """The points a fit uses (subsampled to ``max_points``) and their weights, if used."""
-    if len(points) > p.max_points:
-        idx = _stride(len(points), p.max_points)
+    """The points a fit uses (subsampled to ``max_points``, default the params') and their
+    weights, if used."""
+    n = p.max_points if max_points is None else max_points
+    if len(points) > n:
+        idx = _stride(len(points), n)
         points, weights = points[idx], weights[idx]
     return points, (weights if p.use_weights else None)
 
@@ -278,10 +280,11 @@ def _fit(
     *,
     frame: Frame = "rig",
     start: np.ndarray | None = None,
+    max_points: int | None = None,
 ) -> Registration:
     """The fit of a cloud: from ``start`` (no escape scan: the turn was searched),
     from the identity (``frame="cad"``), or by the global search (which searches the turn)."""
-    pts, w = _fit_inputs(points, weights, p)
+    pts, w = _fit_inputs(points, weights, p, max_points)
     rp = p.fit_params(frame)
     if start is not None:
         rp = dataclasses.replace(rp, escape_deg=None)
@@ -296,7 +299,7 @@ def _fit(
 
 def _try_align(part: PartModel, first: Pass, p: MeasureParams) -> Registration | None:
     try:
-        return _fit(part, first.points, first.weights, p)
+        return _fit(part, first.points, first.weights, p, max_points=p.guide_points)
     except InspectionError as exc:
         log.debug("no guided pass: the first alignment failed: %s", exc)
         return None
@@ -334,10 +337,10 @@ def _bends(
     if len(g.points) == 0:
         return [g]
     try:
-        # Every guided point, not a subsample: the bends' guide is only as good as this fit.
+        pts, w = _fit_inputs(g.points, g.weights, p, p.guide_points)
         fit = register(
-            part.tree, g.points, dataclasses.replace(p.fit_params("rig"), escape_deg=None),
-            init=start, weights=g.weights if p.use_weights else None, faces=part.faces,
+            part.tree, pts, dataclasses.replace(p.fit_params("rig"), escape_deg=None),
+            init=start, weights=w, faces=part.faces,
         )  # fmt: skip
     except InspectionError as exc:
         log.debug("bends not matched again: the guided cloud did not fit: %s", exc)
