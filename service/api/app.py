@@ -21,6 +21,7 @@ from .deps import Pipeline, Services
 from .errors import install_error_handlers
 from .events import ResultHub
 from .limits import BodySizeLimit
+from .methods import MethodRouting
 from .metrics import Metrics, RequestMetrics
 from .routes import inspections as inspection_routes
 from .routes import parts as part_routes
@@ -96,6 +97,12 @@ def create_app(
     app.include_router(inspection_routes.router)
     _register_gauges(svc)
 
+    # Innermost: answers OPTIONS and 405 for a whole path, from the methods of every
+    # router's routes (FastAPI keeps included routers apart: list each one here).
+    app.add_middleware(
+        MethodRouting,
+        routers=[app.router, system_routes.router, part_routes.router, inspection_routes.router],
+    )
     # A plain ASGI middleware (not BaseHTTPMiddleware): it does not buffer
     # streamed responses such as /v1/stream.
     app.add_middleware(RequestMetrics, metrics=svc.metrics)
