@@ -27,6 +27,7 @@ import pytest
 import requests
 import schemathesis
 import uvicorn
+from fastapi.testclient import TestClient
 from hypothesis import HealthCheck, Phase, settings
 from linekit import PART, PARTS_DIR
 from schemathesis.specs.openapi.checks import positive_data_acceptance
@@ -234,3 +235,43 @@ def test_a_cloud_of_huge_coordinates_is_a_422(api):
         timeout=60,
     )
     assert r.status_code == 422 and r.json()["error"]["code"] == "invalid_input", r.text
+
+
+def test_a_failed_cad_upload_names_the_clients_file_not_the_servers(api):
+    r = requests.post(
+        api.url + "/v1/parts",
+        files={"cad": ("mine.stl", b"solid x\nendsolid x\n")},
+        data={"spec": json.dumps({"name": "leaky"})},
+        timeout=60,
+    )
+    error = r.json()["error"]
+    assert (r.status_code, error["code"]) == (422, "invalid_cad"), r.text
+    assert error["message"].startswith("mine.stl: "), error
+    assert str(api.root) not in r.text and "/" not in error["message"], error
+
+
+def test_a_failed_build_hides_the_servers_folders(tmp_path):
+    """A configured part whose CAD file is missing: the job and the 409 say so without paths."""
+    parts_dir = tmp_path / "parts"
+    parts_dir.mkdir()
+    (parts_dir / "gone.toml").write_text('name = "gone"\ncad = "gone.stl"\n')
+    with PartRegistry(tmp_path / "trees", tmp_path / "uploads") as registry:
+        registry.add(load_part_spec(parts_dir / "gone.toml"), parts_dir, configured=True)
+        registry.preload()
+        assert registry.states() == {"gone": "failed"}
+        store = ResultStore(tmp_path / "results.sqlite")
+        app = create_app(
+            line_settings(tmp_path), store=store, parts=registry, archive=DeviationArchive(tmp_path)
+        )
+        with TestClient(app) as client:
+            job = client.get(f"/v1/jobs/{client.get('/v1/parts/gone').json()['job']}").json()
+            r = client.post(
+                "/v1/inspections",
+                files={"file": ("c.npy", b"\x93NUMPY")},
+                data={"part": "gone"},
+            )
+        store.close()
+    assert job["state"] == "failed" and "<part folder>/gone.stl" in job["message"], job
+    assert r.status_code == 409 and r.json()["error"]["code"] == "part_not_ready", r.text
+    for text in (job["message"], r.text):
+        assert str(tmp_path) not in text and str(tmp_path.resolve()) not in text
