@@ -349,6 +349,17 @@ def warm_up(part: LoadedPart, *, points: int = 3000) -> float:
 # --------------------------------------------------------------------------- registry
 
 
+def hide_paths(message: str, names: dict[Path, str]) -> str:
+    """``message`` with each path of ``names`` (as given and resolved) replaced by its name.
+
+    Longer paths first, so that a file inside a folder becomes the file's name.
+    """
+    pairs = {str(p): n for p, n in names.items()} | {str(p.resolve()): n for p, n in names.items()}
+    for path in sorted(pairs, key=len, reverse=True):
+        message = message.replace(path, pairs[path])
+    return message
+
+
 class PartRegistry:
     """The parts a service knows, their trees and the jobs that build them.
 
@@ -452,7 +463,7 @@ class PartRegistry:
         root = self.uploads_dir.resolve()
         folder = (root / name).resolve()
         if folder.parent != root or folder.name != name:
-            raise PartConflict(f"part {name!r}: its folder would lie outside {root}")
+            raise PartConflict(f"part {name!r}: its folder would lie outside the uploads folder")
         return folder
 
     def create(self, spec: PartSpecBase, cad_bytes: bytes, filename: str) -> Job:
@@ -483,7 +494,8 @@ class PartRegistry:
                 raise PartConflict(f"part {spec.name!r} exists; delete it first")
             if target.exists() or target.is_symlink():
                 raise PartConflict(
-                    f"part {spec.name!r}: {target} exists and was not made by the service"
+                    f"part {spec.name!r}: a folder of that name, not made by the service, "
+                    "is in the uploads folder"
                 )
             # Reserve the name while the upload is checked.
             self._entries[spec.name] = _Entry(spec=full, base_dir=target, configured=False)
@@ -493,10 +505,16 @@ class PartRegistry:
             # mkdtemp makes a new folder or fails: whatever it names is ours to remove.
             staging = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=self.uploads_dir.resolve()))
             (staging / full.cad).write_bytes(cad_bytes)
-            load_cad(staging / full.cad, scale=full.scale, name=full.name)  # fail fast
+            try:
+                load_cad(staging / full.cad, scale=full.scale, name=full.name)  # fail fast
+            except CadLoadError as exc:
+                # Its message starts with the staging file's path: name the client's file.
+                raise CadLoadError(
+                    hide_paths(str(exc), {staging / full.cad: filename, staging: "upload"})
+                ) from exc
             (staging / SPEC_FILE).write_text(full.model_dump_json(indent=2))
             if target.exists() or target.is_symlink():
-                raise PartConflict(f"part {spec.name!r}: {target} appeared meanwhile")
+                raise PartConflict(f"part {spec.name!r}: a folder of that name appeared meanwhile")
             staging.rename(target)
         except BaseException:
             with self._lock:
@@ -523,7 +541,7 @@ class PartRegistry:
                 raise PartConflict(f"part {name!r} is still being built; delete it when done")
             folder = self._upload_dir(name)
             if folder != entry.base_dir.resolve():
-                raise PartConflict(f"part {name!r} is not kept in {folder}")
+                raise PartConflict(f"part {name!r} is not kept in its uploads folder")
             del self._entries[name]
         for written in (entry.spec.cad, SPEC_FILE):
             path = folder / written
@@ -600,9 +618,11 @@ class PartRegistry:
             )
         except Exception as exc:
             log.exception("part %s: tree build failed", name)
+            # The message reaches clients (the job, 409s): the server's folders stay in the log.
+            folders = {entry.base_dir: "<part folder>", self.trees_dir: "<tree cache>"}
             with self._lock:
                 entry.state = PartState.failed
-                entry.error = f"{type(exc).__name__}: {exc}"
+                entry.error = f"{type(exc).__name__}: {hide_paths(str(exc), folders)}"
             self._update_job(
                 job_id, state=JobState.failed, message=entry.error, finished_ns=time.time_ns()
             )

@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 from collections.abc import AsyncIterator, Callable, Mapping
 from contextlib import asynccontextmanager
+from typing import Any
 
 from fastapi import FastAPI
 from starlette.middleware.cors import CORSMiddleware
@@ -19,12 +20,13 @@ from ..models import software_version
 from ..parts import PartRegistry
 from ..results import measure_upload
 from ..store import DeviationArchive, ResultStore
-from .access import Access, is_loopback, load_keys
+from .access import OPEN_PATHS, WRITE_METHODS, Access, is_loopback, load_keys
 from .deps import Pipeline, Services
 from .errors import install_error_handlers
 from .events import ResultHub
 from .gate import MeasureGate
 from .limits import BodySizeLimit
+from .methods import MethodRouting
 from .metrics import Metrics, RequestMetrics
 from .routes import inspections as inspection_routes
 from .routes import parts as part_routes
@@ -116,6 +118,12 @@ def create_app(
     app.include_router(inspection_routes.router)
     _register_gauges(svc)
 
+    # Innermost: answers OPTIONS and 405 for a whole path, from the methods of every
+    # router's routes (FastAPI keeps included routers apart: list each one here).
+    app.add_middleware(
+        MethodRouting,
+        routers=[app.router, system_routes.router, part_routes.router, inspection_routes.router],
+    )
     # A plain ASGI middleware (not BaseHTTPMiddleware): it does not buffer
     # streamed responses such as /v1/stream.
     app.add_middleware(RequestMetrics, metrics=svc.metrics)
@@ -133,12 +141,57 @@ def create_app(
         Access, keys=keys, auth=AuthScope(http.auth).value, loopback=loopback,
         allowed_origins=list(http.allowed_origins), max_drain_bytes=int(http.max_upload_mb * 1e6),
     )  # fmt: skip
+    _document_access(app, AuthScope(http.auth), keys_needed=bool(keys) or not loopback)
     svc.metrics.gauge(
         "inspection_api_measurements_admitted",
         "Uploads measuring or waiting for a turn.",
         lambda: [({}, float(gate.admitted))],
     )
     return app
+
+
+def _document_access(app: FastAPI, auth: AuthScope, *, keys_needed: bool) -> None:
+    """State in the OpenAPI schema what :class:`~service.api.access.Access` answers: the
+    key it asks for (only where it does ask: a loopback server without keys does not),
+    403 on writes, and 503 where uploads queue."""
+    make_schema = app.openapi
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is not None:
+            return app.openapi_schema
+        schema = make_schema()
+        error = {"application/json": {"schema": {"$ref": "#/components/schemas/ErrorBody"}}}
+        if keys_needed and auth is not AuthScope.none:
+            schema.setdefault("components", {})["securitySchemes"] = {
+                "bearer": {"type": "http", "scheme": "bearer"},
+                "apiKey": {"type": "apiKey", "in": "header", "name": "X-API-Key"},
+            }
+        for path, ops in schema.get("paths", {}).items():
+            for method, op in ops.items():
+                write = method.upper() in WRITE_METHODS
+                responses = op.setdefault("responses", {})
+                if write:
+                    responses.setdefault("403", {
+                        "description": "A write from a page of another origin, or writes "
+                        "without any key configured on a server beyond loopback",
+                        "content": error,
+                    })  # fmt: skip
+                guarded = auth is AuthScope.all or (auth is AuthScope.writes and write)
+                if keys_needed and guarded and path not in OPEN_PATHS:
+                    op["security"] = [{"bearer": []}, {"apiKey": []}]
+                    responses.setdefault(
+                        "401", {"description": "No API key, or not a valid one", "content": error}
+                    )
+                if path == "/v1/inspections" and method == "post":
+                    responses.setdefault(
+                        "503", {"description": "As many uploads as the API measures at once "
+                                "are measuring or waiting: retry after Retry-After",
+                                "content": error},
+                    )  # fmt: skip
+        app.openapi_schema = schema
+        return schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
 
 
 def _register_gauges(svc: Services) -> None:

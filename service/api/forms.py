@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 from fastapi import Request
+from pydantic import BaseModel
 from starlette.datastructures import FormData, UploadFile
 from starlette.formparsers import MultiPartException
 from starlette.requests import ClientDisconnect
@@ -44,6 +45,17 @@ async def file_field(form: FormData, name: str) -> tuple[bytes, str]:
     return data, item.filename or ""
 
 
+def only_fields(form: FormData, names: tuple[str, ...]) -> None:
+    """422 for a field the form does not define: a misspelt ``serail`` must not pass unseen."""
+    unknown = sorted(set(form.keys()) - set(names))
+    if unknown:
+        raise ApiError(
+            422,
+            "validation_error",
+            f"unknown form fields {', '.join(map(repr, unknown))}; the form has {', '.join(names)}",
+        )
+
+
 def text_field(form: FormData, name: str, default: str | None = None) -> str | None:
     item = form.get(name)
     if item is None:
@@ -51,3 +63,28 @@ def text_field(form: FormData, name: str, default: str | None = None) -> str | N
     if not isinstance(item, str):
         raise ApiError(422, "validation_error", f"{name!r} must be a text field, not a file")
     return item
+
+
+def json_part_schema(model: type[BaseModel]) -> dict[str, Any]:
+    """``model``'s JSON Schema with its definitions inlined, for a JSON part of a multipart body.
+
+    A body schema given through ``openapi_extra`` cannot add to the document's
+    components, and its ``$ref`` resolve against the document's root; inlined,
+    the schema stands alone. (The models sent this way are not recursive.)
+    """
+    schema = model.model_json_schema()
+    defs = schema.pop("$defs", {})
+
+    def inline(node: Any) -> Any:
+        if isinstance(node, dict):
+            ref = node.get("$ref")
+            if isinstance(ref, str) and ref.startswith("#/$defs/"):
+                rest = {k: v for k, v in node.items() if k != "$ref"}
+                return {**inline(defs[ref.removeprefix("#/$defs/")]), **inline(rest)}
+            return {k: inline(v) for k, v in node.items()}
+        if isinstance(node, list):
+            return [inline(v) for v in node]
+        return node
+
+    inlined: dict[str, Any] = inline(schema)
+    return inlined

@@ -212,3 +212,20 @@ def test_allowed_origins_are_checked_in_the_config(line, origin):  # noqa: F811
     cfg, _ = line
     with pytest.raises(ValidationError, match="not a web origin"):
         type(cfg.http).model_validate({"allowed_origins": [origin]})
+
+
+def test_the_schema_states_what_access_asks_for(line, tmp_path, monkeypatch):  # noqa: F811
+    monkeypatch.setenv(KEYS_ENV, KEY)
+    with serve(*line, tmp_path) as (client, _):
+        spec = client.get("/openapi.json").json()
+    post = spec["paths"]["/v1/inspections"]["post"]
+    assert post["security"] == [{"bearer": []}, {"apiKey": []}]
+    assert {"401", "403", "503"} <= set(post["responses"])
+    assert "security" not in spec["paths"]["/v1/inspections"]["get"]
+    assert "security" not in spec["paths"]["/v1/health"]["get"]
+    assert spec["components"]["securitySchemes"]["bearer"]["scheme"] == "bearer"
+    monkeypatch.delenv(KEYS_ENV)
+    with serve(*line, tmp_path) as (client, _):  # loopback without keys: nothing is asked
+        spec = client.get("/openapi.json").json()
+    assert "security" not in spec["paths"]["/v1/inspections"]["post"]
+    assert "securitySchemes" not in spec.get("components", {})

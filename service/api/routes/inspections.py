@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import itertools
+import re
 import time
 from datetime import UTC, datetime
+from typing import Any
 
 from fastapi import APIRouter, Query, Request
 from fastapi.concurrency import run_in_threadpool
@@ -14,14 +16,14 @@ from starlette.requests import ClientDisconnect
 from inspection.measure import validate_cloud
 
 from ...models import ErrorBody, InspectionResult, Page, Status, new_upload_id
-from ...names import NAME_RULE, is_valid_name
+from ...names import NAME_MAX_LEN, NAME_PATTERN, NAME_RULE, is_valid_name
 from ...results import upload_trigger
 from ...store import Filters, InvalidCursor
 from ..clouds import UnsupportedCloudFormat, parse_cloud
 from ..colormap import Marker, render_top_view
 from ..deps import PartQuery, Services, ServicesDep
 from ..errors import ApiError
-from ..forms import file_field, read_multipart, text_field
+from ..forms import file_field, only_fields, read_multipart, text_field
 from ..gate import Busy
 
 router = APIRouter(tags=["inspections"])
@@ -36,6 +38,8 @@ FRAMES = ("rig", "data", "cad")
 MAX_NS = 2**63 - 1
 """The latest time the store can hold, ns since the epoch (SQLite's int64)."""
 
+UPLOAD_FIELDS = ("file", "part", "frame", "serial")
+
 _POST_BODY = {
     "requestBody": {
         "required": True,
@@ -44,13 +48,22 @@ _POST_BODY = {
                 "schema": {
                     "type": "object",
                     "required": ["file", "part"],
+                    "additionalProperties": False,
                     "properties": {
                         "file": {
                             "type": "string",
                             "format": "binary",
-                            "description": "The cloud: .npy (N, 3) float or PLY, mm",
+                            "minLength": 1,
+                            "description": "The cloud: .npy (N, 3) float or PLY, mm "
+                            "(recognised by its first bytes); at most the server's "
+                            "max_upload_mb with the rest of the body (else 413)",
                         },
-                        "part": {"type": "string", "description": "Part name"},
+                        "part": {
+                            "type": "string",
+                            "pattern": NAME_PATTERN,
+                            "maxLength": NAME_MAX_LEN,
+                            "description": f"Part name: {NAME_RULE}",
+                        },
                         "frame": {
                             "type": "string",
                             "enum": list(FRAMES),
@@ -58,7 +71,12 @@ _POST_BODY = {
                             "description": "rig: seen from above, anywhere on the belt; "
                             "data: any frame, anywhere; cad: near the CAD frame",
                         },
-                        "serial": {"type": "string", "description": "Default: upload-<n>"},
+                        "serial": {
+                            "type": "string",
+                            "pattern": NAME_PATTERN,
+                            "maxLength": NAME_MAX_LEN,
+                            "description": f"{NAME_RULE}; default: upload-<n>",
+                        },
                     },
                 }
             }
@@ -66,14 +84,33 @@ _POST_BODY = {
     }
 }
 
-_ERRORS: dict[int | str, dict[str, object]] = {
-    400: {"model": ErrorBody},
-    404: {"model": ErrorBody, "description": "Unknown part or result"},
-    409: {"model": ErrorBody, "description": "The part's tree is not ready"},
-    413: {"model": ErrorBody},
-    415: {"model": ErrorBody},
-    422: {"model": ErrorBody},
+CURSOR_PATTERN = r"^[A-Za-z0-9_-]+$"
+"""The alphabet of the cursors the store hands out (unpadded URL-safe base64)."""
+
+_READ_ERRORS: dict[int | str, dict[str, object]] = {
+    404: {"model": ErrorBody, "description": "Unknown result"},
+    422: {"model": ErrorBody, "description": "Invalid request"},
 }
+
+_POST_ERRORS: dict[int | str, dict[str, object]] = {
+    400: {"model": ErrorBody, "description": "Malformed multipart body"},
+    404: {"model": ErrorBody, "description": "Unknown part"},
+    409: {"model": ErrorBody, "description": "The part's tree is not ready"},
+    413: {"model": ErrorBody, "description": "Body above the server's max_upload_mb"},
+    415: {"model": ErrorBody, "description": "Not multipart, or a cloud neither NPY nor PLY"},
+    422: {"model": ErrorBody, "description": "Invalid field or cloud"},
+}
+
+
+SINCE_SCHEMA: dict[str, Any] = {
+    "anyOf": [
+        {"type": "integer", "minimum": 0, "maximum": MAX_NS},
+        {"type": "string", "format": "date-time"},
+        {"type": "string", "format": "date"},
+        {"type": "null"},
+    ]
+}
+"""What ``since`` accepts (:func:`parse_since` also takes a date-time without its offset)."""
 
 
 def parse_since(value: str | None) -> int | None:
@@ -83,7 +120,7 @@ def parse_since(value: str | None) -> int | None:
     a calendar time before the epoch or beyond 2262 is clamped to their range
     (everything, or nothing), which is what it asks for.
     """
-    if value is None or value == "":
+    if value is None:
         return None
     if value.lstrip("-").isdigit():
         if len(value) > 20 or not 0 <= int(value) <= MAX_NS:
@@ -105,7 +142,7 @@ def parse_since(value: str | None) -> int | None:
 @router.post(
     "/v1/inspections",
     response_model=InspectionResult,
-    responses=_ERRORS,
+    responses=_POST_ERRORS,
     openapi_extra=_POST_BODY,
     summary="Inspect an uploaded point cloud of a part; answers with the result",
 )
@@ -133,16 +170,17 @@ async def create_inspection(svc: ServicesDep, request: Request) -> InspectionRes
 async def _inspect_upload(svc: Services, request: Request) -> InspectionResult:
     form = await read_multipart(request)
     try:
+        only_fields(form, UPLOAD_FIELDS)
         part_name = text_field(form, "part")
         if part_name is None:
             raise ApiError(422, "validation_error", "the form needs a 'part' field")
-        frame = text_field(form, "frame", "rig") or "rig"
+        frame = text_field(form, "frame", "rig")
         if frame not in FRAMES:
             raise ApiError(
                 422, "validation_error", f"frame must be one of {', '.join(FRAMES)}, got {frame!r}"
             )
-        serial = text_field(form, "serial") or f"upload-{next(_counter)}"
-        if not is_valid_name(serial):
+        serial = text_field(form, "serial", f"upload-{next(_counter)}")
+        if serial is None or not is_valid_name(serial):
             raise ApiError(422, "validation_error", f"serial {serial!r} is not a name: {NAME_RULE}")
         part = svc.parts.get(part_name)  # 404 unknown / 409 not ready, before reading the cloud
         data, _ = await file_field(form, "file")
@@ -170,18 +208,30 @@ async def _inspect_upload(svc: Services, request: Request) -> InspectionResult:
 @router.get(
     "/v1/inspections",
     response_model=Page[InspectionResult],
-    responses=_ERRORS,
+    responses=_READ_ERRORS,
     summary="Results, newest first; pass `next` as `cursor` for the following page",
 )
 def list_inspections(
     svc: ServicesDep,
     part: PartQuery = None,
     status: Status | None = None,
-    since: str | None = Query(None, description="ns since the epoch, or ISO 8601 (naive: UTC)"),
+    since: str | None = Query(
+        None,
+        description="ns since the epoch, or an ISO 8601 date or time (naive: UTC)",
+        json_schema_extra=SINCE_SCHEMA,
+    ),
     limit: int = Query(50, ge=1, le=1000),
-    cursor: str | None = Query(None, max_length=512),
+    cursor: str | None = Query(
+        None,
+        max_length=512,
+        description="`next` of the previous page",
+        # Stated, and checked below: a cursor of other characters is an invalid_cursor too.
+        json_schema_extra={"pattern": CURSOR_PATTERN},
+    ),
 ) -> Page[InspectionResult]:
     filters = Filters(part=part, status=status, since_ns=parse_since(since))
+    if cursor is not None and not re.fullmatch(CURSOR_PATTERN, cursor):
+        raise ApiError(422, "invalid_cursor", f"not a valid cursor: {cursor!r}")
     try:
         items, nxt = svc.store.list(filters, limit=limit, cursor=cursor)
     except InvalidCursor as exc:
@@ -196,7 +246,7 @@ def _result(svc: Services, id_: str) -> InspectionResult:
     return result
 
 
-@router.get("/v1/inspections/{id}", response_model=InspectionResult, responses=_ERRORS)
+@router.get("/v1/inspections/{id}", response_model=InspectionResult, responses=_READ_ERRORS)
 def get_inspection(svc: ServicesDep, id: str) -> InspectionResult:
     return _result(svc, id)
 
@@ -204,7 +254,7 @@ def get_inspection(svc: ServicesDep, id: str) -> InspectionResult:
 @router.get(
     "/v1/inspections/{id}/colormap.png",
     response_class=Response,
-    responses={**_ERRORS, 200: {"content": {"image/png": {}}}},
+    responses={**_READ_ERRORS, 200: {"content": {"image/png": {}}}},
     summary="Top view of the part coloured by deviation (CAD frame, seen from +z)",
 )
 def colormap(

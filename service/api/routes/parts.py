@@ -13,7 +13,7 @@ from ...names import NAME_MAX_LEN, NAME_PATTERN
 from ...parts import UPLOAD_SUFFIXES
 from ..deps import PartPath, ServicesDep
 from ..errors import ApiError
-from ..forms import file_field, read_multipart, text_field
+from ..forms import file_field, json_part_schema, only_fields, read_multipart, text_field
 
 router = APIRouter(tags=["parts"])
 
@@ -21,7 +21,10 @@ router = APIRouter(tags=["parts"])
 _ERRORS: dict[int | str, dict[str, object]] = {
     404: {"model": ErrorBody, "description": "Unknown part or job"},
     409: {"model": ErrorBody, "description": "Conflicts with the part's state"},
+    422: {"model": ErrorBody, "description": "Invalid request"},
 }
+
+CREATE_FIELDS = ("cad", "spec")
 
 _CREATE_BODY = {
     "requestBody": {
@@ -31,22 +34,35 @@ _CREATE_BODY = {
                 "schema": {
                     "type": "object",
                     "required": ["cad", "spec"],
+                    "additionalProperties": False,
                     "properties": {
                         "cad": {
                             "type": "string",
                             "format": "binary",
-                            "description": "STL, OBJ, PLY or STEP",
+                            "minLength": 1,
+                            "description": "The mesh; its file name ends in "
+                            f"{', '.join(UPLOAD_SUFFIXES)} (else 415); at most the server's "
+                            "max_upload_mb with the rest of the body (else 413)",
                         },
-                        "spec": {"type": "string", "description": "PartCreate as JSON"},
+                        "spec": {
+                            **json_part_schema(PartCreate),
+                            "description": "PartCreate as JSON",
+                        },
                     },
-                }
+                },
+                "encoding": {"spec": {"contentType": "application/json"}},
             }
         },
     }
 }
 
 
-@router.get("/v1/parts", response_model=Page[PartPublic], summary="Part types, by name")
+@router.get(
+    "/v1/parts",
+    response_model=Page[PartPublic],
+    responses={422: _ERRORS[422]},
+    summary="Part types, by name",
+)
 def list_parts(
     svc: ServicesDep,
     limit: int = Query(100, ge=1, le=1000),
@@ -79,9 +95,10 @@ def get_part(svc: ServicesDep, name: PartPath) -> PartPublic:
     status_code=202,
     responses={
         **_ERRORS,
-        413: {"model": ErrorBody},
-        415: {"model": ErrorBody},
-        422: {"model": ErrorBody},
+        400: {"model": ErrorBody, "description": "Malformed multipart body"},
+        413: {"model": ErrorBody, "description": "Body above the server's max_upload_mb"},
+        415: {"model": ErrorBody, "description": "Not multipart, or not a CAD file name"},
+        422: {"model": ErrorBody, "description": "Invalid spec or CAD file"},
     },
     openapi_extra=_CREATE_BODY,
     summary="Create a part from a CAD file and a spec; its tree is built in the background",
@@ -89,6 +106,7 @@ def get_part(svc: ServicesDep, name: PartPath) -> PartPublic:
 async def create_part(svc: ServicesDep, request: Request, response: Response) -> PartPublic:
     form = await read_multipart(request)
     try:
+        only_fields(form, CREATE_FIELDS)
         raw_spec = text_field(form, "spec")
         if raw_spec is None:
             raise ApiError(

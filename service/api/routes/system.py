@@ -5,7 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter
 from fastapi.responses import JSONResponse, PlainTextResponse, StreamingResponse
 
-from ...models import Health, Status, software_version
+from ...models import ErrorBody, Health, Status, software_version
 from ..deps import PartQuery, Services, ServicesDep
 from ..metrics import CONTENT_TYPE
 
@@ -49,7 +49,10 @@ def metrics(svc: ServicesDep) -> PlainTextResponse:
     "/v1/stream",
     summary="Server-sent events: one `result` event per new result",
     response_class=StreamingResponse,
-    responses={200: {"content": {"text/event-stream": {}}}},
+    responses={
+        200: {"content": {"text/event-stream": {}}},
+        422: {"model": ErrorBody, "description": "Invalid request"},
+    },
 )
 async def stream(
     svc: ServicesDep,
