@@ -308,9 +308,12 @@ class SurfaceModel:
         the cell's samples missed takes the nearest node whose normal agrees
         (-1 if none within two cells).
         """
-        key = _keys(self.origin, self.dims, points, normals)
-        pos = np.minimum(np.searchsorted(self.keys, key), len(self.keys) - 1)
-        out = np.where(self.keys[pos] == key, pos, -1)
+        out = _cell_nodes(self.origin, self.dims, self.keys,
+                          _f64(points), _f64(normals))  # fmt: skip
+        return self._nearest_nodes(out, points, normals)
+
+    def _nearest_nodes(self, out: np.ndarray, points: Points, normals: Vectors) -> np.ndarray:
+        """``out`` with the nodes its cells missed (-1) found among the nearest ones."""
         missed = np.flatnonzero(out < 0)
         if len(missed):
             k = min(4, len(self.keys))
@@ -386,10 +389,14 @@ class SurfaceModel:
         comparison : (name, position) of each comparison point, for ``nearest_point``.
         """
         d = np.asarray(distances, dtype=np.float64)
-        nodes = self.nodes_of(closest, normals)
+        # One pass over the points for their cells' nodes and the offsets across the surface.
+        nodes, off = _point_nodes(
+            self.origin, self.dims, self.keys, _f64(points), _f64(closest), _f64(normals), d,
+            _LATERAL_MM, _LATERAL_SLOPE,
+        )  # fmt: skip
+        nodes = self._nearest_nodes(nodes, closest, normals)
         occlusion = self.occlusion_edges(viewpoints, directions)
         edge_mm = self.edge_distance(occlusion)
-        off = self.off_edge(points, closest, normals, d)
         edge = off | self._near_edges(closest, nodes, occlusion, edge_mm)
         far = (np.abs(d) > max_distance_mm) & ~edge
         outlier = (np.abs(d) > outlier_mm) & ~edge & ~far
@@ -549,6 +556,53 @@ def _node_medians(
             med_second[j] = 0.5 * (sub[(q - 1) // 2] + sub[q // 2])
             n_second[j] = q
     return med_second, n_second, med_first, n_first
+
+
+def _f64(a: object) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=np.float64)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _key(origin, dims, p, n):  # pragma: no cover - compiled
+    """The cell of point ``p`` and the octant of normal ``n``, as :func:`_keys` makes them."""
+    key = 0
+    for a in range(3):
+        c = int(math.floor((p[a] - origin[a]) / NODE_MM))
+        c = min(max(c, 0), dims[a] - 1)
+        key = key * dims[a] + c if a else c
+    octant = (1 if n[0] >= 0 else 0) | (2 if n[1] >= 0 else 0) | (4 if n[2] >= 0 else 0)
+    return key * 8 + octant
+
+
+@njit(cache=True, nogil=True)
+def _cell_nodes(origin, dims, keys, points, normals):  # pragma: no cover - compiled
+    """(N,) int64: the node of each point's cell and normal side, -1 where there is none."""
+    out = np.empty(points.shape[0], dtype=np.int64)
+    for i in range(points.shape[0]):
+        key = _key(origin, dims, points[i], normals[i])
+        j = np.searchsorted(keys, key)
+        out[i] = j if j < keys.shape[0] and keys[j] == key else -1
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _point_nodes(  # pragma: no cover - compiled
+    origin, dims, keys, points, closest, normals, d, lateral_mm, slope
+):
+    """The node of each closest point (as :func:`_cell_nodes`), and whether the point's
+    offset from it runs across the surface (:meth:`SurfaceModel.off_edge`)."""
+    nodes = _cell_nodes(origin, dims, keys, closest, normals)
+    off = np.empty(points.shape[0], dtype=np.bool_)
+    for i in range(points.shape[0]):
+        o0 = points[i, 0] - closest[i, 0]
+        o1 = points[i, 1] - closest[i, 1]
+        o2 = points[i, 2] - closest[i, 2]
+        along = o0 * normals[i, 0] + o1 * normals[i, 1] + o2 * normals[i, 2]
+        l0 = o0 - along * normals[i, 0]
+        l1 = o1 - along * normals[i, 1]
+        l2 = o2 - along * normals[i, 2]
+        off[i] = math.sqrt(l0 * l0 + l1 * l1 + l2 * l2) > lateral_mm + slope * abs(d[i])
+    return nodes, off
 
 
 def _keys(origin: np.ndarray, dims: np.ndarray, points: Points, normals: Vectors) -> np.ndarray:

@@ -220,3 +220,25 @@ def test_random_dents_land_on_the_surface_the_cameras_see(panel):
     assert dist.max() < 1e-6
     with pytest.raises(InvalidInput):
         random_dent(mesh, rng, radius_mm=(5.0, 6.0), flat_mm=7.0)
+
+
+def test_the_one_pass_kernel_agrees_with_the_array_steps(panel):
+    """Each point's node and whether its offset runs across the surface, from the compiled
+    pass, are what the cell keys and the lateral offset give step by step."""
+    from inspection.surface import _keys, _point_nodes
+
+    cad, tree, surface = panel
+    pts = cloud(cad, n=20_000, seed=3)
+    pts[:500, 0] = cad.vertices[:, 0].max() + 3.0  # beyond the outline: offsets run across
+    q = tree.query(pts)
+    normals = q.normals
+    key = _keys(surface.origin, surface.dims, q.points, normals)
+    pos = np.minimum(np.searchsorted(surface.keys, key), len(surface.keys) - 1)
+    expected = np.where(surface.keys[pos] == key, pos, -1)
+    nodes, off = _point_nodes(
+        surface.origin, surface.dims, surface.keys, pts, q.points, normals, q.distances,
+        0.05, 0.1,
+    )  # fmt: skip
+    np.testing.assert_array_equal(nodes, expected)
+    np.testing.assert_array_equal(off, SurfaceModel.off_edge(pts, q.points, normals, q.distances))
+    assert off[:500].sum() > 100 and off[500:].mean() < 0.05  # both kinds are in the test
