@@ -237,13 +237,15 @@ def _shading(
     """Surface coordinates for light that changes with the surface, and the windows on bends.
 
     The slopes ``(a, b)`` of the guide's disparity field (px/px, one-sided at
-    its outline) are a function of the surface normal: scaled by
+    its outline; :func:`.kernels.field_slopes`) are a function of the surface normal: scaled by
     ``_SHADING_SCALE`` (to about 1 on a bend), they are the coordinates whose
     quadratic monomials :func:`.kernels.refine_warped_shaded` fits the light
     with. A window spans a bend where either slope varies, over the window's
     on-part pixels, by more than ``p.shading_bend``.
     """
-    a, b = (_slope(field_, on_part, axis) for axis in (1, 0))
+    a = np.empty(field_.shape, np.float32)
+    b = np.empty(field_.shape, np.float32)
+    kernels.field_slopes(np.ascontiguousarray(field_, dtype=np.float32), a, b)
     k = np.ones((p.warp_window, p.warp_window), np.uint8)
     bent = np.zeros(on_part.shape, bool)
     for g in (a, b):
@@ -252,23 +254,6 @@ def _shading(
         bent |= hi - lo > p.shading_bend
     scale = np.float32(_SHADING_SCALE)
     return scale * a, scale * b, bent
-
-
-def _slope(
-    field_: npt.NDArray[np.float32], on_part: npt.NDArray[np.bool_], axis: int
-) -> npt.NDArray[np.float32]:
-    """Derivative of ``field_`` along ``axis``: the mean of the differences to
-    both neighbours that are on the part (one-sided at its outline, 0 alone)."""
-    f = np.moveaxis(np.where(on_part, field_, np.float32(0.0)), axis, -1)
-    on = np.moveaxis(on_part, axis, -1)
-    both = on[..., 1:] & on[..., :-1]
-    diff = np.where(both, f[..., 1:] - f[..., :-1], np.float32(0.0))
-    total = np.zeros_like(f)
-    count = np.zeros(f.shape, np.int8)
-    for side in (np.s_[..., 1:], np.s_[..., :-1]):
-        total[side] += diff
-        count[side] += both
-    return np.ascontiguousarray(np.moveaxis(total / np.maximum(count, 1), -1, axis), np.float32)
 
 
 __all__ = ["bends", "finish_pair", "guide_maps", "warp", "warped_passes"]

@@ -350,6 +350,30 @@ def _in_plane_errors(T_cad_rig: np.ndarray, T_rig_part: np.ndarray) -> tuple[flo
     return abs(float(turn)), float(np.linalg.norm(dT[:3, 3]))
 
 
+def test_field_slopes_against_numpy() -> None:
+    rng = np.random.default_rng(3)
+    field_ = rng.normal(size=(40, 50)).astype(np.float32)
+    field_[rng.random(field_.shape) < 0.3] = np.nan
+    field_[:, 20] = np.nan  # a column off the field: one-sided slopes beside it
+    on = np.isfinite(field_)
+    f = np.where(on, field_, 0.0).astype(np.float32)
+    out = [np.empty_like(f), np.empty_like(f)]
+    kernels.field_slopes(field_, *out)
+    for axis, got in ((1, out[0]), (0, out[1])):
+        fa, oa = np.moveaxis(f, axis, -1), np.moveaxis(on, axis, -1)
+        both = oa[..., 1:] & oa[..., :-1]
+        diff = np.where(both, fa[..., 1:] - fa[..., :-1], 0.0)
+        total = np.zeros_like(fa)
+        count = np.zeros(fa.shape)
+        total[..., 1:] += diff
+        total[..., :-1] += diff
+        count[..., 1:] += both
+        count[..., :-1] += both
+        want = np.moveaxis(total / np.maximum(count, 1), -1, axis)
+        np.testing.assert_allclose(got, want, atol=1e-6)
+        assert (got[~on] == 0).all()
+
+
 @pytest.mark.parametrize(("deg", "shift"), [(0.05, (0.2, 0.0, 0.0)), (-0.05, (0.0, 0.2, 0.0))])
 def test_rematching_the_bends_undoes_the_pull_of_a_misplaced_guide(
     reconstructor: Reconstructor,
