@@ -69,11 +69,15 @@ def finish_pair(
     timings: dict[str, float],
     k: int,
     shape: npt.NDArray[np.float32] | None = None,
+    sparse: bool = False,
 ) -> PairResult:
     """The warped passes and the triangulation of one pair, from its square windows
     ``st``; ``shape``: a guide's disparity field over the crop (crop disparities, NaN off
-    the part; :func:`.guided.finish_guided`), None for the measured field alone."""
+    the part; :func:`.guided.finish_guided`), None for the measured field alone.
+    ``sparse``: only the windows of every ``p.sparse_rows``-th row are refitted and
+    give points (the field they follow, and the disparity map, come from all)."""
     t = time.perf_counter()
+    keep = (st.py + st.y0) % p.sparse_rows == 0 if sparse else None
     d_ref, score, step = st.d_square, st.score, st.step
     if p.warp_passes or shape is not None:
         d_ref, score, step = warped_passes(
@@ -89,9 +93,11 @@ def finish_pair(
             step,
             p,
             shape,
+            keep,
         )
     timings[f"warp{k}"] = (time.perf_counter() - t) * 1e3
-    return triangulate_state(pair, st, (d_ref, score, step), p, timings, k, shape is not None)
+    fit = (d_ref, score, step)
+    return triangulate_state(pair, st, fit, p, timings, k, shape is not None, keep)
 
 
 def warped_passes(
@@ -107,6 +113,7 @@ def warped_passes(
     step: npt.NDArray[np.float32],
     p: ReconstructParams,
     guide: npt.NDArray[np.float32] | None = None,
+    only: npt.NDArray[np.bool_] | None = None,
 ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], npt.NDArray[np.float32]]:
     """Refine again, with windows warped by the disparity field found so far (see the
     module notes).
@@ -120,7 +127,8 @@ def warped_passes(
     ``p.shading``, fits the light as well), in ``guide_passes`` passes.
 
     Inputs are the crops and pixel lists of :class:`.matching.PairState`
-    (disparities in crop coordinates); returns new ``d_ref``, ``score``, ``step``.
+    (disparities in crop coordinates); ``only``: the windows that may be refitted
+    (None: all). Returns new ``d_ref``, ``score``, ``step``.
     """
     ks = (p.warp_smooth, p.warp_smooth)
     guided = shade = bent = None
@@ -132,6 +140,7 @@ def warped_passes(
         ok = (
             np.isfinite(d_ref) & (score >= p.min_score) & (np.abs(d_ref - d_init) <= p.max_shift_px)
         )
+        fit = ok if only is None else ok & only
         field_ = np.full(left_n.shape, np.nan, np.float32)
         field_[py[ok], px[ok]] = d_ref[ok]
         fill_gaps(field_, p.stride)
@@ -141,12 +150,12 @@ def warped_passes(
         num = cv2.boxFilter(v, cv2.CV_32F, ks, normalize=False, borderType=cv2.BORDER_CONSTANT)
         den = cv2.boxFilter(mask, cv2.CV_32F, ks, normalize=False, borderType=cv2.BORDER_CONSTANT)
         smooth = np.where(known, num / np.maximum(den, 1.0), 0.0).astype(np.float32)
-        sel = ok & bends(smooth, mask, px, py, p)
+        sel = fit & bends(smooth, mask, px, py, p)
         d_ref, score, step = d_ref.copy(), score.copy(), step.copy()
         if guided is not None:
             g_field, g_mask = guided
             follow = (
-                ok
+                fit
                 & (g_mask[py, px] > 0.0)
                 & (np.abs(g_field[py, px] - smooth[py, px]) <= p.guide_tolerance_px)
             )
