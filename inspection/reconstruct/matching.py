@@ -368,15 +368,17 @@ def triangulate_state(
     timings: dict[str, float],
     k: int,
     guided: bool,
+    keep: npt.NDArray[np.bool_] | None = None,
 ) -> PairResult:
     """The pair's result from its warped fit ``(d_ref, score, step)`` (crop
-    coordinates), kept with the state it started from (and, ``guided``, the fit)."""
+    coordinates), kept with the state it started from (and, ``guided``, the fit);
+    ``keep``: the windows that give points (None: all)."""
     t = time.perf_counter()
     d_ref, score, step = fit
     x_left = (st.px + st.x0).astype(np.float64)
     rows = st.py + st.y0
     d_full = d_ref - np.float32(st.shift)
-    out = triangulate_pair(pair, x_left, rows, d_full, score, step, st.d_init, st.frame, p)
+    out = triangulate_pair(pair, x_left, rows, d_full, score, step, st.d_init, st.frame, p, keep)
     timings[f"triangulate{k}"] = (time.perf_counter() - t) * 1e3
     return replace(out, state=st, guided=fit if guided else None)
 
@@ -391,8 +393,10 @@ def triangulate_pair(
     d_init: npt.NDArray[np.float32],
     frame: PairFrame,
     p: ReconstructParams,
+    keep: npt.NDArray[np.bool_] | None = None,
 ) -> PairResult:
-    """Accepted matches of one pair as rig-frame points, and its disparity map."""
+    """Accepted matches of one pair as rig-frame points, and its disparity map
+    (``keep``: the matches that give points; the map is drawn from all of them)."""
     lo, hi = frame.lo, frame.hi
     good = (
         np.isfinite(d_ref)
@@ -408,12 +412,14 @@ def triangulate_pair(
     yi = rows[good]
     pts = pair.triangulate(xg, yg, d)
     inside = np.all((pts >= lo) & (pts <= hi), axis=1) & (pts[:, 2] >= p.z_min_mm)
-    pts = pts[inside]
-    score = score[good][inside]
     # The disparity map of the left view, for the other pair's consistency check.
     full = np.full(frame.shape, np.nan, np.float32)
     full[yi[inside], xi[inside]] = d[inside]
     fill_gaps(full, p.stride)
+    if keep is not None:
+        inside &= keep[good]
+    pts = pts[inside]
+    score = score[good][inside]
     rep = replace(frame.report, refined=int(good.sum()), in_volume=len(pts))
     return PairResult(rep, pts, score, full, frame.coarse)
 

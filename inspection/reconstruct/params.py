@@ -87,6 +87,10 @@ class ReconstructParams:
     shading_bend : float
         A window spans a bend when the slope of the guide's disparity field
         (px/px) varies by more than this over it.
+    sparse_rows : int
+        A sparse first pass (:meth:`Reconstructor.match
+        <inspection.reconstruct.Reconstructor.match>` with ``sparse=True``)
+        gives points from every ``sparse_rows``-th rectified row only.
     threads : int
         Stereo pairs matched at once (one thread each, from the pool the
         :class:`Reconstructor` owns; 1: no pool, the pairs one after the other).
@@ -121,6 +125,7 @@ class ReconstructParams:
     symmetric: bool = False
     warp_passes: int = 2
     threads: int = 2
+    sparse_rows: int = 4
     score_full: float = 0.95
     warp_curvature_px: float = 0.03
     warp_slope: float = 0.1
@@ -155,6 +160,7 @@ class ReconstructParams:
             ("guide_passes", 5),
             ("warp_iterations", 50),
             ("threads", 8),
+            ("sparse_rows", 16),
         ):
             v = getattr(self, name)
             low = 0 if name == "warp_passes" else 1

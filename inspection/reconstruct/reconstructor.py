@@ -10,7 +10,10 @@ the pairs' points into one :class:`~.result.Cloud`:
    the coarse matching and the square windows (:mod:`.matching`), then the
    warped windows and the triangulation (:mod:`.warping`); with a
    :class:`~.guided.Guide`, the windows follow it and the ring pairs join in
-   (:mod:`.guided`);
+   (:mod:`.guided`). A *sparse* first pass (``match(frames, sparse=True)``)
+   only places the guide: the warped passes refit, and the cloud holds, the
+   windows of every ``sparse_rows``-th row (the guided pass starts from every
+   square window, not from the warped ones);
 2. **guided pass** (:meth:`Reconstructor.guided`): from the first pass's
    :class:`Matching`, the warped windows again, following a guide at the pose
    fitted to the first cloud, and the ring pairs matched from the guide;
@@ -169,6 +172,7 @@ class Reconstructor:
         *,
         prior: Prior | None = None,
         guide: Guide | None = None,
+        sparse: bool = False,
     ) -> tuple[Cloud, Matching]:
         """Reconstruct one frame set, and hand out what its matching found.
 
@@ -176,9 +180,23 @@ class Reconstructor:
         is where :meth:`guided` starts matching the same frames again (with a
         ``guide``, also :meth:`rematch_bends`); it keeps a copy of the
         frames when the reconstructor has :attr:`guide_pairs`.
+
+        With ``sparse`` (no ``guide``), the cloud is one to place a guide
+        with: the warped passes refit, and the cloud holds, the windows of
+        every ``params.sparse_rows``-th rectified row only, each checked
+        against every window's disparity map. The :class:`Matching` is the
+        same as without it (every square window), so :meth:`guided` gives
+        the same cloud from either.
+
+        Raises
+        ------
+        InvalidInput
+            ``sparse`` with a ``guide``.
         """
         self._check_guide(guide)
-        return self._first_pass(frames, prior, guide, keep_frames=True)
+        if sparse and guide is not None:
+            raise InvalidInput("sparse=True places a guide: it is for the unguided first pass")
+        return self._first_pass(frames, prior, guide, keep_frames=True, sparse=sparse)
 
     def guided(self, matching: Matching, guide: Guide) -> tuple[Cloud, Matching]:
         """Match the frames of ``matching`` again, with the windows following ``guide``.
@@ -262,7 +280,12 @@ class Reconstructor:
     # -- the steps ------------------------------------------------------------
 
     def _first_pass(
-        self, frames: Any, prior: Prior | None, guide: Guide | None, keep_frames: bool
+        self,
+        frames: Any,
+        prior: Prior | None,
+        guide: Guide | None,
+        keep_frames: bool,
+        sparse: bool = False,
     ) -> tuple[Cloud, Matching]:
         p = self.params
         imgs = _check_frames(self.rig, frames)
@@ -302,7 +325,7 @@ class Reconstructor:
                 if guide is not None:
                     out = finish_guided(pair, out, p, timings, k, guide)
                 else:
-                    out = finish_pair(pair, out, p, timings, k)
+                    out = finish_pair(pair, out, p, timings, k, sparse=sparse)
             timings[f"pair{pair.name}"] = (time.perf_counter() - t1) * 1e3
             return out
 

@@ -69,11 +69,15 @@ def finish_pair(
     timings: dict[str, float],
     k: int,
     shape: npt.NDArray[np.float32] | None = None,
+    sparse: bool = False,
 ) -> PairResult:
     """The warped passes and the triangulation of one pair, from its square windows
     ``st``; ``shape``: a guide's disparity field over the crop (crop disparities, NaN off
-    the part; :func:`.guided.finish_guided`), None for the measured field alone."""
+    the part; :func:`.guided.finish_guided`), None for the measured field alone.
+    ``sparse``: only the windows of every ``p.sparse_rows``-th row are refitted and
+    give points (the field they follow, and the disparity map, come from all)."""
     t = time.perf_counter()
+    keep = (st.py + st.y0) % p.sparse_rows == 0 if sparse else None
     d_ref, score, step = st.d_square, st.score, st.step
     if p.warp_passes or shape is not None:
         d_ref, score, step = warped_passes(
@@ -89,9 +93,11 @@ def finish_pair(
             step,
             p,
             shape,
+            keep,
         )
     timings[f"warp{k}"] = (time.perf_counter() - t) * 1e3
-    return triangulate_state(pair, st, (d_ref, score, step), p, timings, k, shape is not None)
+    fit = (d_ref, score, step)
+    return triangulate_state(pair, st, fit, p, timings, k, shape is not None, keep)
 
 
 def warped_passes(
@@ -107,6 +113,7 @@ def warped_passes(
     step: npt.NDArray[np.float32],
     p: ReconstructParams,
     guide: npt.NDArray[np.float32] | None = None,
+    only: npt.NDArray[np.bool_] | None = None,
 ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], npt.NDArray[np.float32]]:
     """Refine again, with windows warped by the disparity field found so far (see the
     module notes).
@@ -120,7 +127,8 @@ def warped_passes(
     ``p.shading``, fits the light as well), in ``guide_passes`` passes.
 
     Inputs are the crops and pixel lists of :class:`.matching.PairState`
-    (disparities in crop coordinates); returns new ``d_ref``, ``score``, ``step``.
+    (disparities in crop coordinates); ``only``: the windows that may be refitted
+    (None: all). Returns new ``d_ref``, ``score``, ``step``.
     """
     ks = (p.warp_smooth, p.warp_smooth)
     guided = shade = bent = None
@@ -132,6 +140,7 @@ def warped_passes(
         ok = (
             np.isfinite(d_ref) & (score >= p.min_score) & (np.abs(d_ref - d_init) <= p.max_shift_px)
         )
+        fit = ok if only is None else ok & only
         field_ = np.full(left_n.shape, np.nan, np.float32)
         field_[py[ok], px[ok]] = d_ref[ok]
         fill_gaps(field_, p.stride)
@@ -141,12 +150,12 @@ def warped_passes(
         num = cv2.boxFilter(v, cv2.CV_32F, ks, normalize=False, borderType=cv2.BORDER_CONSTANT)
         den = cv2.boxFilter(mask, cv2.CV_32F, ks, normalize=False, borderType=cv2.BORDER_CONSTANT)
         smooth = np.where(known, num / np.maximum(den, 1.0), 0.0).astype(np.float32)
-        sel = ok & bends(smooth, mask, px, py, p)
+        sel = fit & bends(smooth, mask, px, py, p)
         d_ref, score, step = d_ref.copy(), score.copy(), step.copy()
         if guided is not None:
             g_field, g_mask = guided
             follow = (
-                ok
+                fit
                 & (g_mask[py, px] > 0.0)
                 & (np.abs(g_field[py, px] - smooth[py, px]) <= p.guide_tolerance_px)
             )
@@ -237,13 +246,15 @@ def _shading(
     """Surface coordinates for light that changes with the surface, and the windows on bends.
 
     The slopes ``(a, b)`` of the guide's disparity field (px/px, one-sided at
-    its outline) are a function of the surface normal: scaled by
+    its outline; :func:`.kernels.field_slopes`) are a function of the surface normal: scaled by
     ``_SHADING_SCALE`` (to about 1 on a bend), they are the coordinates whose
     quadratic monomials :func:`.kernels.refine_warped_shaded` fits the light
     with. A window spans a bend where either slope varies, over the window's
     on-part pixels, by more than ``p.shading_bend``.
     """
-    a, b = (_slope(field_, on_part, axis) for axis in (1, 0))
+    a = np.empty(field_.shape, np.float32)
+    b = np.empty(field_.shape, np.float32)
+    kernels.field_slopes(np.ascontiguousarray(field_, dtype=np.float32), a, b)
     k = np.ones((p.warp_window, p.warp_window), np.uint8)
     bent = np.zeros(on_part.shape, bool)
     for g in (a, b):
@@ -252,23 +263,6 @@ def _shading(
         bent |= hi - lo > p.shading_bend
     scale = np.float32(_SHADING_SCALE)
     return scale * a, scale * b, bent
-
-
-def _slope(
-    field_: npt.NDArray[np.float32], on_part: npt.NDArray[np.bool_], axis: int
-) -> npt.NDArray[np.float32]:
-    """Derivative of ``field_`` along ``axis``: the mean of the differences to
-    both neighbours that are on the part (one-sided at its outline, 0 alone)."""
-    f = np.moveaxis(np.where(on_part, field_, np.float32(0.0)), axis, -1)
-    on = np.moveaxis(on_part, axis, -1)
-    both = on[..., 1:] & on[..., :-1]
-    diff = np.where(both, f[..., 1:] - f[..., :-1], np.float32(0.0))
-    total = np.zeros_like(f)
-    count = np.zeros(f.shape, np.int8)
-    for side in (np.s_[..., 1:], np.s_[..., :-1]):
-        total[side] += diff
-        count[side] += both
-    return np.ascontiguousarray(np.moveaxis(total / np.maximum(count, 1), -1, axis), np.float32)
 
 
 __all__ = ["bends", "finish_pair", "guide_maps", "warp", "warped_passes"]

@@ -350,6 +350,62 @@ def _in_plane_errors(T_cad_rig: np.ndarray, T_rig_part: np.ndarray) -> tuple[flo
     return abs(float(turn)), float(np.linalg.norm(dT[:3, 3]))
 
 
+def test_a_sparse_first_pass_places_the_guide_and_matches_the_same(
+    reconstructor: Reconstructor, panel_scene
+) -> None:
+    cad, tree, T, frames, plain = panel_scene
+    sparse, matching = reconstructor.match(frames, sparse=True)
+    # Points from every sparse_rows-th rectified row only: a quarter of the cloud,
+    # on the whole part (each pair, the same extent).
+    rows = reconstructor.params.sparse_rows
+    assert 0.15 * len(plain) < len(sparse) < 0.35 * len(plain)
+    for k, pair in enumerate(reconstructor.pairs):
+        mine = sparse.points[sparse.pair == k]
+        _, y, _ = pair.project(mine)
+        # Fused points move along the other pair's ray: off their row by a fraction.
+        assert np.median(np.abs(y - rows * np.round(y / rows))) < 0.1
+        full = plain.points[plain.pair == k]
+        np.testing.assert_allclose(
+            np.ptp(mine[:, :2], axis=0), np.ptp(full[:, :2], axis=0), atol=3.0
+        )
+    # As good a surface as the full pass's, point for point: the same windows, fewer.
+    r, _ = _surface_errors(tree, T, sparse)
+    r_full, _ = _surface_errors(tree, T, plain)
+    assert len(r) > 0.95 * len(sparse) and _rms(r) < 1.1 * _rms(r_full)
+    # What the guided pass starts from is every square window, as without sparse.
+    guide = Guide.from_cad(cad, T)
+    from_sparse, _ = reconstructor.guided(matching, guide)
+    from_full, _ = reconstructor.guided(reconstructor.match(frames)[1], guide)
+    np.testing.assert_array_equal(from_sparse.points, from_full.points)
+    np.testing.assert_array_equal(from_sparse.weights, from_full.weights)
+    with pytest.raises(InvalidInput, match="sparse"):
+        reconstructor.match(frames, guide=guide, sparse=True)
+
+
+def test_field_slopes_against_numpy() -> None:
+    rng = np.random.default_rng(3)
+    field_ = rng.normal(size=(40, 50)).astype(np.float32)
+    field_[rng.random(field_.shape) < 0.3] = np.nan
+    field_[:, 20] = np.nan  # a column off the field: one-sided slopes beside it
+    on = np.isfinite(field_)
+    f = np.where(on, field_, 0.0).astype(np.float32)
+    out = [np.empty_like(f), np.empty_like(f)]
+    kernels.field_slopes(field_, *out)
+    for axis, got in ((1, out[0]), (0, out[1])):
+        fa, oa = np.moveaxis(f, axis, -1), np.moveaxis(on, axis, -1)
+        both = oa[..., 1:] & oa[..., :-1]
+        diff = np.where(both, fa[..., 1:] - fa[..., :-1], 0.0)
+        total = np.zeros_like(fa)
+        count = np.zeros(fa.shape)
+        total[..., 1:] += diff
+        total[..., :-1] += diff
+        count[..., 1:] += both
+        count[..., :-1] += both
+        want = np.moveaxis(total / np.maximum(count, 1), -1, axis)
+        np.testing.assert_allclose(got, want, atol=1e-6)
+        assert (got[~on] == 0).all()
+
+
 @pytest.mark.parametrize(("deg", "shift"), [(0.05, (0.2, 0.0, 0.0)), (-0.05, (0.0, 0.2, 0.0))])
 def test_rematching_the_bends_undoes_the_pull_of_a_misplaced_guide(
     reconstructor: Reconstructor,
