@@ -9,7 +9,8 @@ comparison points over a support radius of 10 mm. Six poses across the
 belt, seeds ``BENCH_E2E_SEEDS`` (default 11,12); ``BENCH_E2E_GUIDED=0``
 stops after the first pass; ``BENCH_E2E_WEIGHTS=1`` (or 0) fits with (or
 without) the reconstruction's per-point weights, and ``BENCH_E2E_MAX_POINTS``
-subsamples the clouds to that many points to fit, instead of the line's
+subsamples the clouds to that many points to fit, and ``BENCH_E2E_STRIDE``
+refines every n-th column of the rectified images, instead of the line's
 choices. Last, the same poses rendered with a longer flash
 (``BENCH_E2E_LONG_FLASH_US``, default 2000; 0 leaves it out): what a slow
 flash costs when the part moves during the exposure.
@@ -101,7 +102,7 @@ def main() -> int:
     from inspection.deviations import deviations
     from inspection.measure import PartModel, measure_frames
     from inspection.panel import PanelSpec, sheet_metal_panel
-    from inspection.reconstruct import Reconstructor
+    from inspection.reconstruct import Reconstructor, ReconstructParams
     from inspection.rig import Rig, belt_pose
     from inspection.simulate import RenderOptions, simulate
     from inspection.transforms import apply
@@ -119,7 +120,10 @@ def main() -> int:
     dented = press(mesh, dents())
     part = PartModel.build(cad, comparison_points(mesh))  # once per part, as the line does
     small = comparison_points(mesh, SMALL_RADIUS_MM)
-    rec = Reconstructor.build(Rig.default())
+    rp = ReconstructParams()
+    if "BENCH_E2E_STRIDE" in os.environ:
+        rp = dataclasses.replace(rp, stride=int(os.environ["BENCH_E2E_STRIDE"]))
+    rec = Reconstructor.build(Rig.default(), rp)
     truth_rig = Rig.nominal()
     corners = trimesh.bounds.corners(cad.bounds)
 
