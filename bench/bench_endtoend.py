@@ -9,7 +9,8 @@ comparison points over a support radius of 10 mm. Six poses across the
 belt, seeds ``BENCH_E2E_SEEDS`` (default 11,12); ``BENCH_E2E_GUIDED=0``
 stops after the first pass; ``BENCH_E2E_WEIGHTS=1`` (or 0) fits with (or
 without) the reconstruction's per-point weights, and ``BENCH_E2E_MAX_POINTS``
-subsamples the clouds to that many points to fit, and ``BENCH_E2E_STRIDE``
+subsamples the clouds to that many points to fit (``BENCH_E2E_GUIDE_POINTS``
+for the fits that place the guide), and ``BENCH_E2E_STRIDE``
 refines every n-th column of the rectified images, instead of the line's
 choices. Last, the same poses rendered with a longer flash
 (``BENCH_E2E_LONG_FLASH_US``, default 2000; 0 leaves it out): what a slow
@@ -113,6 +114,8 @@ def main() -> int:
         p = dataclasses.replace(p, guided=os.environ["BENCH_E2E_GUIDED"] != "0")
     if "BENCH_E2E_WEIGHTS" in os.environ:
         p = dataclasses.replace(p, use_weights=os.environ["BENCH_E2E_WEIGHTS"] != "0")
+    if "BENCH_E2E_GUIDE_POINTS" in os.environ:
+        p = dataclasses.replace(p, guide_points=int(os.environ["BENCH_E2E_GUIDE_POINTS"]))
     if "BENCH_E2E_MAX_POINTS" in os.environ:
         p = dataclasses.replace(p, max_points=int(os.environ["BENCH_E2E_MAX_POINTS"]))
     cad = sheet_metal_panel(PanelSpec().scaled(400.0, 260.0))
