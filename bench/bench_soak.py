@@ -235,7 +235,8 @@ def _soak(pid, data, base, cloud, duration, every, period, statuses, lock) -> in
                 missed = sum(s == "missed" for _, s in statuses)
             row = (
                 now - t0, _rss_mb(pid), _cpu_s(pid) - cpu0, _du_mb(data / "mcap"),
-                _du_mb(data / "deviations"), _du_mb(data / "results.sqlite"), n, missed,
+                _du_mb(data / "deviations"),
+                sum(_du_mb(p) for p in data.glob("results.sqlite*")), n, missed,
             )  # fmt: skip
             samples.append(row)
             print(f"  {row[0]:6.0f} {row[1]:7.0f} {row[2]:7.0f} {row[3]:8.0f} {row[4]:7.1f} "
