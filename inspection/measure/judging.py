@@ -30,6 +30,9 @@ _DIRECTION_NAMES = (
 _FREE_MOVES = 1e-3
 # A reason names this many surface defects (the largest), then counts the rest.
 _LISTED_DEFECTS = 3
+TWO_SIDED_FRACTION = 0.05
+"""A fit with more of its weight than this on faces turned against the rest
+(``Registration.opposed_fraction``) has laid the cloud through a thin wall."""
 
 
 def _fit_problem(fit: Registration, quality: FitQuality, p: MeasureParams) -> str | None:
@@ -37,6 +40,12 @@ def _fit_problem(fit: Registration, quality: FitQuality, p: MeasureParams) -> st
     if not fit.converged:
         return (
             f"the fit did not converge ({fit.stop_reason.value} after {fit.iterations} iterations)"
+        )
+    if fit.opposed_fraction > TWO_SIDED_FRACTION:
+        return (
+            f"the fit lays the cloud through a thin wall: {fit.opposed_fraction:.0%} of it rests "
+            "on faces turned against the rest, the far side of the wall; measure it with the "
+            "sensor's side known (frame 'rig', or a view direction)"
         )
     if quality.ambiguous and p.ambiguous_is_error:
         return (

@@ -87,6 +87,12 @@ class Registration:
     loss : str
     accepted_steps : int
     rejected_steps : int
+    opposed_fraction : float
+        The share of the inliers' weight on faces turned against the rest
+        (normals more than 120 degrees from their weighted mean). A cloud
+        seen from one side rests on faces turned one way: a share well above
+        zero is a cloud laid through a thin wall onto both its sides, a
+        minimum that only the sensor's side (``view_direction``) tells apart.
     """
 
     transform: Transform
@@ -108,6 +114,7 @@ class Registration:
     loss: str
     accepted_steps: int
     rejected_steps: int
+    opposed_fraction: float = 0.0
 
     @property
     def degenerate(self) -> bool:

@@ -719,9 +719,21 @@ def _result(fit: _Fit, P_in: Points) -> tuple[Registration, float]:
         loss=p.loss,
         accepted_steps=fit.accepted,
         rejected_steps=fit.rejected,
+        opposed_fraction=_opposed_fraction(mt.normals, np.where(inl, v, 0.0)),
     )
     misfit = 1.0 - n_inl / max(int(np.sum(v > 0)), 1)
     return result, misfit
+
+
+def _opposed_fraction(normals: np.ndarray, w: np.ndarray) -> float:
+    """Weight share of the faces whose normals lie over 120 degrees from the weighted mean."""
+    total = float(w.sum())
+    mean = (normals * w[:, None]).sum(axis=0)
+    norm = float(np.linalg.norm(mean))
+    if total <= 0 or norm <= 1e-12 * total:
+        return 0.0
+    opposed = normals @ (mean / norm) < -0.5
+    return float(w[opposed].sum() / total)
 
 
 def _every_point(

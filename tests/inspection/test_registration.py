@@ -88,7 +88,7 @@ _NOISE_LIMIT = (
 _THROUGH_SLAB = (
     "a thin part tilted through its own thickness: the points below it fit its bottom "
     "face, a local minimum 3.5-4 deg and ~8 mm off; view_direction (the sensor's side) "
-    "escapes it"
+    "escapes it, and without it the fit says so (see the thin-wall test)"
 )
 _EDGE_ON = (
     "the tray is a 3.2 mm plate stored standing on its edge: seen from above, under 1% of "
@@ -145,6 +145,41 @@ def test_shared_meshes_from_10deg_20mm(shared, name, seed, view):
     assert reg.converged
     assert rot <= 0.005, (rot, disp)
     assert disp <= 0.005, (rot, disp)
+
+
+@pytest.mark.parametrize(
+    ("name", "seed", "view", "through"),
+    [
+        ("counter.unitsmm.STL", 3, None, True),
+        ("plate_holes.STL", 3, None, True),
+        ("counter.unitsmm.STL", 3, "up", False),
+        ("plate_holes.STL", 3, "up", False),
+        ("counter.unitsmm.STL", 4, None, False),
+        ("busted.STL", 3, None, False),
+    ],
+)
+def test_a_fit_through_a_thin_wall_says_so(shared, name, seed, view, through):
+    """Without the sensor's side, a thin part started 10 deg / 20 mm off can settle with
+    the cloud laid through its thickness: not a silent wrong fit, the share of the cloud
+    on the wall's far side says so (and is nil on the fits that found the part)."""
+    from inspection.measure.judging import TWO_SIDED_FRACTION
+
+    cad, tree = shared(name, SHARED_SCALE[name])
+    data, _, T_true = scenario(cad, seed=seed)
+    kwargs = {} if view is None else {"view_direction": (0.0, 0.0, 1.0)}
+    reg = register(tree, data, **kwargs)
+    rot, _ = pose_errors(reg.transform, T_true, data)
+    assert (rot > 1.0) == through, rot  # the cases are what they say
+    assert (reg.opposed_fraction > TWO_SIDED_FRACTION) == through, reg.opposed_fraction
+
+
+def test_measuring_through_a_thin_wall_is_an_error_not_a_verdict(shared):
+    from inspection.measure import PartModel, measure_cloud
+
+    cad, _ = shared("counter.unitsmm.STL", SHARED_SCALE["counter.unitsmm.STL"])
+    data, _, _ = scenario(cad, seed=3)
+    m = measure_cloud(PartModel.build(cad, alignment=False), data, frame="cad")
+    assert m.verdict is None and "through a thin wall" in m.reason, m.reason
 
 
 @pytest.mark.parametrize("seed", [0, 8])
