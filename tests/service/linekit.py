@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import socket
+import threading
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from service.bus import BusSettings
@@ -21,6 +24,32 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+@contextlib.contextmanager
+def uvicorn_server(app, before_stop: Callable[[], None] = lambda: None) -> Iterator[int]:
+    """``app`` on a real uvicorn server on a free loopback port (yields the port).
+
+    ``before_stop`` runs first when the block ends: close the app's event hub
+    there, since uvicorn waits for open responses (event streams) before it stops.
+    """
+    import uvicorn
+
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    sock.bind(("127.0.0.1", 0))
+    sock.listen(64)  # connections queue here until uvicorn accepts: no waiting needed
+    srv = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="on"))
+    thread = threading.Thread(target=srv.run, kwargs={"sockets": [sock]}, daemon=True)
+    thread.start()
+    try:
+        yield sock.getsockname()[1]
+    finally:
+        before_stop()
+        srv.should_exit = True
+        thread.join(30)
+        sock.close()
+    assert not thread.is_alive()
 
 
 def endpoint(port: int) -> str:

@@ -8,15 +8,13 @@ API's measuring capacity refused at once (503 with Retry-After).
 
 from __future__ import annotations
 
-import socket
 import threading
-import time
 from contextlib import contextmanager
 
 import httpx2
 import numpy as np
 import pytest
-import uvicorn
+from linekit import uvicorn_server
 from test_api import PART, line, npy_bytes  # noqa: F401 - the module's built part
 
 from service.api import ResultHub, create_app
@@ -37,21 +35,12 @@ def serve(cfg, reg, tmp_path, *, pipeline=None, **http):
     hub = ResultHub()
     app = create_app(cfg, store=store, parts=reg, bus=hub, pipeline=pipeline,
                      archive=DeviationArchive(tmp_path / "deviations"))  # fmt: skip
-    sock = socket.socket()
-    sock.bind(("127.0.0.1", 0))
-    sock.listen(64)
-    srv = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="on"))
-    thread = threading.Thread(target=srv.run, kwargs={"sockets": [sock]}, daemon=True)
-    thread.start()
-    base = f"http://127.0.0.1:{sock.getsockname()[1]}"
     try:
-        with httpx2.Client(base_url=base, timeout=60) as client:
-            yield client, base
+        with uvicorn_server(app, before_stop=hub.close) as port:
+            base = f"http://127.0.0.1:{port}"
+            with httpx2.Client(base_url=base, timeout=60) as client:
+                yield client, base
     finally:
-        hub.close()
-        srv.should_exit = True
-        thread.join(30)
-        sock.close()
         store.close()
 
 
@@ -184,9 +173,10 @@ def test_a_large_upload_refused_unparsed_still_gets_its_answer(line, tmp_path, m
     with serve(*line, tmp_path, max_upload_mb=30.0) as (_, base):
         assert post_whole(f"{base}/v1/inspections", 600_000) == (401, "unauthorized")
     monkeypatch.delenv(KEYS_ENV)
-    release = threading.Event()
+    started, release = threading.Event(), threading.Event()
 
     def held(part, points, trigger, *, frame):
+        started.set()
         release.wait(60)
         return measure_upload(part, points, trigger, frame=frame)
 
@@ -195,10 +185,7 @@ def test_a_large_upload_refused_unparsed_still_gets_its_answer(line, tmp_path, m
         t = threading.Thread(target=upload, args=(client,))
         t.start()
         try:
-            deadline = time.monotonic() + 30
-            while client.get("/metrics").text.find("inspection_api_measurements_admitted 1") < 0:
-                assert time.monotonic() < deadline
-                time.sleep(0.05)
+            assert started.wait(30)  # the first upload holds the one place
             assert post_whole(f"{base}/v1/inspections", 600_000) == (503, "busy")
         finally:
             release.set()

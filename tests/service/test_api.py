@@ -13,15 +13,14 @@ import http.client
 import io
 import json
 import socket
-import threading
 from pathlib import Path
 from types import SimpleNamespace
 
 import cv2
 import numpy as np
 import pytest
-import uvicorn
 from fastapi.testclient import TestClient
+from linekit import uvicorn_server
 
 from inspection.panel import PanelSpec, panel_height, sheet_metal_panel
 from inspection.rig import belt_pose
@@ -506,25 +505,11 @@ def test_openapi_documents_the_routes(client):
 @pytest.fixture
 def server(app_parts):
     """The app on a real uvicorn server on a free loopback port."""
-    app = app_parts[0]
-    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-    sock.bind(("127.0.0.1", 0))
-    sock.listen(64)  # connections queue here until uvicorn accepts: no waiting needed
-    port = sock.getsockname()[1]
-    srv = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="on"))
-    thread = threading.Thread(target=srv.run, kwargs={"sockets": [sock]}, daemon=True)
-    thread.start()
     open_after = []  # clients to close only once the server has stopped
-    yield SimpleNamespace(port=port, close_after=open_after)
-    # Streams end first: uvicorn waits for open responses before it stops.
-    app_parts[3].close()
-    srv.should_exit = True
-    thread.join(30)
-    sock.close()
+    with uvicorn_server(app_parts[0], before_stop=app_parts[3].close) as port:
+        yield SimpleNamespace(port=port, close_after=open_after)
     for c in open_after:
         c.close()
-    assert not thread.is_alive()
 
 
 def call(port: int, method: str, path: str, body: bytes | None = None, headers=None):

@@ -16,8 +16,6 @@ from __future__ import annotations
 
 import io
 import json
-import socket
-import threading
 import urllib.request
 from pathlib import Path
 from types import SimpleNamespace
@@ -26,10 +24,9 @@ import numpy as np
 import pytest
 import requests
 import schemathesis
-import uvicorn
 from fastapi.testclient import TestClient
 from hypothesis import HealthCheck, Phase, settings
-from linekit import PART, PARTS_DIR
+from linekit import PART, PARTS_DIR, uvicorn_server
 from schemathesis.specs.openapi.checks import positive_data_acceptance
 
 from service.api import ResultHub, create_app
@@ -114,22 +111,10 @@ def api(tmp_path_factory: pytest.TempPathFactory, trees: Path):
         bus=hub,
         archive=DeviationArchive(root / "data" / "deviations"),
     )
-    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-    sock.bind(("127.0.0.1", 0))
-    sock.listen(64)  # connections queue here until uvicorn accepts: no waiting needed
-    port = sock.getsockname()[1]
-    srv = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="on"))
-    thread = threading.Thread(target=srv.run, kwargs={"sockets": [sock]}, daemon=True)
-    thread.start()
-    yield SimpleNamespace(url=f"http://127.0.0.1:{port}", root=root, store=store)
-    hub.close()  # open event streams end first: uvicorn waits for them before stopping
-    srv.should_exit = True
-    thread.join(30)
-    sock.close()
+    with uvicorn_server(app, before_stop=hub.close) as port:
+        yield SimpleNamespace(url=f"http://127.0.0.1:{port}", root=root, store=store)
     store.close()
     registry.close()
-    assert not thread.is_alive()
 
 
 schema = schemathesis.openapi.from_dict(openapi_document())

@@ -26,7 +26,7 @@ from inspection.rig import Rig
 from service import bus
 from service.history import fetch_results
 from service.models import InspectionResult
-from service.protocol import Keys
+from service.protocol import Keys, peek_identity
 from service.worker import result_from_json
 
 SIZE = (640, 512)
@@ -56,6 +56,24 @@ class Stream:
     def last_seq(self) -> int:
         with self._cond:
             return max((r.seq for r in self.got), default=-1)
+
+
+class Frames:
+    """The highest seq of the FrameSets seen on the bus."""
+
+    def __init__(self) -> None:
+        self.seq = -1
+        self._cond = threading.Condition()
+
+    def __call__(self, sample) -> None:
+        seq = peek_identity(sample.payload.to_bytes()).get("seq", -1)
+        with self._cond:
+            self.seq = max(self.seq, seq)
+            self._cond.notify_all()
+
+    def wait_seq(self, seq: int, timeout_s: float) -> bool:
+        with self._cond:
+            return self._cond.wait_for(lambda: self.seq >= seq, timeout_s)
 
 
 class Line:
@@ -113,7 +131,9 @@ class Line:
         assert wait_for_token(session, KEYS.workers(), timeout_s), self._stderr("worker")
 
     def wait_api(self, timeout_s: float = 300) -> None:
+        """Ask the API's health until it is ready (a process of its own: nothing to wait on)."""
         deadline = time.monotonic() + timeout_s
+        pause = threading.Event()
         while time.monotonic() < deadline:
             try:
                 code, _ = get_json(f"http://127.0.0.1:{self.http_port}/v1/health")
@@ -121,7 +141,7 @@ class Line:
                     return
             except OSError:
                 pass
-            time.sleep(0.5)
+            pause.wait(0.5)
         pytest.fail(f"the API did not come back: {self._stderr('api')}")
 
     def _stderr(self, name: str) -> str:
@@ -133,11 +153,12 @@ class Line:
 
 def test_every_trigger_has_one_result_through_kills(tmp_path, trees):
     line = Line(tmp_path, trees)
-    stream = Stream()
+    stream, frames = Stream(), Frames()
     try:
         line.start("router")
         with bus.open_session(client(line.port)) as session:
             sub = bus.RingSubscriber(session, KEYS.results(), stream, capacity=256)
+            seen = bus.RingSubscriber(session, KEYS.frames(STATION), frames, capacity=64)
             try:
                 line.start("worker")
                 line.start("api")
@@ -150,12 +171,11 @@ def test_every_trigger_has_one_result_through_kills(tmp_path, trees):
 
                 measured(6)
                 line.kill("worker")  # mid-shift, with frames in its queue and journal
-                time.sleep(2 * PERIOD_S)
+                assert frames.wait_seq(frames.seq + 2, 60)  # two triggers while it is down
                 line.start("worker")
                 line.wait_ready(session)
                 measured(6)
-                line.kill("router")  # every process loses the bus for a while
-                time.sleep(2 * PERIOD_S)
+                line.kill("router")  # every process loses the bus until they reconnect
                 line.start("router")
                 measured(6)
                 line.kill("api")
@@ -169,22 +189,14 @@ def test_every_trigger_has_one_result_through_kills(tmp_path, trees):
                 line.wait_ready(session)
                 restarted_at = line.fired()
                 line.start("ingest")
-                while line.fired() < SHIFT:
-                    assert stream.wait_seq(line.fired() - 1, 120), line._stderr("worker")
-                    time.sleep(PERIOD_S)
+                assert frames.wait_seq(SHIFT - 1, 300), line._stderr("ingest")
                 line.stop("ingest")
                 last = line.fired() - 1
-                deadline = time.monotonic() + 120
-                while time.monotonic() < deadline:
-                    db = sqlite3.connect(line.data / "results.sqlite")
-                    n = db.execute("SELECT MAX(seq) FROM results").fetchone()[0]
-                    db.close()
-                    if n is not None and n >= last:
-                        break
-                    time.sleep(0.5)
+                assert stream.wait_seq(last, 120), line._stderr("worker")
                 fetched = fetch_results(session, KEYS, STATION)
             finally:
                 sub.close()
+                seen.close()
         for name in ("worker", "api", "router"):
             line.stop(name)
     finally:
