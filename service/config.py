@@ -665,6 +665,11 @@ class LineConfig(_Strict):
         p = Path(self.station.rig_calibration)
         return p if p.is_absolute() else Path(self.base_dir) / p
 
+    def deviations_max_bytes(self) -> int | None:
+        """The deviation archive's budget, bytes (None: no size limit)."""
+        mb = self.retention.deviations_max_mb
+        return None if mb is None else int(mb * 1e6)
+
     def api_keys_path(self) -> Path | None:
         if self.http.api_keys_file is None:
             return None

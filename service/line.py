@@ -23,7 +23,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import zenoh
 
 from inspection.cad import CadModel
@@ -266,28 +265,16 @@ def bus_settings(cfg: LineConfig, mode: str | None = None) -> bus.BusSettings:
     )
 
 
-ARCHIVE_MAX_POINTS = 50_000
-"""Points kept per result in the deviation archive (evenly spread over the cloud)."""
-
-
-def archive_sink(
-    archive: DeviationArchive, max_points: int = ARCHIVE_MAX_POINTS
-) -> Callable[[Outcome, FrameSet | None], None]:
+def archive_sink(archive: DeviationArchive) -> Callable[[Outcome, FrameSet | None], None]:
     """Keep the per-point deviations of every measured result (the colour map's data).
 
     Goes before the store's sink: a client that sees the row finds the arrays.
-    At most ``max_points`` points are kept: the colour map shows no more, and
-    compressing a whole cloud (~400k points) took ~0.4 s of every part.
-    The recording keeps the whole cloud with its deviations.
     """
 
     def sink(outcome: Outcome, fs: FrameSet | None) -> None:
         T, points, d = outcome.transform, outcome.points, outcome.distances
         if T is None or points is None or d is None:
             return
-        if len(points) > max_points:
-            keep = np.linspace(0, len(points) - 1, max_points).round().astype(np.int64)
-            points, d = points[keep], d[keep]
         try:
             archive.save(outcome.result.id, apply(T, points), d)
         except OSError as exc:  # a full disk must not lose the result itself
@@ -503,7 +490,9 @@ def start_line(
         counter = ResultCounter(parts_limit)
         hub = ResultHub()
         metrics = Metrics()
-        archive = DeviationArchive(cfg.storage.deviations_path())
+        archive = DeviationArchive(
+            cfg.storage.deviations_path(), max_bytes=cfg.deviations_max_bytes()
+        )
         janitor = Janitor(store, archive, cfg.retention)
         opened.append(janitor)
         sinks = [archive_sink(archive), store_sink(store), *extra_sinks, hub_sink(hub)]
@@ -607,7 +596,9 @@ def run_worker(cfg: LineConfig, stop: threading.Event) -> int:
         contextlib.closing(bus.open_session(bus_settings(cfg))) as session,
     ):
         store = ResultStore(cfg.storage.database_path())
-        archive = DeviationArchive(cfg.storage.deviations_path())
+        archive = DeviationArchive(
+            cfg.storage.deviations_path(), max_bytes=cfg.deviations_max_bytes()
+        )
         janitor = Janitor(store, archive, cfg.retention)
         recorder = station.recorder()
         metrics = Metrics()

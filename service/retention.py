@@ -28,6 +28,8 @@ class Janitor:
     archive : DeviationArchive or None
     policy : RetentionSection
     period_s : float
+        Between sweeps: a directory may pass its budget by what the line
+        writes in this time (the deviations, ~0.7 MB a part).
     """
 
     def __init__(
@@ -36,7 +38,7 @@ class Janitor:
         archive: DeviationArchive | None,
         policy: RetentionSection,
         *,
-        period_s: float = 60.0,
+        period_s: float = 10.0,
     ) -> None:
         self.store = store
         self.archive = archive

@@ -475,10 +475,21 @@ class DeviationArchive:
     ``distances`` (N,) float32, signed, mm (NaN for points that were not
     measured, e.g. outliers). float32 keeps a 50k-point cloud near 0.5 MB
     while staying far finer than the 0.01 mm the colour map can show.
+
+    At most ``max_points`` points of a result are kept, evenly spread over
+    its cloud: the colour map shows no more, and compressing a whole cloud
+    (~400k points from the line, millions in an upload) costs seconds.
+    The recording keeps the line's whole clouds.
     """
 
-    def __init__(self, directory: str | Path) -> None:
+    def __init__(
+        self, directory: str | Path, max_points: int = 50_000, max_bytes: int | None = None
+    ) -> None:
         self.directory = Path(directory)
+        self.max_points = max_points
+        self.max_bytes = max_bytes
+        self._total: int | None = None  # bytes in the directory, as last counted and since written
+        self._lock = threading.Lock()
 
     def path(self, id_: str) -> Path:
         if not _ID_RE.fullmatch(id_) or id_.startswith("."):
@@ -487,17 +498,28 @@ class DeviationArchive:
 
     def save(self, id_: str, points_cad: np.ndarray, distances: np.ndarray) -> Path:
         """Write the arrays of result ``id_`` (atomically: a reader never sees half a file)."""
-        p = np.asarray(points_cad, dtype=np.float32)
-        d = np.asarray(distances, dtype=np.float32)
+        p, d = np.asarray(points_cad), np.asarray(distances)
         if p.ndim != 2 or p.shape[1] != 3 or d.shape != (len(p),):
             raise ValueError(
                 f"points (N, 3) and distances (N,) expected, got {p.shape} and {d.shape}"
             )
+        if len(p) > self.max_points:
+            keep = np.linspace(0, len(p) - 1, self.max_points).round().astype(np.int64)
+            p, d = p[keep], d[keep]
+        p, d = p.astype(np.float32), d.astype(np.float32)
         self.directory.mkdir(parents=True, exist_ok=True)
         target = self.path(id_)
         tmp = target.with_name(target.name + ".tmp.npz")
         np.savez_compressed(tmp, points=p, distances=d)
         tmp.replace(target)
+        if self.max_bytes is not None:
+            # The budget holds as each file is written, not only at the next sweep; the
+            # directory is counted again only when the running total passes it.
+            with self._lock:
+                if self._total is not None:
+                    self._total += target.stat().st_size
+                if self._total is None or self._total > self.max_bytes:
+                    self.enforce(self.max_bytes, None)
         return target
 
     def load(self, id_: str) -> tuple[np.ndarray, np.ndarray] | None:
@@ -535,4 +557,5 @@ class DeviationArchive:
             Path(path).unlink(missing_ok=True)
             total -= size
             removed += 1
+        self._total = total
         return removed

@@ -77,7 +77,9 @@ def create_app(
         pipeline = measure_upload
     hub = bus if bus is not None else ResultHub()
     if archive is None:
-        archive = DeviationArchive(settings.storage.deviations_path())
+        archive = DeviationArchive(
+            settings.storage.deviations_path(), max_bytes=settings.deviations_max_bytes()
+        )
     if metrics is None:
         metrics = Metrics()
     http = settings.http

@@ -224,3 +224,14 @@ def test_readers_in_other_processes_see_committed_rows(tmp_path):
         s.put(res(1))
         with sqlite3.connect(path) as db:
             assert db.execute("SELECT COUNT(*) FROM results").fetchone()[0] == 1
+
+
+def test_the_archive_keeps_at_most_its_points_evenly_spread(tmp_path):
+    """A cloud of millions (an upload) is kept as the colour map needs it, not whole."""
+    arc = DeviationArchive(tmp_path, max_points=100)
+    pts = np.column_stack([np.arange(1000.0), np.zeros(1000), np.zeros(1000)])
+    arc.save("big", pts, np.arange(1000.0))
+    p, d = arc.load("big")
+    assert len(p) == 100 and p[0, 0] == 0 and p[-1, 0] == 999
+    np.testing.assert_array_equal(p[:, 0], d)  # each point keeps its own deviation
+    assert np.all(np.diff(p[:, 0]) <= 11)

@@ -9,7 +9,6 @@ from datetime import UTC, datetime
 from typing import Any
 
 from fastapi import APIRouter, Query, Request
-from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response
 from starlette.requests import ClientDisconnect
 
@@ -186,8 +185,10 @@ async def _inspect_upload(svc: Services, request: Request) -> InspectionResult:
         data, _ = await file_field(form, "file")
         # InvalidInput (NaN, too few points, truncated file) goes to the 422
         # handler: nothing is stored for a cloud that cannot be measured at all.
+        # Parsed on the gate's low-priority threads, as it is measured: a large
+        # cloud costs CPU the line needs, and would stall the event loop here.
         try:
-            points = validate_cloud(parse_cloud(data))
+            points = await svc.gate.run(lambda: validate_cloud(parse_cloud(data)))
         except UnsupportedCloudFormat as exc:
             raise ApiError(415, "unsupported_cloud_format", str(exc)) from exc
         trigger = upload_trigger(
@@ -201,7 +202,7 @@ async def _inspect_upload(svc: Services, request: Request) -> InspectionResult:
     finally:
         await form.close()
     outcome = await svc.gate.run(svc.pipeline, part, points, trigger, frame=frame)
-    await run_in_threadpool(svc.record, outcome.result, outcome.points_cad(), outcome.distances)
+    await svc.gate.run(lambda: svc.record(outcome.result, outcome.points_cad(), outcome.distances))
     return outcome.result
 
 
