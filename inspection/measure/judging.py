@@ -41,12 +41,6 @@ def _fit_problem(fit: Registration, quality: FitQuality, p: MeasureParams) -> st
         return (
             f"the fit did not converge ({fit.stop_reason.value} after {fit.iterations} iterations)"
         )
-    if fit.opposed_fraction > TWO_SIDED_FRACTION:
-        return (
-            f"the fit lays the cloud through a thin wall: {fit.opposed_fraction:.0%} of it rests "
-            "on faces turned against the rest, the far side of the wall; measure it with the "
-            "sensor's side known (frame 'rig', or a view direction)"
-        )
     if quality.ambiguous and p.ambiguous_is_error:
         return (
             "pose ambiguous: another pose fits almost as well "
@@ -56,6 +50,14 @@ def _fit_problem(fit: Registration, quality: FitQuality, p: MeasureParams) -> st
         return (
             f"fit kept {fit.inlier_fraction:.0%} of the points, "
             f"below the {p.min_inlier_fraction:.0%} required"
+        )
+    # After the points it keeps (a cloud that is not the part at all is told by
+    # those) and before its residual, which a fit through a wall also spoils.
+    if fit.opposed_fraction > TWO_SIDED_FRACTION:
+        return (
+            f"the fit lays the cloud through a thin wall: {fit.opposed_fraction:.0%} of it rests "
+            "on faces turned against the rest, the far side of the wall; measure it with the "
+            "sensor's side known (frame 'rig', or a view direction)"
         )
     if not fit.rms_mm <= p.max_rms_mm:
         return f"fit residual {fit.rms_mm:.3f} mm above the {p.max_rms_mm} mm allowed"
