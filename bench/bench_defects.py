@@ -44,22 +44,45 @@ DEPTH_GOAL_MM = 0.05
 P999_GOAL_MM = 0.3
 
 
-def main() -> int:
-    from inspection.defects import press, random_dent
-    from inspection.measure import MeasureParams, PartModel, measure_frames
+def scene():  # type: ignore[no-untyped-def]
+    """The demo panel (its mesh and the line's part model), the calibrated rig's
+    reconstructor, the truth rig that renders, and ``MeasureParams()``."""
+    from inspection.measure import MeasureParams, PartModel
     from inspection.panel import PanelSpec, sheet_metal_panel
     from inspection.reconstruct import Reconstructor
-    from inspection.rig import Rig, belt_pose
+    from inspection.rig import Rig
+
+    cad = sheet_metal_panel(PanelSpec().scaled(400.0, 260.0))
+    part = PartModel.build(cad)
+    rec = Reconstructor.build(Rig.default())
+    return cad.to_trimesh(), part, rec, Rig.nominal(), MeasureParams()
+
+
+def draw(mesh, seed: int, k: int):  # type: ignore[no-untyped-def]
+    """Part ``k``: its pose on the belt ``(x, y, deg)``, ``T_rig_part``, its dent (the odd
+    parts have one, else None) and its render seed. Every bench of dents draws the same."""
+    from inspection.defects import random_dent
+    from inspection.rig import belt_pose
+
+    rng = np.random.default_rng([seed, k])
+    x, y, deg = rng.uniform(-120, 120), rng.uniform(-60, 60), rng.uniform(-180, 180)
+    dent = random_dent(mesh, rng) if k % 2 else None
+    return (x, y, deg), belt_pose(x, y, deg), dent, seed * 100_000 + k
+
+
+def rim_slope_deg(dent) -> float:  # type: ignore[no-untyped-def]
+    """The steepest slope of a dent's smoothstep rim, degrees."""
+    return float(np.degrees(np.arctan(1.5 * abs(dent.depth_mm) / (dent.radius_mm - dent.flat_mm))))
+
+
+def main() -> int:
+    from inspection.defects import press
+    from inspection.measure import measure_frames
     from inspection.simulate import simulate
 
     n_parts = int(os.environ.get("BENCH_DEFECTS_PARTS", "200"))
     seed = int(os.environ.get("BENCH_DEFECTS_SEED", "1"))
-    cad = sheet_metal_panel(PanelSpec().scaled(400.0, 260.0))
-    mesh = cad.to_trimesh()
-    part = PartModel.build(cad)
-    rec = Reconstructor.build(Rig.default())
-    truth_rig = Rig.nominal()
-    params = MeasureParams()
+    mesh, part, rec, truth_rig, params = scene()
     s = params.surface
     print(
         f"{n_parts} parts, seed {seed}; surface band [{s.lower_mm}, {s.upper_mm}] mm, "
@@ -80,12 +103,9 @@ def main() -> int:
     cpu: list[float] = []
     unmeasured = 0
     for k in range(n_parts):
-        rng = np.random.default_rng([seed, k])
-        x, y, deg = rng.uniform(-120, 120), rng.uniform(-60, 60), rng.uniform(-180, 180)
-        T_rig_part = belt_pose(x, y, deg)
-        dent = random_dent(mesh, rng) if k % 2 else None
+        (x, y, deg), T_rig_part, dent, frame_seed = draw(mesh, seed, k)
         shape = press(mesh, [dent]) if dent is not None else mesh
-        frames = simulate(truth_rig, shape, T_rig_part, seed=seed * 100_000 + k)
+        frames = simulate(truth_rig, shape, T_rig_part, seed=frame_seed)
         m = measure_frames(part, rec, frames, params)
         pose = f"({x:+.0f}, {y:+.0f}, {deg:+.0f})"
         if m.deviations is None:
@@ -190,8 +210,7 @@ def _where(dent, edges) -> tuple[bool, float]:  # type: ignore[no-untyped-def]
     """Whether the dent's flat bottom is clear of the CAD's edges and bends, and its rim's
     steepest slope in degrees."""
     gap, _ = edges.query(np.asarray(dent.center_mm))
-    slope = np.degrees(np.arctan(1.5 * abs(dent.depth_mm) / (dent.radius_mm - dent.flat_mm)))
-    return bool(gap > dent.flat_mm), float(slope)
+    return bool(gap > dent.flat_mm), rim_slope_deg(dent)
 
 
 def _deviations_cpu_ms(part, m, params) -> float:  # type: ignore[no-untyped-def]

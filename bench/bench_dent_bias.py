@@ -46,22 +46,15 @@ STEEP_DEG = 10.0
 
 
 def main() -> int:
-    from inspection.defects import press, random_dent
-    from inspection.measure import MeasureParams, PartModel, measure_frames
-    from inspection.panel import PanelSpec, sheet_metal_panel
-    from inspection.reconstruct import Reconstructor
-    from inspection.rig import Rig, belt_pose
+    from bench.bench_defects import draw, rim_slope_deg, scene
+    from inspection.defects import press
+    from inspection.measure import measure_frames
     from inspection.simulate import RenderOptions, simulate
     from inspection.transforms import apply
 
     n_parts = int(os.environ.get("BENCH_DENT_PARTS", "16"))
     seed = int(os.environ.get("BENCH_DEFECTS_SEED", "1"))
-    cad = sheet_metal_panel(PanelSpec().scaled(400.0, 260.0))
-    mesh = cad.to_trimesh()
-    part = PartModel.build(cad)
-    rec = Reconstructor.build(Rig.default())
-    truth_rig = Rig.nominal()
-    params = MeasureParams()
+    mesh, part, rec, truth_rig, params = scene()
     # (pressed?, options) per render; "undented": the same spot of the same part
     # without its dent, against the CAD (the matcher's error there when nothing departs).
     renders = {
@@ -77,10 +70,7 @@ def main() -> int:
     found_errors: list[float] = []
     clean_errors: list[float] = []
     for k in range(1, 2 * n_parts, 2):  # bench_defects dents the odd parts
-        rng = np.random.default_rng([seed, k])
-        x, y, deg = rng.uniform(-120, 120), rng.uniform(-60, 60), rng.uniform(-180, 180)
-        T_rig_part = belt_pose(x, y, deg)
-        dent = random_dent(mesh, rng)
+        _, T_rig_part, dent, frame_seed = draw(mesh, seed, k)
         shape = press(mesh, [dent])
         near = np.linalg.norm(shape.triangles_center - np.asarray(dent.center_mm), axis=1) < 50
         truths = {
@@ -95,11 +85,8 @@ def main() -> int:
             ),
         }
         T_part_rig = np.linalg.inv(T_rig_part).astype(np.float64)
-        slope = float(
-            np.degrees(np.arctan(1.5 * abs(dent.depth_mm) / (dent.radius_mm - dent.flat_mm)))
-        )
+        slope = rim_slope_deg(dent)
         for name, (pressed, options) in renders.items():
-            frame_seed = seed * 100_000 + k
             seen = shape if pressed else mesh
             frames = simulate(truth_rig, seen, T_rig_part, seed=frame_seed, options=options)
             _, matching = rec.match(frames)
