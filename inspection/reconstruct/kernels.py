@@ -48,7 +48,7 @@ import math
 import numpy as np
 from numba import njit
 
-from .._linalg import cholesky_solve
+from .._linalg import cholesky_solve_into
 
 
 @njit(cache=True, nogil=True, fastmath=True, inline="always")
@@ -581,6 +581,13 @@ def refine_warped_shaded(
     Jt = np.empty((_SHADED_UNKNOWNS, nw))
     Jw = np.empty((_SHADED_UNKNOWNS, nw))
     et = np.empty(nw)
+    sol = np.empty(_SHADED_UNKNOWNS)
+    chol = np.empty((_SHADED_UNKNOWNS, _SHADED_UNKNOWNS))
+    fwd = np.empty(_SHADED_UNKNOWNS)
+    # The samples' weights of the window's last iteration: where a step leaves
+    # every weight as it was, the rows of the unknowns that do not depend on the
+    # disparity (offset and light) are the same, and so is their block of A.
+    w_prev = np.empty(nw)
     for i in range(n):
         x = px[i]
         y = py[i]
@@ -593,7 +600,7 @@ def refine_warped_shaded(
         ok, s0 = _warp_centre(shape, mask, x, y, radius)
         if ok:
             _monomials(su[y, x], sv[y, x], q0)
-        for _ in range(iterations):
+        for it in range(iterations):
             if not ok:
                 break
             s1 = 0.0
@@ -603,6 +610,8 @@ def refine_warped_shaded(
             stt = 0.0
             stw = 0.0
             ns = 0
+            same = it > 0
+            j = 0
             for v in range(-radius, radius + 1):
                 yy = y + v
                 lrow = left[yy, x - radius : x + radius + 1]
@@ -617,6 +626,9 @@ def refine_warped_shaded(
                     xr = (x - radius + u) - d - (srow[u] - s0)
                     rv, gv, wrt = _warped_sample(rrow, wrrow, xr, wr_cols)
                     wt = mrow[u] * wlrow[u] * wrt
+                    same = same and w_prev[j] == wt
+                    w_prev[j] = wt
+                    j += 1
                     if wt == 0.0:
                         continue
                     t = lrow[u]
@@ -648,15 +660,18 @@ def refine_warped_shaded(
                 for m in range(ns):
                     acc += Jw[r, m] * et[m]
                 b[r] = acc
+                if same and r >= 2:
+                    continue  # the block of rows and columns 2.. (ridge included) is kept
                 for m2 in range(r, _SHADED_UNKNOWNS):
                     acc = 0.0
                     for m in range(ns):
                         acc += Jw[r, m] * Jt[m2, m]
                     A[r, m2] = acc
                     A[m2, r] = acc
-            for k in range(SHADE_TERMS):
-                A[3 + k, 3 + k] += ridge * s1
-            sol, ok = cholesky_solve(A, b)
+            if not same:
+                for k in range(SHADE_TERMS):
+                    A[3 + k, 3 + k] += ridge * s1
+            ok = cholesky_solve_into(A, b, chol, fwd, sol)
             if not ok:
                 break
             dd = min(max(sol[0], -1.0), 1.0)
