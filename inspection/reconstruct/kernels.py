@@ -383,24 +383,55 @@ def refine_cyclopean(
 
 
 @njit(cache=True, nogil=True, fastmath=True, inline="always")
-def _warped_sample(rrow, wrrow, xr, wr_cols):  # pragma: no cover
-    """Right-image row ``rrow`` (B-spline coefficients) at column ``xr``: the
-    spline's value, its derivative, and the sample's weight (the right weights
-    ``wrrow`` of the two nearest pixels). Branch-free: a column off the row is
-    clamped to a valid one and weighted 0, rather than skipped."""
-    xf = math.floor(xr)
-    a = xr - xf
-    xb0 = int(xf)
-    xb = min(max(xb0, 1), wr_cols - 3)
-    inside = 1.0 if xb == xb0 else 0.0
+def _warped_window(
+    left, wl, shape, mask, x, y, radius, s0, base, wlm, tv, rows
+):  # pragma: no cover
+    """What a warped window's samples keep from one step to the next, in row-major
+    order: the right-image column of each sample less the disparity (``base``),
+    its left weight (``wlm``: on the field, and unsaturated), its left value
+    (``tv``) and its row (``rows``)."""
+    j = 0
+    for v in range(-radius, radius + 1):
+        yy = y + v
+        for u in range(2 * radius + 1):
+            xx = x - radius + u
+            base[j] = xx - (shape[yy, xx] - s0)
+            wlm[j] = mask[yy, xx] * wl[yy, xx]
+            tv[j] = left[yy, xx]
+            rows[j] = yy
+            j += 1
+
+
+@njit(cache=True, nogil=True, fastmath=True, inline="always")
+def _warped_columns(base, d, wr_cols, cols, frac, inside):  # pragma: no cover
+    """Each sample's right-image column at disparity ``d``: the spline's first
+    coefficient column (``cols``, clamped to the row), the fraction between
+    columns (``frac``) and whether the column lies on the row (``inside``: 1, or 0
+    for a clamped one, which then gets no weight). A loop of its own, free of the
+    image reads, so that it vectorises."""
+    for j in range(base.shape[0]):
+        xr = base[j] - d
+        xf = math.floor(xr)
+        frac[j] = xr - xf
+        xb0 = int(xf)
+        xb = min(max(xb0, 1), wr_cols - 3)
+        cols[j] = xb
+        inside[j] = 1.0 if xb == xb0 else 0.0
+
+
+@njit(cache=True, nogil=True, fastmath=True, inline="always")
+def _warped_sample(right, wr, row, xb, a, inside):  # pragma: no cover
+    """The right image's spline (coefficients ``right``) in ``row`` at column
+    ``xb + a``: its value, its derivative, and the sample's weight (the right
+    weights ``wr`` of the two nearest pixels, times ``inside``)."""
     w0, w1, w2, w3, g0, g1, g2, g3 = _bspline(a)
-    r0 = rrow[xb - 1]
-    r1 = rrow[xb]
-    r2 = rrow[xb + 1]
-    r3 = rrow[xb + 2]
+    r0 = right[row, xb - 1]
+    r1 = right[row, xb]
+    r2 = right[row, xb + 1]
+    r3 = right[row, xb + 2]
     rv = w0 * r0 + w1 * r1 + w2 * r2 + w3 * r3
     gv = g0 * r0 + g1 * r1 + g2 * r2 + g3 * r3
-    return rv, gv, inside * wrrow[xb] * wrrow[xb + 1]
+    return rv, gv, inside * wr[row, xb] * wr[row, xb + 1]
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -439,6 +470,13 @@ def refine_warped(
     wr_cols = right.shape[1]
     n = px.shape[0]
     nw = (2 * radius + 1) ** 2
+    base = np.empty(nw)
+    wlm = np.empty(nw)
+    tv = np.empty(nw)
+    frac = np.empty(nw)
+    inside = np.empty(nw)
+    rows = np.empty(nw, np.int64)
+    cols = np.empty(nw, np.int64)
     for i in range(n):
         x = px[i]
         y = py[i]
@@ -448,6 +486,8 @@ def refine_warped(
         score = -1.0
         step = 99.0
         ok, s0 = _warp_centre(shape, mask, x, y, radius)
+        if ok:
+            _warped_window(left, wl, shape, mask, x, y, radius, s0, base, wlm, tv, rows)
         for _ in range(iterations):
             if not ok:
                 break
@@ -461,29 +501,21 @@ def refine_warped(
             stt = 0.0
             stw = 0.0
             stg = 0.0
-            for v in range(-radius, radius + 1):
-                yy = y + v
-                lrow = left[yy, x - radius : x + radius + 1]
-                wlrow = wl[yy, x - radius : x + radius + 1]
-                srow = shape[yy, x - radius : x + radius + 1]
-                mrow = mask[yy, x - radius : x + radius + 1]
-                rrow = right[yy]
-                wrrow = wr[yy]
-                for u in range(2 * radius + 1):
-                    xr = (x - radius + u) - d - (srow[u] - s0)
-                    rv, gv, wrt = _warped_sample(rrow, wrrow, xr, wr_cols)
-                    wt = mrow[u] * wlrow[u] * wrt
-                    t = lrow[u]
-                    s1 += wt
-                    sw += wt * rv
-                    sg += wt * gv
-                    sww += wt * rv * rv
-                    sgg += wt * gv * gv
-                    sgw += wt * gv * rv
-                    st += wt * t
-                    stt += wt * t * t
-                    stw += wt * t * rv
-                    stg += wt * t * gv
+            _warped_columns(base, d, wr_cols, cols, frac, inside)
+            for j in range(nw):
+                rv, gv, wrt = _warped_sample(right, wr, rows[j], cols[j], frac[j], inside[j])
+                wt = wlm[j] * wrt
+                t = tv[j]
+                s1 += wt
+                sw += wt * rv
+                sg += wt * gv
+                sww += wt * rv * rv
+                sgg += wt * gv * gv
+                sgw += wt * gv * rv
+                st += wt * t
+                stt += wt * t * t
+                stw += wt * t * rv
+                stg += wt * t * gv
             if s1 < 0.5 * nw:
                 ok = False
                 break
@@ -584,6 +616,15 @@ def refine_warped_shaded(
     sol = np.empty(_SHADED_UNKNOWNS)
     chol = np.empty((_SHADED_UNKNOWNS, _SHADED_UNKNOWNS))
     fwd = np.empty(_SHADED_UNKNOWNS)
+    base = np.empty(nw)
+    wlm = np.empty(nw)
+    tv = np.empty(nw)
+    frac = np.empty(nw)
+    inside = np.empty(nw)
+    rows = np.empty(nw, np.int64)
+    cols = np.empty(nw, np.int64)
+    # Each sample's regressors less the centre's: they do not change between steps.
+    dq = np.empty((SHADE_TERMS, nw))
     # The samples' weights of the window's last iteration: where a step leaves
     # every weight as it was, the rows of the unknowns that do not depend on the
     # disparity (offset and light) are the same, and so is their block of A.
@@ -599,7 +640,15 @@ def refine_warped_shaded(
         step = 99.0
         ok, s0 = _warp_centre(shape, mask, x, y, radius)
         if ok:
+            _warped_window(left, wl, shape, mask, x, y, radius, s0, base, wlm, tv, rows)
             _monomials(su[y, x], sv[y, x], q0)
+            j = 0
+            for v in range(-radius, radius + 1):
+                for u in range(-radius, radius + 1):
+                    _monomials(su[y + v, x + u], sv[y + v, x + u], q)
+                    for k in range(SHADE_TERMS):
+                        dq[k, j] = q[k] - q0[k]
+                    j += 1
         for it in range(iterations):
             if not ok:
                 break
@@ -611,46 +660,33 @@ def refine_warped_shaded(
             stw = 0.0
             ns = 0
             same = it > 0
-            j = 0
-            for v in range(-radius, radius + 1):
-                yy = y + v
-                lrow = left[yy, x - radius : x + radius + 1]
-                wlrow = wl[yy, x - radius : x + radius + 1]
-                srow = shape[yy, x - radius : x + radius + 1]
-                mrow = mask[yy, x - radius : x + radius + 1]
-                urow = su[yy, x - radius : x + radius + 1]
-                vrow = sv[yy, x - radius : x + radius + 1]
-                rrow = right[yy]
-                wrrow = wr[yy]
-                for u in range(2 * radius + 1):
-                    xr = (x - radius + u) - d - (srow[u] - s0)
-                    rv, gv, wrt = _warped_sample(rrow, wrrow, xr, wr_cols)
-                    wt = mrow[u] * wlrow[u] * wrt
-                    same = same and w_prev[j] == wt
-                    w_prev[j] = wt
-                    j += 1
-                    if wt == 0.0:
-                        continue
-                    t = lrow[u]
-                    e = t - g * rv - o
-                    Jt[0, ns] = -g * gv
-                    Jt[1, ns] = rv
-                    Jt[2, ns] = 1.0
-                    _monomials(urow[u], vrow[u], q)
-                    for k in range(SHADE_TERMS):
-                        qk = q[k] - q0[k]
-                        Jt[3 + k, ns] = qk
-                        e -= c[k] * qk
-                    et[ns] = e
-                    for r in range(_SHADED_UNKNOWNS):
-                        Jw[r, ns] = wt * Jt[r, ns]
-                    ns += 1
-                    s1 += wt
-                    sw += wt * rv
-                    sww += wt * rv * rv
-                    st += wt * t
-                    stt += wt * t * t
-                    stw += wt * t * rv
+            _warped_columns(base, d, wr_cols, cols, frac, inside)
+            for j in range(nw):
+                rv, gv, wrt = _warped_sample(right, wr, rows[j], cols[j], frac[j], inside[j])
+                wt = wlm[j] * wrt
+                same = same and w_prev[j] == wt
+                w_prev[j] = wt
+                if wt == 0.0:
+                    continue
+                t = tv[j]
+                e = t - g * rv - o
+                Jt[0, ns] = -g * gv
+                Jt[1, ns] = rv
+                Jt[2, ns] = 1.0
+                for k in range(SHADE_TERMS):
+                    qk = dq[k, j]
+                    Jt[3 + k, ns] = qk
+                    e -= c[k] * qk
+                et[ns] = e
+                for r in range(_SHADED_UNKNOWNS):
+                    Jw[r, ns] = wt * Jt[r, ns]
+                ns += 1
+                s1 += wt
+                sw += wt * rv
+                sww += wt * rv * rv
+                st += wt * t
+                stt += wt * t * t
+                stw += wt * t * rv
             if s1 < 0.5 * nw:
                 ok = False
                 break
