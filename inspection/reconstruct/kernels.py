@@ -798,6 +798,91 @@ def fill_row_gaps(disparity, passes):  # pragma: no cover
                     row[x] = s / np.float32(c)
 
 
+@njit(cache=True, nogil=True)
+def triangulate_matches(
+    x_left,
+    rows,
+    d_ref,
+    score,
+    step,
+    d_init,
+    keep,
+    geometry,
+    R,
+    centre,
+    lo,
+    hi,
+    limits,
+    full,
+    out_pts,
+    out_score,
+):  # pragma: no cover
+    """The accepted matches of one pair as rig-frame points, and its disparity map.
+
+    A match is accepted with a finite disparity, ``score >= min_score``, within
+    ``max_shift_px`` of its start and a last step under ``converged_px``
+    (``limits``, in that order, after ``z_min_mm``); its point is kept inside the
+    box ``lo``..``hi`` (rig frame) and not below ``z_min_mm``. Every kept match draws its
+    disparity into ``full`` (rounded pixel; NaN elsewhere, written by the
+    caller), and those with ``keep`` (an empty array: all) give points, written
+    to the first rows of ``out_pts`` and ``out_score``.
+
+    Parameters
+    ----------
+    geometry : (5,) float64
+        ``fb, offset_px, f_px, cx_left, cy`` of the rectified pair.
+    R, centre : the pair's ``R_rect_rig`` and ``centre_left``.
+    limits : (4,) float64
+        ``z_min_mm, min_score, max_shift_px, converged_px``.
+
+    Returns
+    -------
+    (points written, matches accepted)
+    """
+    fb, offset, f_px, cx, cy = geometry[0], geometry[1], geometry[2], geometry[3], geometry[4]
+    z_min = limits[0]
+    # The matches' figures are float32: compared in float32, as numpy compares them.
+    min_score = np.float32(limits[1])
+    max_shift = np.float32(limits[2])
+    converged = np.float32(limits[3])
+    w_img = full.shape[1]
+    use_keep = keep.shape[0] > 0
+    n_out = 0
+    n_good = 0
+    for i in range(x_left.shape[0]):
+        di = d_ref[i]
+        if not (
+            np.isfinite(di)
+            and score[i] >= min_score
+            and abs(di - d_init[i]) <= max_shift
+            and abs(step[i]) < converged
+        ):
+            continue
+        n_good += 1
+        d = np.float64(di)
+        x = x_left[i]
+        y = np.float64(rows[i])
+        z = fb / (d - offset)
+        qx = (x - cx) * z / f_px
+        qy = (y - cy) * z / f_px
+        inside = True
+        p = np.empty(3)
+        for j in range(3):
+            p[j] = qx * R[0, j] + qy * R[1, j] + z * R[2, j] + centre[j]
+            inside = inside and lo[j] <= p[j] <= hi[j]
+        if not (inside and p[2] >= z_min):
+            continue
+        xi = min(max(int(np.rint(x)), 0), w_img - 1)
+        full[rows[i], xi] = d
+        if use_keep and not keep[i]:
+            continue
+        for j in range(3):
+            out_pts[n_out, j] = p[j]
+        out_score[n_out] = score[i]
+        n_out += 1
+    return n_out, n_good
+
+
 __all__ = [
     "SHADE_TERMS",
     "field_slopes",
@@ -806,4 +891,5 @@ __all__ = [
     "refine_pixels",
     "refine_warped",
     "refine_warped_shaded",
+    "triangulate_matches",
 ]
