@@ -630,6 +630,17 @@ class ResultStore:
         )
 
 
+def copy_results(source: ResultStore, target: ResultStore, *, page: int = 500) -> int:
+    """Upsert every result of ``source`` into ``target``, a page (one transaction)
+    at a time, newest first; returns how many were read."""
+    copied, cursor = 0, None
+    while True:
+        items, cursor = source.list(limit=page, cursor=cursor)
+        copied += target.put_many(items)
+        if cursor is None:
+            return copied
+
+
 def _trend_point(name: str, x: np.ndarray, limits: tuple[float, float], fails: int) -> TrendPoint:
     lower, upper = limits
     n = len(x)
