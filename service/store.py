@@ -303,9 +303,11 @@ class ResultStore:
     """Inspection results in an SQLite file or a PostgreSQL database.
 
     Thread-safe: one connection shared behind a lock (the worker thread writes
-    while the API's threads read), for either database. Open with :meth:`open`
-    or the constructor and close with :meth:`close` (or use it as a context
-    manager).
+    while the API's threads read), for either database. One connection per
+    process keeps a shared server's connections to one per worker and API,
+    whatever the API's thread pool, and serves many times the line's rate of
+    results. Open with :meth:`open` or the constructor and close with
+    :meth:`close` (or use it as a context manager).
 
     Parameters
     ----------
