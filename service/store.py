@@ -42,7 +42,7 @@ import numpy as np
 
 from .models import InspectionResult, Status, Trend, TrendPoint, Verdict
 from .names import ID_PATTERN
-from .store_url import is_postgres_url, redact_url
+from .store_url import check_postgres_url, is_postgres_url, redact_url
 
 if TYPE_CHECKING:
     import psycopg
@@ -227,7 +227,10 @@ class _Postgres:
         self.errors: tuple[type[Exception], ...] = (psycopg.Error,)
         self.url = url
         self.where = redact_url(url)
-        given = conninfo_to_dict(url)
+        try:
+            given = conninfo_to_dict(check_postgres_url(url))
+        except ValueError as exc:
+            raise StoreError(str(exc)) from None
         # A host that drops packets would hold a start-up for minutes; a DBA sees
         # who holds a connection. A URL that says otherwise wins.
         self._defaults: dict[str, Any] = {
@@ -314,6 +317,11 @@ class ResultStore:
     target : str or Path
         A ``postgresql://`` URL (see :mod:`service.store_url`), else the
         SQLite file (created with its parents) or ``":memory:"``.
+
+    Attributes
+    ----------
+    where : str
+        The database, for messages: the file, or the URL without its password.
 
     Raises
     ------

@@ -2,7 +2,8 @@
 
 The server refuses to run as root, so as root (CI) every server command runs
 as the ``postgres`` user, in a directory that user owns. Trust authentication
-on 127.0.0.1 only; the unix socket lives in the server's own directory.
+on 127.0.0.1 only; the unix socket lives in the server's own directory. The
+server is a child of the test process and stops when it ends, even killed.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import shutil
 import socket
 import subprocess
 import tempfile
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -65,6 +67,7 @@ class PgServer:
     port: int
     _as_user: list[str]
     _names: itertools.count = field(default_factory=lambda: itertools.count(1))
+    _proc: subprocess.Popen = field(init=False)
 
     @classmethod
     def start(cls) -> PgServer:
@@ -111,25 +114,48 @@ class PgServer:
         # A port found free can be taken before the server binds it: try a few.
         for attempt in range(3):
             self.port = _free_port()
-            # Durability is of no use to a server deleted at the end of the session.
-            options = (
-                f"-p {self.port} -c listen_addresses=127.0.0.1 "
-                f"-c unix_socket_directories={self.root} -c fsync=off "
-                "-c synchronous_commit=off -c full_page_writes=off"
+            self._proc = subprocess.Popen(
+                self._server_command(),
+                stdout=(self.root / "log").open("ab"),
+                stderr=subprocess.STDOUT,
             )
-            try:
-                # -w: pg_ctl returns once the server accepts connections.
-                self._run(
-                    "pg_ctl", "-D", str(self.root / "data"), "-l", str(self.root / "log"),
-                    "-o", options, "-w", "-t", "60", "start",
-                )  # fmt: skip
+            if self._wait_ready(60.0):
                 return
-            except ServerFailed:
-                if attempt == 2:
-                    log = self.root / "log"
-                    raise ServerFailed(
-                        f"the server did not start: {log.read_text()[-2000:]}"
-                    ) from None
+            if attempt == 2:
+                raise ServerFailed(
+                    f"the server did not start: {(self.root / 'log').read_text()[-2000:]}"
+                )
+
+    def _server_command(self) -> list[str]:
+        postgres = [
+            str(self.bindir / "postgres"), "-D", str(self.root / "data"), "-p", str(self.port),
+            "-c", "listen_addresses=127.0.0.1", "-c", f"unix_socket_directories={self.root}",
+            # Durability is of no use to a server deleted at the end of the session.
+            "-c", "fsync=off", "-c", "synchronous_commit=off", "-c", "full_page_writes=off",
+        ]  # fmt: skip
+        if not shutil.which("setpriv"):
+            return [*self._as_user, *postgres]
+        # The server goes when the tests go, even killed: a parent-death signal to
+        # runuser (which passes SIGTERM on) and one to the server, whose own
+        # parent is runuser. SIGINT is the server's fast shutdown.
+        if self._as_user:
+            return ["setpriv", "--pdeathsig", "TERM", *self._as_user,
+                    "setpriv", "--pdeathsig", "INT", *postgres]  # fmt: skip
+        return ["setpriv", "--pdeathsig", "INT", *postgres]
+
+    def _wait_ready(self, timeout_s: float) -> bool:
+        """Connect until the server answers (True) or exits or ``timeout_s`` passes (False)."""
+        deadline = time.monotonic() + timeout_s
+        while self._proc.poll() is None and time.monotonic() < deadline:
+            try:
+                psycopg.connect(self.url(), connect_timeout=5).close()
+                return True
+            except psycopg.OperationalError:
+                time.sleep(0.05)  # not listening yet
+        if self._proc.poll() is None:
+            self._proc.kill()
+            self._proc.wait()
+        return False
 
     def url(self, dbname: str = "postgres") -> str:
         return f"postgresql://postgres@127.0.0.1:{self.port}/{dbname}"
@@ -144,5 +170,6 @@ class PgServer:
     def stop(self) -> None:
         try:
             self._run("pg_ctl", "-D", str(self.root / "data"), "-m", "immediate", "-w", "stop")
+            self._proc.wait(60)
         finally:
             shutil.rmtree(self.root, ignore_errors=True)

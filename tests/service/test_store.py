@@ -12,6 +12,7 @@ import sqlite3
 import threading
 
 import numpy as np
+import pgserver
 import psycopg
 import pytest
 
@@ -387,6 +388,14 @@ def test_a_server_that_is_not_there_is_a_clear_error_without_the_password(pg_ser
     assert "s3cret" not in str(err.value) and "postgres:***@" in str(err.value)
     with pytest.raises(StoreError, match='database "nope" does not exist'):
         ResultStore(pg_server.url("nope"))
+    with pytest.raises(StoreError, match="not a valid PostgreSQL URL"):
+        ResultStore("postgresql://postgres:s3cret@127.0.0.1/results?sslmod=require")
+
+
+def test_without_a_server_installed_the_postgresql_variants_say_how_to_get_one(monkeypatch):
+    monkeypatch.setattr(pgserver, "find_bindir", lambda: None)
+    with pytest.raises(pgserver.ServerUnavailable, match="apt-get install postgresql"):
+        pgserver.PgServer.start()
 
 
 def test_the_archive_keeps_at_most_its_points_evenly_spread(tmp_path):
