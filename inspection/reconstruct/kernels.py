@@ -602,17 +602,12 @@ def refine_warped_shaded(
     wr_cols = right.shape[1]
     n = px.shape[0]
     nw = (2 * radius + 1) ** 2
+    nc = _SHADED_UNKNOWNS - 2
     A = np.empty((_SHADED_UNKNOWNS, _SHADED_UNKNOWNS))
     b = np.empty(_SHADED_UNKNOWNS)
     c = np.empty(SHADE_TERMS)
     q0 = np.empty(SHADE_TERMS)
     q = np.empty(SHADE_TERMS)
-    # The window's Jacobian rows, one column per weighted sample (and the same
-    # times the weight): the normal equations are then 36 contiguous dot
-    # products, which vectorise, rather than 36 scattered updates per sample.
-    Jt = np.empty((_SHADED_UNKNOWNS, nw))
-    Jw = np.empty((_SHADED_UNKNOWNS, nw))
-    et = np.empty(nw)
     sol = np.empty(_SHADED_UNKNOWNS)
     chol = np.empty((_SHADED_UNKNOWNS, _SHADED_UNKNOWNS))
     fwd = np.empty(_SHADED_UNKNOWNS)
@@ -623,12 +618,19 @@ def refine_warped_shaded(
     inside = np.empty(nw)
     rows = np.empty(nw, np.int64)
     cols = np.empty(nw, np.int64)
-    # Each sample's regressors less the centre's: they do not change between steps.
-    dq = np.empty((SHADE_TERMS, nw))
-    # The samples' weights of the window's last iteration: where a step leaves
-    # every weight as it was, the rows of the unknowns that do not depend on the
-    # disparity (offset and light) are the same, and so is their block of A.
-    w_prev = np.empty(nw)
+    # The Jacobian by rows, one column per sample (a sample of weight 0 adds
+    # nothing): the normal equations are then contiguous dot products, which
+    # vectorise. The rows of the offset and the light (1, and each regressor
+    # less the centre's) do not change between a window's steps: ``jc``, and
+    # the same times the weights, ``jwc``, remade only when a weight changes.
+    jc = np.empty((nc, nw))
+    jwc = np.empty((nc, nw))
+    j0 = np.empty(nw)
+    j1 = np.empty(nw)
+    jw0 = np.empty(nw)
+    jw1 = np.empty(nw)
+    e_ = np.empty(nw)
+    w_ = np.empty(nw)
     for i in range(n):
         x = px[i]
         y = py[i]
@@ -646,8 +648,9 @@ def refine_warped_shaded(
             for v in range(-radius, radius + 1):
                 for u in range(-radius, radius + 1):
                     _monomials(su[y + v, x + u], sv[y + v, x + u], q)
+                    jc[0, j] = 1.0
                     for k in range(SHADE_TERMS):
-                        dq[k, j] = q[k] - q0[k]
+                        jc[1 + k, j] = q[k] - q0[k]
                     j += 1
         for it in range(iterations):
             if not ok:
@@ -658,29 +661,24 @@ def refine_warped_shaded(
             st = 0.0
             stt = 0.0
             stw = 0.0
-            ns = 0
+            # Whether every sample's weight is that of the last step: then so is
+            # the block of the normal equations of the offset and the light.
             same = it > 0
             _warped_columns(base, d, wr_cols, cols, frac, inside)
             for j in range(nw):
                 rv, gv, wrt = _warped_sample(right, wr, rows[j], cols[j], frac[j], inside[j])
                 wt = wlm[j] * wrt
-                same = same and w_prev[j] == wt
-                w_prev[j] = wt
-                if wt == 0.0:
-                    continue
+                same = same and w_[j] == wt
+                w_[j] = wt
                 t = tv[j]
                 e = t - g * rv - o
-                Jt[0, ns] = -g * gv
-                Jt[1, ns] = rv
-                Jt[2, ns] = 1.0
                 for k in range(SHADE_TERMS):
-                    qk = dq[k, j]
-                    Jt[3 + k, ns] = qk
-                    e -= c[k] * qk
-                et[ns] = e
-                for r in range(_SHADED_UNKNOWNS):
-                    Jw[r, ns] = wt * Jt[r, ns]
-                ns += 1
+                    e -= c[k] * jc[1 + k, j]
+                e_[j] = e
+                j0[j] = -g * gv
+                j1[j] = rv
+                jw0[j] = wt * j0[j]
+                jw1[j] = wt * rv
                 s1 += wt
                 sw += wt * rv
                 sww += wt * rv * rv
@@ -691,20 +689,48 @@ def refine_warped_shaded(
                 ok = False
                 break
             score = _ncc(s1, st, sw, stt, sww, stw)
-            for r in range(_SHADED_UNKNOWNS):
-                acc = 0.0
-                for m in range(ns):
-                    acc += Jw[r, m] * et[m]
-                b[r] = acc
-                if same and r >= 2:
-                    continue  # the block of rows and columns 2.. (ridge included) is kept
-                for m2 in range(r, _SHADED_UNKNOWNS):
-                    acc = 0.0
-                    for m in range(ns):
-                        acc += Jw[r, m] * Jt[m2, m]
-                    A[r, m2] = acc
-                    A[m2, r] = acc
             if not same:
+                for r in range(nc):
+                    for j in range(nw):
+                        jwc[r, j] = w_[j] * jc[r, j]
+            b0 = 0.0
+            b1 = 0.0
+            a00 = 0.0
+            a01 = 0.0
+            a11 = 0.0
+            for j in range(nw):
+                b0 += jw0[j] * e_[j]
+                b1 += jw1[j] * e_[j]
+                a00 += jw0[j] * j0[j]
+                a01 += jw0[j] * j1[j]
+                a11 += jw1[j] * j1[j]
+            b[0] = b0
+            b[1] = b1
+            A[0, 0] = a00
+            A[0, 1] = a01
+            A[1, 0] = a01
+            A[1, 1] = a11
+            for r in range(nc):
+                x0 = 0.0
+                x1 = 0.0
+                xe = 0.0
+                for j in range(nw):
+                    x0 += jw0[j] * jc[r, j]
+                    x1 += jw1[j] * jc[r, j]
+                    xe += jwc[r, j] * e_[j]
+                A[0, 2 + r] = x0
+                A[2 + r, 0] = x0
+                A[1, 2 + r] = x1
+                A[2 + r, 1] = x1
+                b[2 + r] = xe
+            if not same:
+                for r in range(nc):
+                    for r2 in range(r, nc):
+                        acc = 0.0
+                        for j in range(nw):
+                            acc += jwc[r, j] * jc[r2, j]
+                        A[2 + r, 2 + r2] = acc
+                        A[2 + r2, 2 + r] = acc
                 for k in range(SHADE_TERMS):
                     A[3 + k, 3 + k] += ridge * s1
             ok = cholesky_solve_into(A, b, chol, fwd, sol)
