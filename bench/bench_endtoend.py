@@ -10,8 +10,10 @@ belt, seeds ``BENCH_E2E_SEEDS`` (default 11,12); ``BENCH_E2E_GUIDED=0``
 stops after the first pass; ``BENCH_E2E_WEIGHTS=1`` (or 0) fits with (or
 without) the reconstruction's per-point weights, and ``BENCH_E2E_MAX_POINTS``
 subsamples the clouds to that many points to fit (``BENCH_E2E_GUIDE_POINTS``
-for the fits that place the guide), and ``BENCH_E2E_STRIDE``
-refines every n-th column of the rectified images, instead of the line's
+for the fits that place the guide), ``BENCH_E2E_STRIDE``
+refines every n-th column of the rectified images, and ``BENCH_E2E_RECON``
+(``name=value`` pairs, comma-separated, e.g. ``warp_passes=1,shading=0``)
+sets any other field of ``ReconstructParams``, instead of the line's
 choices. Last, the same poses rendered with a longer flash
 (``BENCH_E2E_LONG_FLASH_US``, default 2000; 0 leaves it out): what a slow
 flash costs when the part moves during the exposure.
@@ -126,6 +128,10 @@ def main() -> int:
     rp = ReconstructParams()
     if "BENCH_E2E_STRIDE" in os.environ:
         rp = dataclasses.replace(rp, stride=int(os.environ["BENCH_E2E_STRIDE"]))
+    for item in filter(None, os.environ.get("BENCH_E2E_RECON", "").split(",")):
+        key, _, value = item.partition("=")
+        kind = type(getattr(rp, key))
+        rp = dataclasses.replace(rp, **{key: value != "0" if kind is bool else kind(value)})
     rec = Reconstructor.build(Rig.default(), rp)
     truth_rig = Rig.nominal()
     corners = trimesh.bounds.corners(cad.bounds)
