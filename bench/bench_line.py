@@ -41,7 +41,7 @@ hash and build parameters, like every tree cache).
 Environment: BENCH_SMOKE=1 (shorter: 1 Hz for 60 s, 3 parts for stage
 times), BENCH_LINE_SETS (FrameSets in the recording, default 64),
 BENCH_LINE_REPLAY_HZ (default 2), BENCH_LINE_HZ (the whole line's rate,
-default 1), BENCH_LINE_DURATION_S (default 240; 60 with BENCH_SMOKE=1),
+default 1), BENCH_LINE_DURATION_S (default 300; 60 with BENCH_SMOKE=1),
 BENCH_LINE_CPU_PARTS (default 5; 0 skips the stage times),
 BENCH_LINE_RATES_HZ (comma-separated; default none), BENCH_LINE_WINDOW_S
 (default 45).
@@ -128,6 +128,8 @@ class Arrival:
     cpu_s: float
     """The measured process's CPU time when the result arrived."""
     timings_ms: dict[str, float]
+    at_s: float
+    """When it arrived (monotonic clock)."""
 
 
 @dataclass
@@ -151,7 +153,7 @@ class Shift:
                 return
             if not self.started:
                 self.started = time.monotonic()
-            self.arrivals.append(Arrival(seq, status, latency_s, cpu, timings))
+            self.arrivals.append(Arrival(seq, status, latency_s, cpu, timings, time.monotonic()))
             self._cond.notify_all()
 
     def wait(self, done: Callable[[], bool], timeout_s: float) -> bool:
@@ -183,6 +185,14 @@ class Shift:
         if len(m) < 2:
             return float("nan")
         return (m[-1].cpu_s - m[0].cpu_s) / (len(m) - 1)
+
+    def cores_busy(self) -> float:
+        """CPU seconds per wall second from the first result to the last: how many of the
+        machine's cores the process kept busy."""
+        if len(self.arrivals) < 2:
+            return float("nan")
+        a, b = self.arrivals[0], self.arrivals[-1]
+        return (b.cpu_s - a.cpu_s) / (b.at_s - a.at_s)
 
     def sustained(self) -> bool:
         """No missed part, and the second half's median latency is not running away."""
@@ -513,7 +523,11 @@ def print_shift(shift: Shift, *, published: int | None = None) -> None:
     print(f"  s:                 {'p50':>8} {'p90':>8} {'p99':>8} {'max':>8}")
     print(_row("latency", lat, fmt="8.3f"), flush=True)
     print(_row("CPU per part", cpu, fmt="8.3f"), flush=True)
-    print(f"  {'CPU overall':>18} {shift.cpu_overall():8.3f} per measured part", flush=True)
+    print(
+        f"  {'CPU overall':>18} {shift.cpu_overall():8.3f} per measured part; "
+        f"{shift.cores_busy():.2f} cores busy from the first result to the last",
+        flush=True,
+    )
     totals = [a.timings_ms["total"] / 1e3 for a in shift.measured if "total" in a.timings_ms]
     for stage in ("reconstruct", "guide", "align", "deviations", "total"):
         values = [a.timings_ms[stage] / 1e3 for a in shift.measured if stage in a.timings_ms]
@@ -531,7 +545,7 @@ def main() -> int:
     n_sets = int(os.environ.get("BENCH_LINE_SETS", "64"))
     replay_hz = float(os.environ.get("BENCH_LINE_REPLAY_HZ", "2"))
     line_hz = float(os.environ.get("BENCH_LINE_HZ", "1"))
-    duration = float(os.environ.get("BENCH_LINE_DURATION_S", "60" if smoke else "240"))
+    duration = float(os.environ.get("BENCH_LINE_DURATION_S", "60" if smoke else "300"))
     cpu_parts = int(os.environ.get("BENCH_LINE_CPU_PARTS", "3" if smoke else "5"))
     rates = [float(r) for r in os.environ.get("BENCH_LINE_RATES_HZ", "").split(",") if r.strip()]
     window = float(os.environ.get("BENCH_LINE_WINDOW_S", "45"))
