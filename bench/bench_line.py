@@ -186,6 +186,13 @@ class Shift:
             return float("nan")
         return (m[-1].cpu_s - m[0].cpu_s) / (len(m) - 1)
 
+    def cpu_per_trigger(self) -> float:
+        """CPU seconds from the first result to the last, per result (missed ones too)."""
+        if len(self.arrivals) < 2:
+            return float("nan")
+        a, b = self.arrivals[0], self.arrivals[-1]
+        return (b.cpu_s - a.cpu_s) / (len(self.arrivals) - 1)
+
     def cores_busy(self) -> float:
         """CPU seconds per wall second from the first result to the last: how many of the
         machine's cores the process kept busy."""
@@ -524,8 +531,9 @@ def print_shift(shift: Shift, *, published: int | None = None) -> None:
     print(_row("latency", lat, fmt="8.3f"), flush=True)
     print(_row("CPU per part", cpu, fmt="8.3f"), flush=True)
     print(
-        f"  {'CPU overall':>18} {shift.cpu_overall():8.3f} per measured part; "
-        f"{shift.cores_busy():.2f} cores busy from the first result to the last",
+        f"  {'CPU overall':>18} {shift.cpu_overall():8.3f} per measured part, "
+        f"{shift.cpu_per_trigger():.3f} per trigger; {shift.cores_busy():.2f} cores busy "
+        "from the first result to the last",
         flush=True,
     )
     totals = [a.timings_ms["total"] / 1e3 for a in shift.measured if "total" in a.timings_ms]
