@@ -532,8 +532,8 @@ def print_shift(shift: Shift, *, published: int | None = None) -> None:
     print(_row("CPU per part", cpu, fmt="8.3f"), flush=True)
     print(
         f"  {'CPU overall':>18} {shift.cpu_overall():8.3f} per measured part, "
-        f"{shift.cpu_per_trigger():.3f} per trigger; {shift.cores_busy():.2f} cores busy "
-        "from the first result to the last",
+        f"{shift.cpu_per_trigger():.3f} per trigger (missed ones too); "
+        f"{shift.cores_busy():.2f} cores busy from the first result to the last",
         flush=True,
     )
     totals = [a.timings_ms["total"] / 1e3 for a in shift.measured if "total" in a.timings_ms]
