@@ -305,6 +305,10 @@ class SeqTracker:
                         f"seq jumped from {nxt - 1} to {seq}, beyond the bound of "
                         f"{self.max_jump}: refused, not answered as missed"))  # fmt: skip
 
+    def behind(self, seq: int) -> bool:
+        """Whether ``seq`` is below the count (answered, or owed from before a restart)."""
+        return self.next is not None and seq < self.next
+
     def note_unreadable(self, seq: int | None) -> None:
         """An undecodable FrameSet claimed ``seq``: answered already, never missing.
 
@@ -558,7 +562,11 @@ class Worker:
             part=ident.get("part") or self.missed_part, serial=ident.get("serial"),
             calibration_id=ident.get("calibration_id"),
         )  # fmt: skip
-        if seq is not None and (line, station) == (self.line, self.station):
+        if (
+            seq is not None
+            and (line, station) == (self.line, self.station)
+            and not self._owed(seq, item.replayed)
+        ):
             check = self.seqs.check(seq, t_ns)
             if not self._admit(check, seq, t_ns):
                 self._emit(Outcome(error_result(reason=_refusal(check), **fields)), None)
@@ -603,7 +611,9 @@ class Worker:
         id_ = make_result_id(fs.line, fs.station, fs.seq, fs.triggered_ns)
         if self._answered(id_, fs.seq, fs.triggered_ns, item.replayed):
             return False
-        if (fs.line, fs.station) == (self.line, self.station):
+        if (fs.line, fs.station) == (self.line, self.station) and not self._owed(
+            fs.seq, item.replayed
+        ):
             check = self.seqs.check(fs.seq, fs.triggered_ns)
             if not self._admit(check, fs.seq, fs.triggered_ns):
                 result = error_result(
@@ -680,6 +690,19 @@ class Worker:
                 "Round trip of a measurement less its own time: sending, queueing, returning.",
                 max(0.0, m.round_trip_s - m.seconds),
             )
+
+    def _owed(self, seq: int, replayed: bool) -> bool:
+        """Whether a journal entry is owed its result from before a stop, below the count.
+
+        Results finish out of seq order: the store's last seq, where counting
+        goes on, may be above a trigger that was still being measured at a
+        kill. Its journal entry (not in the store, or it would be answered
+        already) is answered now, and the count stays where it is.
+        """
+        if not (replayed and self.seqs.behind(seq)):
+            return False
+        log.info("journal: seq %d, accepted before the stop, is answered now", seq)
+        return True
 
     def _answered(self, id_: str, seq: int | None, triggered_ns: int, replayed: bool) -> bool:
         """Whether the trigger with this result id was answered already (or is being measured).
