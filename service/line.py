@@ -503,7 +503,8 @@ def start_line(
 ) -> LineHandles:
     """Start the whole line in this process; see :func:`run_line`."""
     log.info("line config %s: %s", cfg.hash()[:12], json.dumps(cfg.effective()))
-    station = Station.load(cfg, stages)
+    # Measuring here warms the kernels up; a station measured on Dask warms its workers.
+    station = Station.load(cfg, stages, warm_up=cfg.station.dask_address() is None)
     try:
         executor = make_executor(cfg, station)
     except BaseException:
@@ -630,7 +631,7 @@ def run_ingest(cfg: LineConfig, stop: threading.Event, *, count: int | None = No
 def run_worker(cfg: LineConfig, stop: threading.Event) -> int:
     """A worker alone: measures (or has its executor measure), publishes, stores and
     records until ``stop``."""
-    station = Station.load(cfg)
+    station = Station.load(cfg, warm_up=cfg.station.dask_address() is None)
     with (
         contextlib.closing(station),
         contextlib.closing(make_executor(cfg, station)) as executor,
