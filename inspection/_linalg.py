@@ -11,13 +11,25 @@ def cholesky_solve(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, bool]:
     """Solve ``A x = b`` for a small symmetric positive definite ``A``
     (Cholesky, fixed order); ``ok`` False when ``A`` is not positive definite."""
     n = A.shape[0]
-    Lc = np.zeros((n, n))
+    x = np.zeros(n)
+    ok = cholesky_solve_into(A, b, np.zeros((n, n)), np.empty(n), x)
+    return x, ok
+
+
+@numba.njit(cache=True, nogil=True)
+def cholesky_solve_into(
+    A: np.ndarray, b: np.ndarray, Lc: np.ndarray, y: np.ndarray, x: np.ndarray
+) -> bool:
+    """:func:`cholesky_solve` into ``x``, with the caller's work arrays ``Lc`` (n, n)
+    and ``y`` (n,): no allocation, for kernels that solve once per pixel. Returns
+    False (``x`` unspecified) when ``A`` is not positive definite."""
+    n = A.shape[0]
     for j in range(n):
         s = A[j, j]
         for k in range(j):
             s -= Lc[j, k] * Lc[j, k]
         if not s > 0.0:
-            return np.zeros(n), False
+            return False
         d = np.sqrt(s)
         Lc[j, j] = d
         for i in range(j + 1, n):
@@ -25,16 +37,14 @@ def cholesky_solve(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, bool]:
             for k in range(j):
                 s -= Lc[i, k] * Lc[j, k]
             Lc[i, j] = s / d
-    y = np.empty(n)
     for i in range(n):
         s = b[i]
         for k in range(i):
             s -= Lc[i, k] * y[k]
         y[i] = s / Lc[i, i]
-    x = np.empty(n)
     for i in range(n - 1, -1, -1):
         s = y[i]
         for k in range(i + 1, n):
             s -= Lc[k, i] * x[k]
         x[i] = s / Lc[i, i]
-    return x, True
+    return True

@@ -577,11 +577,30 @@ def _key(origin, dims, p, n):  # pragma: no cover - compiled
 @njit(cache=True, nogil=True)
 def _cell_nodes(origin, dims, keys, points, normals):  # pragma: no cover - compiled
     """(N,) int64: the node of each point's cell and normal side, -1 where there is none."""
+    # The sorted keys of one (i, j) column of cells are contiguous: where each
+    # column's run starts, so that a point searches only its own column's few
+    # nodes, not all of them.
+    per_column = dims[2] * 8
+    n_columns = dims[0] * dims[1]
+    starts = np.empty(n_columns + 1, dtype=np.int64)
+    j = 0
+    for c in range(n_columns + 1):
+        while j < keys.shape[0] and keys[j] < c * per_column:
+            j += 1
+        starts[c] = j
     out = np.empty(points.shape[0], dtype=np.int64)
     for i in range(points.shape[0]):
         key = _key(origin, dims, points[i], normals[i])
-        j = np.searchsorted(keys, key)
-        out[i] = j if j < keys.shape[0] and keys[j] == key else -1
+        c = key // per_column
+        lo = starts[c]
+        hi = starts[c + 1]
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if keys[mid] < key:
+                lo = mid + 1
+            else:
+                hi = mid
+        out[i] = lo if lo < starts[c + 1] and keys[lo] == key else -1
     return out
 
 

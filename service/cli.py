@@ -34,6 +34,7 @@ COMMANDS = {
     "worker": "line",
     "api": "line",
     "replay": "replay",
+    "store": "store",
 }
 
 

@@ -26,11 +26,20 @@ from enum import StrEnum
 from pathlib import Path
 from typing import Annotated, Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_serializer,
+    field_validator,
+    model_validator,
+)
 
 from inspection.surface import SurfaceParams
 
 from .names import KEY_PREFIX_PATTERN, NAME_MAX_LEN, NAME_PATTERN
+from .store_url import check_postgres_url, redact_url
 
 Name = Annotated[str, Field(pattern=NAME_PATTERN, min_length=1, max_length=NAME_MAX_LEN)]
 """A line, station, part or serial name: see :mod:`service.names` for the rule."""
@@ -543,9 +552,24 @@ class ZenohSection(_Strict):
 
 
 class StorageSection(_Strict):
+    """Where the line keeps what it produces.
+
+    The results go to the SQLite file ``data_dir/database`` unless ``url`` names
+    a PostgreSQL database (``postgresql://user@host:5432/db``): one store for
+    several stations and an API on other hosts. The URL is shown without its
+    password wherever the configuration is logged or recorded; libpq also takes
+    the password from ``PGPASSWORD`` or ``~/.pgpass``, which keeps it out of the
+    file. Recordings, trees and per-point deviations stay in ``data_dir``.
+    """
+
     data_dir: str = Field(default="runs", description="Relative to the working directory.")
     database: str = Field(
         default="results.sqlite", description="SQLite file, relative to data_dir."
+    )
+    url: str | None = Field(
+        default=None,
+        description="A postgresql:// URL: the results go to that database instead of "
+        "the SQLite file.",
     )
     mcap_dir: str = Field(default="mcap", description="Relative to data_dir.")
     mcap_rotate_mb: float = Field(default=512.0, gt=0, le=1_000_000)
@@ -565,11 +589,29 @@ class StorageSection(_Strict):
         description="The worker's journal and the ingest's seq, relative to data_dir.",
     )
 
+    @field_validator("url", mode="before")
+    @classmethod
+    def _empty_url_is_none(cls, v: object) -> object:
+        return None if v == "" else v  # INSPECTION_STORAGE_URL= turns the URL off
+
+    @field_validator("url")
+    @classmethod
+    def _postgres_url(cls, v: str | None) -> str | None:
+        return None if v is None else check_postgres_url(v)
+
+    @field_serializer("url")
+    def _url_without_password(self, v: str | None) -> str | None:
+        return None if v is None else redact_url(v)
+
     def data_path(self) -> Path:
         return Path(self.data_dir)
 
     def database_path(self) -> Path:
         return self.data_path() / self.database
+
+    def store_target(self) -> str | Path:
+        """What :class:`service.store.ResultStore` opens: the URL, else the SQLite file."""
+        return self.url if self.url is not None else self.database_path()
 
     def mcap_path(self) -> Path:
         return self.data_path() / self.mcap_dir
@@ -832,6 +874,7 @@ def canonical_hash(data: Any) -> str:
 
 ENV_OVERRIDES: dict[str, tuple[str, str]] = {
     "INSPECTION_DATA_DIR": ("storage", "data_dir"),
+    "INSPECTION_STORAGE_URL": ("storage", "url"),
     "INSPECTION_HTTP_HOST": ("http", "host"),
     "INSPECTION_HTTP_PORT": ("http", "port"),
     "INSPECTION_ZENOH_MODE": ("zenoh", "mode"),

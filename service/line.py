@@ -518,7 +518,7 @@ def start_line(
         raise
     opened: list[Any] = [station, executor, session]
     try:
-        store = ResultStore(cfg.storage.database_path())
+        store = ResultStore(cfg.storage.store_target())
         opened.append(store)
         recorder = station.recorder()
         opened.append(recorder)
@@ -593,6 +593,8 @@ def run_line(
         if h.api is not None:
             where.insert(0, f"API docs: http://{cfg.http.host}:{h.api.port}/docs")
         where.append(f"data: {cfg.storage.data_path().resolve()}")
+        if cfg.storage.url is not None:
+            where.append(f"results: {h.store.where}")
         where.append(f"results on zenoh: {h.station.keys.results()}")
         out("the line is running (Ctrl-C stops it)\n  " + "\n  ".join(where))
         while not stop.is_set() and not h.counter.done.is_set():
@@ -637,7 +639,7 @@ def run_worker(cfg: LineConfig, stop: threading.Event) -> int:
         contextlib.closing(make_executor(cfg, station)) as executor,
         contextlib.closing(bus.open_session(bus_settings(cfg))) as session,
     ):
-        store = ResultStore(cfg.storage.database_path())
+        store = ResultStore(cfg.storage.store_target())
         archive = DeviationArchive(
             cfg.storage.deviations_path(), max_bytes=cfg.deviations_max_bytes()
         )
@@ -675,7 +677,7 @@ def run_worker(cfg: LineConfig, stop: threading.Event) -> int:
 def run_api(cfg: LineConfig, stop: threading.Event) -> int:
     """The REST API alone: serves the store, streams results it receives on the bus."""
     with contextlib.closing(bus.open_session(bus_settings(cfg))) as session:
-        store = ResultStore(cfg.storage.database_path())
+        store = ResultStore(cfg.storage.store_target())
         hub = ResultHub()
         keys = Keys(cfg.line.name, cfg.zenoh.prefix)
 

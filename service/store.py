@@ -1,23 +1,31 @@
-"""The result store: one SQLite file (WAL mode) with a row per accepted trigger.
+"""The result store: a row per accepted trigger, in an SQLite file or a PostgreSQL database.
+
+SQLite (one file, WAL mode) is the embedded default; a ``postgresql://`` URL
+puts the results of several stations into one database that an API on
+another host reads. Both run the same queries and the same :data:`MIGRATIONS`;
+a backend class holds only what the two differ in (connecting, placeholders,
+taking the write lock).
 
 Every result is upserted by its ``id``, so a trigger published twice (a
 retry, a replay into the same store) still has exactly one row. The full
 result is kept as JSON beside indexed columns used for filtering; a
-``schema_version`` table and the :data:`MIGRATIONS` list take a file from any
-earlier layout to the current one when it is opened.
+``schema_version`` table and the :data:`MIGRATIONS` list take a database from
+any earlier layout to the current one when it is opened.
 
 Per-point deviations are too large for a row; :class:`DeviationArchive`
-keeps them as one ``.npz`` per inspection next to the database.
+keeps them as one ``.npz`` per inspection in the data directory.
 
 Errors::
 
-    StoreError                a file from a newer version, or not a store at all
+    StoreError       a database from a newer version, not a store at all,
+                     a server that cannot be reached, a statement that failed
 """
 
 from __future__ import annotations
 
 import base64
 import binascii
+import contextlib
 import logging
 import math
 import os
@@ -25,19 +33,25 @@ import re
 import sqlite3
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
 import numpy as np
 
 from .models import InspectionResult, Status, Trend, TrendPoint, Verdict
 from .names import ID_PATTERN
+from .store_url import check_postgres_url, is_postgres_url, redact_url
+
+if TYPE_CHECKING:
+    import psycopg
 
 log = logging.getLogger(__name__)
 
 MIGRATIONS: list[str] = [
-    # 1: results with the columns the API filters and orders by.
+    # 1: results with the columns the API filters and orders by. BIGINT: nanosecond
+    # times pass 2**31 (PostgreSQL's INTEGER); SQLite's integers are 64-bit either way.
     """
     CREATE TABLE results (
         id            TEXT PRIMARY KEY,
@@ -45,11 +59,11 @@ MIGRATIONS: list[str] = [
         station       TEXT NOT NULL,
         part          TEXT NOT NULL,
         serial        TEXT NOT NULL,
-        seq           INTEGER NOT NULL,
-        triggered_ns  INTEGER NOT NULL,
+        seq           BIGINT NOT NULL,
+        triggered_ns  BIGINT NOT NULL,
         status        TEXT NOT NULL,
         body          TEXT NOT NULL,
-        stored_ns     INTEGER NOT NULL
+        stored_ns     BIGINT NOT NULL
     );
     CREATE INDEX results_time ON results (triggered_ns, id);
     CREATE INDEX results_part_time ON results (part, triggered_ns, id);
@@ -60,17 +74,34 @@ MIGRATIONS: list[str] = [
     CREATE INDEX results_station_seq ON results (line, station, seq);
     """,
 ]
-"""Schema migrations, in order; the database's version is the number applied."""
+"""Schema migrations, in order; the database's version is the number applied.
+
+Each is SQL that SQLite and PostgreSQL both take, statements separated by ``;``.
+"""
 
 SCHEMA_VERSION = len(MIGRATIONS)
 
 MAX_LIMIT = 1000
 
+T = TypeVar("T")
+
 _ID_RE = re.compile(ID_PATTERN)
+
+_UPSERT = """
+    INSERT INTO results
+        (id, line, station, part, serial, seq, triggered_ns, status, body, stored_ns)
+    VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)
+    ON CONFLICT (id) DO UPDATE SET
+        line = excluded.line, station = excluded.station, part = excluded.part,
+        serial = excluded.serial, seq = excluded.seq,
+        triggered_ns = excluded.triggered_ns, status = excluded.status,
+        body = excluded.body, stored_ns = excluded.stored_ns
+"""
 
 
 class StoreError(Exception):
-    """The database cannot be used: newer than this software, or not a result store."""
+    """The store cannot be used: newer than this software, not a result store,
+    unreachable, or a statement failed in the database."""
 
 
 class InvalidCursor(ValueError):
@@ -104,39 +135,214 @@ def decode_cursor(cursor: str) -> tuple[int, str]:
     return value, id_
 
 
-class ResultStore:
-    """Inspection results in one SQLite file.
+# --------------------------------------------------------------------------- backends
 
-    Thread-safe: one connection shared behind a lock (the worker thread writes
-    while the API's threads read). Open with :meth:`open` or the constructor
-    and close with :meth:`close` (or use it as a context manager).
 
-    Parameters
-    ----------
-    path : str or Path
-        The database file (created with its parents) or ``":memory:"``.
+class _Cursor(Protocol):
+    @property
+    def rowcount(self) -> int: ...
+
+    def fetchone(self) -> Any: ...
+
+    def fetchall(self) -> list[Any]: ...
+
+
+class _Backend(Protocol):
+    """One connection to one database, and what the two databases differ in.
+
+    Statements are written with ``?`` placeholders. Callers hold the store's
+    lock around every use.
     """
 
-    def __init__(self, path: str | Path) -> None:
-        self.path = str(path)
-        if self.path != ":memory:":
-            Path(self.path).parent.mkdir(parents=True, exist_ok=True)
-        self._lock = threading.Lock()
+    where: str
+    """The database, for messages: a file name, or the URL without its password."""
+    errors: tuple[type[Exception], ...]
+    """The driver's exceptions, which the store reports as :class:`StoreError`."""
+
+    def execute(self, sql: str, params: Sequence[object] = ()) -> _Cursor: ...
+
+    def executemany(self, sql: str, rows: Sequence[Sequence[object]]) -> None: ...
+
+    def begin(self, *, schema: bool = False) -> None:
+        """Open a write transaction; ``schema``: one that also excludes other migrations."""
+
+    def lost(self) -> bool:
+        """Whether the connection was lost (the last statement could not reach the database)."""
+
+    def ensure_connected(self) -> None:
+        """Reconnect when the connection was lost."""
+
+    def close(self) -> None: ...
+
+
+class _Sqlite:
+    errors: tuple[type[Exception], ...] = (sqlite3.Error,)
+
+    def __init__(self, path: str) -> None:
+        self.where = path
+        if path != ":memory:":
+            Path(path).parent.mkdir(parents=True, exist_ok=True)
         try:
             self._db = sqlite3.connect(
-                self.path, check_same_thread=False, isolation_level=None, timeout=30.0
+                path, check_same_thread=False, isolation_level=None, timeout=30.0
             )
             self._db.execute("PRAGMA journal_mode=WAL")
             # In WAL mode NORMAL still survives a process crash; only an OS crash
             # can lose the last transactions.
             self._db.execute("PRAGMA synchronous=NORMAL")
-            self._migrate()
         except sqlite3.DatabaseError as exc:
-            raise StoreError(f"{self.path}: not a result store: {exc}") from exc
+            raise StoreError(f"{path}: not a result store: {exc}") from exc
+
+    def execute(self, sql: str, params: Sequence[object] = ()) -> _Cursor:
+        return self._db.execute(sql, params)
+
+    def executemany(self, sql: str, rows: Sequence[Sequence[object]]) -> None:
+        self._db.executemany(sql, rows)
+
+    def begin(self, *, schema: bool = False) -> None:
+        # IMMEDIATE takes the file's write lock at once: two processes opening a new
+        # file cannot both read version 0 and both migrate it.
+        self._db.execute("BEGIN IMMEDIATE")
+
+    def lost(self) -> bool:
+        return False  # a file does not go away
+
+    def ensure_connected(self) -> None:
+        pass
+
+    def close(self) -> None:
+        self._db.close()
+
+
+_SCHEMA_LOCK = 0x696E_7370  # "insp": the advisory lock key migrations take in PostgreSQL
+
+
+class _Postgres:
+    def __init__(self, url: str) -> None:
+        # Imported here: an SQLite store does not pay for loading libpq.
+        import psycopg
+        from psycopg.conninfo import conninfo_to_dict
+
+        self._psycopg = psycopg
+        self.errors: tuple[type[Exception], ...] = (psycopg.Error,)
+        self.url = url
+        self.where = redact_url(url)
+        try:
+            given = conninfo_to_dict(check_postgres_url(url))
+        except ValueError as exc:
+            raise StoreError(str(exc)) from None
+        # A host that drops packets would hold a start-up for minutes; a DBA sees
+        # who holds a connection. A URL that says otherwise wins.
+        self._defaults: dict[str, Any] = {
+            k: v
+            for k, v in {"connect_timeout": 10, "application_name": "inspection"}.items()
+            if k not in given
+        }
+        self._db = self._connect()
+
+    def _connect(self) -> psycopg.Connection[Any]:
+        try:
+            return self._psycopg.connect(self.url, autocommit=True, **self._defaults)
+        except self._psycopg.Error as exc:
+            raise StoreError(f"{self.where}: cannot connect: {_first_line(exc)}") from exc
+
+    def execute(self, sql: str, params: Sequence[object] = ()) -> _Cursor:
+        # Our statements hold no literal "?" or "%": the placeholders are all there is.
+        return self._db.execute(sql.replace("?", "%s"), params)
+
+    def executemany(self, sql: str, rows: Sequence[Sequence[object]]) -> None:
+        with self._db.cursor() as cur:
+            cur.executemany(sql.replace("?", "%s"), rows)
+
+    def begin(self, *, schema: bool = False) -> None:
+        self._db.execute("BEGIN")
+        if schema:
+            # DDL is transactional here, but CREATE TABLE IF NOT EXISTS is not safe
+            # against a second process doing the same: one migrator at a time.
+            self._db.execute("SELECT pg_advisory_xact_lock(%s)", (_SCHEMA_LOCK,))
+
+    def lost(self) -> bool:
+        # A server restart or a dropped link leaves the connection broken.
+        return bool(self._db.broken)
+
+    def ensure_connected(self) -> None:
+        if self._db.broken:
+            self._db = self._connect()
+
+    def close(self) -> None:
+        self._db.close()
+
+
+def _first_line(exc: Exception) -> str:
+    return " ".join(str(exc).split("\n", 1)[0].split()) or type(exc).__name__
+
+
+def _attempt(db: _Backend, work: Callable[[_Backend], T], transaction: bool, schema: bool) -> T:
+    db.ensure_connected()
+    if not transaction:
+        return work(db)
+    db.begin(schema=schema)
+    try:
+        out = work(db)
+    except BaseException:
+        # A lost connection has rolled back already; its own error is the one to tell.
+        with contextlib.suppress(*db.errors):
+            db.execute("ROLLBACK")
+        raise
+    db.execute("COMMIT")
+    return out
+
+
+def _open_backend(target: str | Path) -> _Backend:
+    if is_postgres_url(target):
+        return _Postgres(str(target))
+    return _Sqlite(str(target))
+
+
+# --------------------------------------------------------------------------- the store
+
+
+class ResultStore:
+    """Inspection results in an SQLite file or a PostgreSQL database.
+
+    Thread-safe: one connection shared behind a lock (the worker thread writes
+    while the API's threads read), for either database. One connection per
+    process keeps a shared server's connections to one per worker and API,
+    whatever the API's thread pool, and serves many times the line's rate of
+    results. Open with :meth:`open` or the constructor and close with
+    :meth:`close` (or use it as a context manager).
+
+    Parameters
+    ----------
+    target : str or Path
+        A ``postgresql://`` URL (see :mod:`service.store_url`), else the
+        SQLite file (created with its parents) or ``":memory:"``.
+
+    Attributes
+    ----------
+    where : str
+        The database, for messages: the file, or the URL without its password.
+
+    Raises
+    ------
+    StoreError
+        Not a result store, a schema newer than this software's, or a server
+        that cannot be reached.
+    """
+
+    def __init__(self, target: str | Path) -> None:
+        self._lock = threading.Lock()
+        self._backend = _open_backend(target)
+        self.where = self._backend.where
+        try:
+            self._migrate()
+        except BaseException:
+            self._backend.close()
+            raise
 
     @classmethod
-    def open(cls, path: str | Path) -> ResultStore:
-        return cls(path)
+    def open(cls, target: str | Path) -> ResultStore:
+        return cls(target)
 
     def __enter__(self) -> ResultStore:
         return self
@@ -146,16 +352,38 @@ class ResultStore:
 
     def close(self) -> None:
         with self._lock:
-            self._db.close()
+            self._backend.close()
+
+    def _run(
+        self, work: Callable[[_Backend], T], *, transaction: bool = False, schema: bool = False
+    ) -> T:
+        """``work(db)`` on the connection, held by this thread alone, in one write
+        transaction when ``transaction``; the driver's errors come out as StoreError.
+
+        A connection lost under ``work`` (a server restart, a dropped link) is
+        replaced and ``work`` runs once more: every statement of the store may be
+        repeated (upserts by id, deletes, reads), so a database server that
+        restarted between two results costs none.
+        """
+        db = self._backend
+        with self._lock:
+            try:
+                return _attempt(db, work, transaction, schema)
+            except db.errors as exc:
+                if not db.lost():
+                    raise StoreError(f"{self.where}: {_first_line(exc)}") from exc
+                log.warning("%s: connection lost (%s); reconnecting", self.where, _first_line(exc))
+            try:
+                return _attempt(db, work, transaction, schema)
+            except db.errors as exc:
+                raise StoreError(f"{self.where}: {_first_line(exc)}") from exc
 
     # ------------------------------------------------------------------ schema
 
     def _migrate(self) -> None:
         # One write transaction from reading the version to the last step: a
-        # worker and an API opening a new file at once must not both migrate it.
-        db = self._db
-        db.execute("BEGIN IMMEDIATE")
-        try:
+        # worker and an API opening a new database at once must not both migrate it.
+        def work(db: _Backend) -> None:
             db.execute("CREATE TABLE IF NOT EXISTS schema_version (version INTEGER NOT NULL)")
             row = db.execute("SELECT version FROM schema_version").fetchone()
             version = 0 if row is None else int(row[0])
@@ -163,108 +391,98 @@ class ResultStore:
                 db.execute("INSERT INTO schema_version (version) VALUES (0)")
             if version > SCHEMA_VERSION:
                 raise StoreError(
-                    f"{Path(self.path).name}: schema version {version} is newer than this "
+                    f"{self.where}: schema version {version} is newer than this "
                     f"software's ({SCHEMA_VERSION}); upgrade the software"
                 )
             for i in range(version, SCHEMA_VERSION):
-                log.info("%s: migrating schema %d -> %d", self.path, i, i + 1)
+                log.info("%s: migrating schema %d -> %d", self.where, i, i + 1)
                 for stmt in _split_sql(MIGRATIONS[i]):
                     db.execute(stmt)
                 db.execute("UPDATE schema_version SET version = ?", (i + 1,))
-            db.execute("COMMIT")
-        except BaseException:
-            db.execute("ROLLBACK")
-            raise
+
+        self._run(work, transaction=True, schema=True)
 
     @property
     def schema_version(self) -> int:
-        with self._lock:
-            return int(self._db.execute("SELECT version FROM schema_version").fetchone()[0])
+        return self._run(
+            lambda db: int(db.execute("SELECT version FROM schema_version").fetchone()[0])
+        )
 
     # ------------------------------------------------------------------ writes
 
     def put(self, result: InspectionResult) -> None:
         """Insert ``result`` or replace the row with the same ``id``."""
-        body = result.model_dump_json()
-        with self._lock:
-            self._db.execute(
-                """
-                INSERT INTO results
-                    (id, line, station, part, serial, seq, triggered_ns, status, body, stored_ns)
-                VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)
-                ON CONFLICT (id) DO UPDATE SET
-                    line = excluded.line, station = excluded.station, part = excluded.part,
-                    serial = excluded.serial, seq = excluded.seq,
-                    triggered_ns = excluded.triggered_ns, status = excluded.status,
-                    body = excluded.body, stored_ns = excluded.stored_ns
-                """,
-                (
-                    result.id,
-                    result.line,
-                    result.station,
-                    result.part,
-                    result.serial,
-                    result.seq,
-                    result.triggered_ns,
-                    result.status.value,
-                    body,
-                    time.time_ns(),
-                ),
-            )
+        row = _row(result)
+        self._run(lambda db: db.execute(_UPSERT, row))
+
+    def put_many(self, results: Iterable[InspectionResult]) -> int:
+        """:meth:`put` each of ``results``, all in one transaction; returns how many."""
+        rows = [_row(r) for r in results]
+        if rows:
+            self._run(lambda db: db.executemany(_UPSERT, rows), transaction=True)
+        return len(rows)
 
     def enforce(self, max_bytes: int | None, max_age_s: float | None) -> int:
         """Delete the oldest rows beyond ``max_bytes`` of result JSON or older than
         ``max_age_s`` (by trigger time); returns how many went.
 
-        The pages freed are reused by new rows, so the file stops growing.
+        The budget counts the JSON's characters, the same on either database; the
+        space freed is reused by new rows (SQLite's free pages, PostgreSQL's
+        vacuum), so the database stops growing.
         """
-        removed = 0
-        with self._lock:
+
+        def work(db: _Backend) -> int:
+            removed = 0
             if max_age_s is not None:
                 cutoff = time.time_ns() - int(max_age_s * 1e9)
-                removed += self._db.execute(
+                removed += db.execute(
                     "DELETE FROM results WHERE triggered_ns < ?", (cutoff,)
                 ).rowcount
-            if max_bytes is not None:
-                total = self._db.execute("SELECT TOTAL(LENGTH(body)) FROM results").fetchone()[0]
-                excess = int(total) - max_bytes
-                if excess > 0:
-                    # The oldest rows whose bodies add up to the excess, in one pass.
-                    row = self._db.execute(
-                        """
-                        SELECT triggered_ns, id FROM (
-                            SELECT triggered_ns, id, SUM(LENGTH(body)) OVER (
-                                ORDER BY triggered_ns, id ROWS UNBOUNDED PRECEDING) AS upto
-                            FROM results)
-                        WHERE upto >= ? ORDER BY triggered_ns, id LIMIT 1
-                        """,
-                        (excess,),
-                    ).fetchone()
-                    if row is not None:
-                        removed += self._db.execute(
-                            "DELETE FROM results WHERE triggered_ns < ? "
-                            "OR (triggered_ns = ? AND id <= ?)",
-                            (row[0], row[0], row[1]),
-                        ).rowcount
-        return removed
+            if max_bytes is None:
+                return removed
+            total = db.execute("SELECT COALESCE(SUM(LENGTH(body)), 0) FROM results").fetchone()
+            excess = int(total[0]) - max_bytes
+            if excess <= 0:
+                return removed
+            # The oldest rows whose bodies add up to the excess, in one pass.
+            row = db.execute(
+                """
+                SELECT triggered_ns, id FROM (
+                    SELECT triggered_ns, id, SUM(LENGTH(body)) OVER (
+                        ORDER BY triggered_ns, id ROWS UNBOUNDED PRECEDING) AS upto
+                    FROM results) AS running
+                WHERE upto >= ? ORDER BY triggered_ns, id LIMIT 1
+                """,
+                (excess,),
+            ).fetchone()
+            if row is not None:
+                removed += db.execute(
+                    "DELETE FROM results WHERE triggered_ns < ? OR (triggered_ns = ? AND id <= ?)",
+                    (row[0], row[0], row[1]),
+                ).rowcount
+            return removed
+
+        return self._run(work, transaction=True)
 
     def delete_part(self, part: str) -> int:
         """Delete every result of ``part``; returns how many rows went."""
-        with self._lock:
-            cur = self._db.execute("DELETE FROM results WHERE part = ?", (part,))
-            return cur.rowcount
+        return self._run(
+            lambda db: db.execute("DELETE FROM results WHERE part = ?", (part,)).rowcount
+        )
 
     # ------------------------------------------------------------------ reads
 
     def get(self, id_: str) -> InspectionResult | None:
-        with self._lock:
-            row = self._db.execute("SELECT body FROM results WHERE id = ?", (id_,)).fetchone()
+        row = self._run(
+            lambda db: db.execute("SELECT body FROM results WHERE id = ?", (id_,)).fetchone()
+        )
         return None if row is None else InspectionResult.model_validate_json(row[0])
 
     def has(self, id_: str) -> bool:
         """Whether a result with this id is stored."""
-        with self._lock:
-            row = self._db.execute("SELECT 1 FROM results WHERE id = ?", (id_,)).fetchone()
+        row = self._run(
+            lambda db: db.execute("SELECT 1 FROM results WHERE id = ?", (id_,)).fetchone()
+        )
         return row is not None
 
     def last_trigger(self, line: str, station: str) -> tuple[int, int] | None:
@@ -272,12 +490,13 @@ class ResultStore:
 
         Uploads (seq 0, another station name) never count: they are not triggers.
         """
-        with self._lock:
-            row = self._db.execute(
+        row = self._run(
+            lambda db: db.execute(
                 "SELECT seq, triggered_ns FROM results WHERE line = ? AND station = ? "
                 "ORDER BY seq DESC LIMIT 1",
                 (line, station),
             ).fetchone()
+        )
         return None if row is None else (int(row[0]), int(row[1]))
 
     def station_results(
@@ -292,20 +511,21 @@ class ResultStore:
     ) -> list[InspectionResult]:
         """A station's results within a seq range (both ends included) and a trigger-time
         range, lowest seq first, at most ``limit``."""
-        with self._lock:
-            rows = self._db.execute(
+        rows = self._run(
+            lambda db: db.execute(
                 "SELECT body FROM results WHERE line = ? AND station = ? AND seq BETWEEN ? AND ? "
                 "AND triggered_ns BETWEEN ? AND ? ORDER BY seq, triggered_ns, id LIMIT ?",
                 (line, station, seq[0], seq[1], since_ns, until_ns, limit),
             ).fetchall()
+        )
         return [InspectionResult.model_validate_json(r[0]) for r in rows]
 
     def count(self, filters: Filters | None = None) -> int:
         where, params = _where(filters or Filters())
-        with self._lock:
-            return int(
-                self._db.execute(f"SELECT COUNT(*) FROM results {where}", params).fetchone()[0]
-            )
+        row = self._run(
+            lambda db: db.execute(f"SELECT COUNT(*) FROM results {where}", params).fetchone()
+        )
+        return int(row[0])
 
     def list(
         self,
@@ -346,8 +566,7 @@ class ResultStore:
             ) + "(triggered_ns < ? OR (triggered_ns = ? AND id < ?))"
             params += [ns, ns, id_]
         sql = f"SELECT body FROM results {where} ORDER BY triggered_ns DESC, id DESC LIMIT ?"
-        with self._lock:
-            rows = self._db.execute(sql, [*params, limit + 1]).fetchall()
+        rows = self._run(lambda db: db.execute(sql, [*params, limit + 1]).fetchall())
         items = [InspectionResult.model_validate_json(r[0]) for r in rows[:limit]]
         nxt = encode_cursor(items[-1].triggered_ns, items[-1].id) if len(rows) > limit else None
         return items, nxt
@@ -365,10 +584,9 @@ class ResultStore:
 
     def status_counts(self) -> dict[str, int]:
         """How many results have each status (for metrics)."""
-        with self._lock:
-            rows = self._db.execute(
-                "SELECT status, COUNT(*) FROM results GROUP BY status"
-            ).fetchall()
+        rows = self._run(
+            lambda db: db.execute("SELECT status, COUNT(*) FROM results GROUP BY status").fetchall()
+        )
         return {s.value: 0 for s in Status} | {r[0]: int(r[1]) for r in rows}
 
     def trend(self, part: str, window: int = 50) -> Trend:
@@ -380,14 +598,15 @@ class ResultStore:
         """
         if window < 1:
             raise ValueError(f"window must be at least 1, got {window}")
-        with self._lock:
-            rows = self._db.execute(
+        rows = self._run(
+            lambda db: db.execute(
                 """
                 SELECT body FROM results WHERE part = ? AND status IN (?, ?)
                 ORDER BY triggered_ns DESC, id DESC LIMIT ?
                 """,
                 (part, Status.passed.value, Status.fail.value, window),
             ).fetchall()
+        )
         results = [InspectionResult.model_validate_json(r[0]) for r in rows]
         values: dict[str, list[float]] = {}
         limits: dict[str, tuple[float, float]] = {}
@@ -419,6 +638,17 @@ class ResultStore:
             until_ns=results[0].triggered_ns if results else None,
             points=points,
         )
+
+
+def copy_results(source: ResultStore, target: ResultStore, *, page: int = 500) -> int:
+    """Upsert every result of ``source`` into ``target``, a page (one transaction)
+    at a time, newest first; returns how many were read."""
+    copied, cursor = 0, None
+    while True:
+        items, cursor = source.list(limit=page, cursor=cursor)
+        copied += target.put_many(items)
+        if cursor is None:
+            return copied
 
 
 def _trend_point(name: str, x: np.ndarray, limits: tuple[float, float], fails: int) -> TrendPoint:
@@ -462,6 +692,13 @@ def _where(f: Filters) -> tuple[str, list[object]]:
         clauses.append("triggered_ns >= ?")
         params.append(int(f.since_ns))
     return ("WHERE " + " AND ".join(clauses) if clauses else ""), params
+
+
+def _row(r: InspectionResult) -> tuple[object, ...]:
+    return (
+        r.id, r.line, r.station, r.part, r.serial, r.seq, r.triggered_ns, r.status.value,
+        r.model_dump_json(), time.time_ns(),
+    )  # fmt: skip
 
 
 def _split_sql(script: str) -> list[str]:

@@ -1,7 +1,7 @@
 """Fusing the pairs' points into one cloud: cross-pair check, averaging and weights.
 
 Each pair's points are looked up in every other pair's maps, along the other
-pair's viewing rays (:func:`depth_in_view`: the point's depth ``z`` along the
+pair's viewing rays (:func:`check_in_view`: the point's depth ``z`` along the
 other pair's rectified axis, and the depth ``z'`` of the surface that pair
 measured through the same pixel, interpolated bilinearly in its disparity
 map):
@@ -65,33 +65,32 @@ def fuse(
         drop = np.zeros(len(res.points), bool)
         confirmed = np.zeros(len(res.points), bool)
         fused = res.points.copy()
+        points = np.ascontiguousarray(res.points, dtype=np.float64)
         for j, other in enumerate(results):
-            if j == k:
+            if j == k or (other.coarse is None and other.disparity is None):
                 continue
             pair = pairs[j]
-            if other.coarse is not None:
-                # Free space seen by the other pair's coarse matching, belt included:
-                # a point well in front of what the other pair sees there would
-                # have hidden it. This removes the surfaces that windows drag past
-                # an outline facing this pair, where the other pair sees the belt.
-                z, z_coarse = _depth_in_other(pair, other.coarse, res.points)
-                seen_c = np.isfinite(z_coarse)
-                drop |= seen_c & (z_coarse - z > p.free_space_mm)
-            if other.disparity is None:
-                continue
-            z, z_other = _depth_in_other(pair, other.disparity, res.points)
-            seen = np.isfinite(z_other)
-            dz = np.where(seen, z_other - z, 0.0)
-            ok = seen & (np.abs(dz) <= p.consistency_mm) & ~confirmed
-            # The other pair's surface point on the ray from its left centre
-            # through this point: scale the ray by the depth ratio.
-            ratio = z_other[ok] / z[ok]
-            other_pt = pair.centre_left + (res.points[ok] - pair.centre_left) * ratio[:, None]
-            fused[ok] = 0.5 * (res.points[ok] + other_pt)
-            confirmed |= ok
-            # dz > 0: the point lies in front of (nearer the camera than) the
-            # surface the other pair sees through it, which would have hidden that surface.
-            drop |= seen & (dz > p.consistency_mm)
+            # Free space seen by the other pair's coarse matching, belt included:
+            # a point well in front of what the other pair sees there would have
+            # hidden it. This removes the surfaces that windows drag past an
+            # outline facing this pair, where the other pair sees the belt.
+            check_in_view(
+                points,
+                pair.centre_left,
+                pair.R_rect_rig,
+                pair.f_px,
+                pair.cx_left,
+                pair.cy,
+                pair.fb,
+                pair.offset_px,
+                _EMPTY_MAP if other.coarse is None else other.coarse,
+                _EMPTY_MAP if other.disparity is None else other.disparity,
+                p.free_space_mm,
+                p.consistency_mm,
+                fused,
+                confirmed,
+                drop,
+            )
         factor[confirmed] = 1.0
         drop &= ~confirmed
         keep = ~drop
@@ -130,79 +129,96 @@ def fuse(
     return np.concatenate(pts_out), np.concatenate(w_out), np.concatenate(which_out), reports
 
 
-def _depth_in_other(
-    pair: RectifiedPair, disparity: npt.NDArray[np.float32], points: Points
-) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
-    """Depth of points, and of the other pair's surface on the same rays, in the other pair's frame.
+_EMPTY_MAP = np.zeros((0, 0), np.float32)
 
-    The other pair's disparity map is interpolated bilinearly where the four
-    neighbours are measured, else taken from the nearest pixel.
 
-    Returns
-    -------
-    z : (N,) float64, mm
-        Depth of each point along the other pair's rectified axis.
-    z_other : (N,) float64, mm
-        Depth of the other pair's surface through the same pixel (NaN: not measured there).
-    """
-    n = len(points)
-    z, z_other = np.empty(n), np.empty(n)
-    depth_in_view(
-        np.ascontiguousarray(points, dtype=np.float64),
-        pair.centre_left,
-        pair.R_rect_rig,
-        pair.f_px,
-        pair.cx_left,
-        pair.cy,
-        pair.fb,
-        pair.offset_px,
-        disparity,
-        z,
-        z_other,
+@njit(cache=True, nogil=True, inline="always")
+def _map_depth(disparity, x, y, fb, offset_px):  # pragma: no cover
+    """The depth a view's disparity map measures through rectified pixel (x, y):
+    bilinear where the four neighbours are measured, else the nearest pixel's;
+    NaN where none (or off the map)."""
+    h, w = disparity.shape
+    xf = math.floor(x)
+    yf = math.floor(y)
+    if not (xf >= 0 and xf < w - 1 and yf >= 0 and yf < h - 1):
+        return np.nan
+    xi = int(xf)
+    yi = int(yf)
+    fx = x - xf
+    fy = y - yf
+    d = (
+        disparity[yi, xi] * (1.0 - fx) * (1.0 - fy)
+        + disparity[yi, xi + 1] * fx * (1.0 - fy)
+        + disparity[yi + 1, xi] * (1.0 - fx) * fy
+        + disparity[yi + 1, xi + 1] * fx * fy
     )
-    return z, z_other
+    if not math.isfinite(d):
+        d = disparity[yi + int(round(fy)), xi + int(round(fx))]
+    if math.isfinite(d):
+        return fb / (d - offset_px)
+    return np.nan
 
 
 @njit(cache=True, nogil=True)
-def depth_in_view(
-    points, centre, R, f_px, cx, cy, fb, offset_px, disparity, z_out, z_other
+def check_in_view(
+    points,
+    centre,
+    R,
+    f_px,
+    cx,
+    cy,
+    fb,
+    offset_px,
+    coarse,
+    disparity,
+    free_space_mm,
+    consistency_mm,
+    fused,
+    confirmed,
+    drop,
 ):  # pragma: no cover
-    """Each rig-frame point's depth along a rectified view's axis (``z_out``) and the
-    depth of the surface that view's ``disparity`` map measures on the same ray
-    (``z_other``; NaN where not measured there): the map is interpolated
-    bilinearly where its four neighbours are measured, else taken from the
-    nearest pixel. ``R``, ``centre``: the view's rotation rig -> rectified and
-    optical centre."""
-    h, w = disparity.shape
+    """One other view's part of the cross-pair check (see the module notes), in place.
+
+    Each point is projected into the view once, and looked up in its coarse
+    map (``coarse``; an empty map: none) for free space, and in its refined
+    ``disparity`` map (empty: none): a point the latter confirms and that no
+    earlier view confirmed is replaced by the mean of itself and the view's
+    surface point on the same ray, and ``confirmed``; one in front of
+    either surface is marked in ``drop``.
+    """
+    use_coarse = coarse.shape[0] > 0
+    use_fine = disparity.shape[0] > 0
     for i in range(points.shape[0]):
         a = points[i, 0] - centre[0]
         b = points[i, 1] - centre[1]
         c = points[i, 2] - centre[2]
         z = R[2, 0] * a + R[2, 1] * b + R[2, 2] * c
-        z_out[i] = z
-        z_other[i] = np.nan
         if not z > 0.0:
             continue
         x = f_px * (R[0, 0] * a + R[0, 1] * b + R[0, 2] * c) / z + cx
         y = f_px * (R[1, 0] * a + R[1, 1] * b + R[1, 2] * c) / z + cy
-        xf = math.floor(x)
-        yf = math.floor(y)
-        if not (xf >= 0 and xf < w - 1 and yf >= 0 and yf < h - 1):
+        if use_coarse:
+            z_coarse = _map_depth(coarse, x, y, fb, offset_px)
+            if math.isfinite(z_coarse) and z_coarse - z > free_space_mm:
+                drop[i] = True
+        if not use_fine:
             continue
-        xi = int(xf)
-        yi = int(yf)
-        fx = x - xf
-        fy = y - yf
-        d = (
-            disparity[yi, xi] * (1.0 - fx) * (1.0 - fy)
-            + disparity[yi, xi + 1] * fx * (1.0 - fy)
-            + disparity[yi + 1, xi] * (1.0 - fx) * fy
-            + disparity[yi + 1, xi + 1] * fx * fy
-        )
-        if not math.isfinite(d):
-            d = disparity[yi + int(round(fy)), xi + int(round(fx))]
-        if math.isfinite(d):
-            z_other[i] = fb / (d - offset_px)
+        z_other = _map_depth(disparity, x, y, fb, offset_px)
+        if not math.isfinite(z_other):
+            continue
+        dz = z_other - z
+        if abs(dz) <= consistency_mm and not confirmed[i]:
+            # The view's surface point on the ray from its left centre through
+            # this point: the ray scaled by the depth ratio.
+            ratio = z_other / z
+            for m in range(3):
+                other = centre[m] + (points[i, m] - centre[m]) * ratio
+                fused[i, m] = 0.5 * (points[i, m] + other)
+            confirmed[i] = True
+        # dz > 0: the point lies in front of (nearer the camera than) the surface
+        # the view sees through it, which would have hidden that surface.
+        if dz > consistency_mm:
+            drop[i] = True
 
 
-__all__ = ["depth_in_view", "fuse"]
+__all__ = ["check_in_view", "fuse"]

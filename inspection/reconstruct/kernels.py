@@ -48,7 +48,7 @@ import math
 import numpy as np
 from numba import njit
 
-from .._linalg import cholesky_solve
+from .._linalg import cholesky_solve_into
 
 
 @njit(cache=True, nogil=True, fastmath=True, inline="always")
@@ -383,24 +383,55 @@ def refine_cyclopean(
 
 
 @njit(cache=True, nogil=True, fastmath=True, inline="always")
-def _warped_sample(rrow, wrrow, xr, wr_cols):  # pragma: no cover
-    """Right-image row ``rrow`` (B-spline coefficients) at column ``xr``: the
-    spline's value, its derivative, and the sample's weight (the right weights
-    ``wrrow`` of the two nearest pixels). Branch-free: a column off the row is
-    clamped to a valid one and weighted 0, rather than skipped."""
-    xf = math.floor(xr)
-    a = xr - xf
-    xb0 = int(xf)
-    xb = min(max(xb0, 1), wr_cols - 3)
-    inside = 1.0 if xb == xb0 else 0.0
+def _warped_window(
+    left, wl, shape, mask, x, y, radius, s0, base, wlm, tv, rows
+):  # pragma: no cover
+    """What a warped window's samples keep from one step to the next, in row-major
+    order: the right-image column of each sample less the disparity (``base``),
+    its left weight (``wlm``: on the field, and unsaturated), its left value
+    (``tv``) and its row (``rows``)."""
+    j = 0
+    for v in range(-radius, radius + 1):
+        yy = y + v
+        for u in range(2 * radius + 1):
+            xx = x - radius + u
+            base[j] = xx - (shape[yy, xx] - s0)
+            wlm[j] = mask[yy, xx] * wl[yy, xx]
+            tv[j] = left[yy, xx]
+            rows[j] = yy
+            j += 1
+
+
+@njit(cache=True, nogil=True, fastmath=True, inline="always")
+def _warped_columns(base, d, wr_cols, cols, frac, inside):  # pragma: no cover
+    """Each sample's right-image column at disparity ``d``: the spline's first
+    coefficient column (``cols``, clamped to the row), the fraction between
+    columns (``frac``) and whether the column lies on the row (``inside``: 1, or 0
+    for a clamped one, which then gets no weight). A loop of its own, free of the
+    image reads, so that it vectorises."""
+    for j in range(base.shape[0]):
+        xr = base[j] - d
+        xf = math.floor(xr)
+        frac[j] = xr - xf
+        xb0 = int(xf)
+        xb = min(max(xb0, 1), wr_cols - 3)
+        cols[j] = xb
+        inside[j] = 1.0 if xb == xb0 else 0.0
+
+
+@njit(cache=True, nogil=True, fastmath=True, inline="always")
+def _warped_sample(right, wr, row, xb, a, inside):  # pragma: no cover
+    """The right image's spline (coefficients ``right``) in ``row`` at column
+    ``xb + a``: its value, its derivative, and the sample's weight (the right
+    weights ``wr`` of the two nearest pixels, times ``inside``)."""
     w0, w1, w2, w3, g0, g1, g2, g3 = _bspline(a)
-    r0 = rrow[xb - 1]
-    r1 = rrow[xb]
-    r2 = rrow[xb + 1]
-    r3 = rrow[xb + 2]
+    r0 = right[row, xb - 1]
+    r1 = right[row, xb]
+    r2 = right[row, xb + 1]
+    r3 = right[row, xb + 2]
     rv = w0 * r0 + w1 * r1 + w2 * r2 + w3 * r3
     gv = g0 * r0 + g1 * r1 + g2 * r2 + g3 * r3
-    return rv, gv, inside * wrrow[xb] * wrrow[xb + 1]
+    return rv, gv, inside * wr[row, xb] * wr[row, xb + 1]
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -439,6 +470,13 @@ def refine_warped(
     wr_cols = right.shape[1]
     n = px.shape[0]
     nw = (2 * radius + 1) ** 2
+    base = np.empty(nw)
+    wlm = np.empty(nw)
+    tv = np.empty(nw)
+    frac = np.empty(nw)
+    inside = np.empty(nw)
+    rows = np.empty(nw, np.int64)
+    cols = np.empty(nw, np.int64)
     for i in range(n):
         x = px[i]
         y = py[i]
@@ -448,6 +486,8 @@ def refine_warped(
         score = -1.0
         step = 99.0
         ok, s0 = _warp_centre(shape, mask, x, y, radius)
+        if ok:
+            _warped_window(left, wl, shape, mask, x, y, radius, s0, base, wlm, tv, rows)
         for _ in range(iterations):
             if not ok:
                 break
@@ -461,29 +501,21 @@ def refine_warped(
             stt = 0.0
             stw = 0.0
             stg = 0.0
-            for v in range(-radius, radius + 1):
-                yy = y + v
-                lrow = left[yy, x - radius : x + radius + 1]
-                wlrow = wl[yy, x - radius : x + radius + 1]
-                srow = shape[yy, x - radius : x + radius + 1]
-                mrow = mask[yy, x - radius : x + radius + 1]
-                rrow = right[yy]
-                wrrow = wr[yy]
-                for u in range(2 * radius + 1):
-                    xr = (x - radius + u) - d - (srow[u] - s0)
-                    rv, gv, wrt = _warped_sample(rrow, wrrow, xr, wr_cols)
-                    wt = mrow[u] * wlrow[u] * wrt
-                    t = lrow[u]
-                    s1 += wt
-                    sw += wt * rv
-                    sg += wt * gv
-                    sww += wt * rv * rv
-                    sgg += wt * gv * gv
-                    sgw += wt * gv * rv
-                    st += wt * t
-                    stt += wt * t * t
-                    stw += wt * t * rv
-                    stg += wt * t * gv
+            _warped_columns(base, d, wr_cols, cols, frac, inside)
+            for j in range(nw):
+                rv, gv, wrt = _warped_sample(right, wr, rows[j], cols[j], frac[j], inside[j])
+                wt = wlm[j] * wrt
+                t = tv[j]
+                s1 += wt
+                sw += wt * rv
+                sg += wt * gv
+                sww += wt * rv * rv
+                sgg += wt * gv * gv
+                sgw += wt * gv * rv
+                st += wt * t
+                stt += wt * t * t
+                stw += wt * t * rv
+                stg += wt * t * gv
             if s1 < 0.5 * nw:
                 ok = False
                 break
@@ -570,17 +602,35 @@ def refine_warped_shaded(
     wr_cols = right.shape[1]
     n = px.shape[0]
     nw = (2 * radius + 1) ** 2
+    nc = _SHADED_UNKNOWNS - 2
     A = np.empty((_SHADED_UNKNOWNS, _SHADED_UNKNOWNS))
     b = np.empty(_SHADED_UNKNOWNS)
     c = np.empty(SHADE_TERMS)
     q0 = np.empty(SHADE_TERMS)
     q = np.empty(SHADE_TERMS)
-    # The window's Jacobian rows, one column per weighted sample (and the same
-    # times the weight): the normal equations are then 36 contiguous dot
-    # products, which vectorise, rather than 36 scattered updates per sample.
-    Jt = np.empty((_SHADED_UNKNOWNS, nw))
-    Jw = np.empty((_SHADED_UNKNOWNS, nw))
-    et = np.empty(nw)
+    sol = np.empty(_SHADED_UNKNOWNS)
+    chol = np.empty((_SHADED_UNKNOWNS, _SHADED_UNKNOWNS))
+    fwd = np.empty(_SHADED_UNKNOWNS)
+    base = np.empty(nw)
+    wlm = np.empty(nw)
+    tv = np.empty(nw)
+    frac = np.empty(nw)
+    inside = np.empty(nw)
+    rows = np.empty(nw, np.int64)
+    cols = np.empty(nw, np.int64)
+    # The Jacobian by rows, one column per sample (a sample of weight 0 adds
+    # nothing): the normal equations are then contiguous dot products, which
+    # vectorise. The rows of the offset and the light (1, and each regressor
+    # less the centre's) do not change between a window's steps: ``jc``, and
+    # the same times the weights, ``jwc``, remade only when a weight changes.
+    jc = np.empty((nc, nw))
+    jwc = np.empty((nc, nw))
+    j0 = np.empty(nw)
+    j1 = np.empty(nw)
+    jw0 = np.empty(nw)
+    jw1 = np.empty(nw)
+    e_ = np.empty(nw)
+    w_ = np.empty(nw)
     for i in range(n):
         x = px[i]
         y = py[i]
@@ -592,8 +642,17 @@ def refine_warped_shaded(
         step = 99.0
         ok, s0 = _warp_centre(shape, mask, x, y, radius)
         if ok:
+            _warped_window(left, wl, shape, mask, x, y, radius, s0, base, wlm, tv, rows)
             _monomials(su[y, x], sv[y, x], q0)
-        for _ in range(iterations):
+            j = 0
+            for v in range(-radius, radius + 1):
+                for u in range(-radius, radius + 1):
+                    _monomials(su[y + v, x + u], sv[y + v, x + u], q)
+                    jc[0, j] = 1.0
+                    for k in range(SHADE_TERMS):
+                        jc[1 + k, j] = q[k] - q0[k]
+                    j += 1
+        for it in range(iterations):
             if not ok:
                 break
             s1 = 0.0
@@ -602,61 +661,79 @@ def refine_warped_shaded(
             st = 0.0
             stt = 0.0
             stw = 0.0
-            ns = 0
-            for v in range(-radius, radius + 1):
-                yy = y + v
-                lrow = left[yy, x - radius : x + radius + 1]
-                wlrow = wl[yy, x - radius : x + radius + 1]
-                srow = shape[yy, x - radius : x + radius + 1]
-                mrow = mask[yy, x - radius : x + radius + 1]
-                urow = su[yy, x - radius : x + radius + 1]
-                vrow = sv[yy, x - radius : x + radius + 1]
-                rrow = right[yy]
-                wrrow = wr[yy]
-                for u in range(2 * radius + 1):
-                    xr = (x - radius + u) - d - (srow[u] - s0)
-                    rv, gv, wrt = _warped_sample(rrow, wrrow, xr, wr_cols)
-                    wt = mrow[u] * wlrow[u] * wrt
-                    if wt == 0.0:
-                        continue
-                    t = lrow[u]
-                    e = t - g * rv - o
-                    Jt[0, ns] = -g * gv
-                    Jt[1, ns] = rv
-                    Jt[2, ns] = 1.0
-                    _monomials(urow[u], vrow[u], q)
-                    for k in range(SHADE_TERMS):
-                        qk = q[k] - q0[k]
-                        Jt[3 + k, ns] = qk
-                        e -= c[k] * qk
-                    et[ns] = e
-                    for r in range(_SHADED_UNKNOWNS):
-                        Jw[r, ns] = wt * Jt[r, ns]
-                    ns += 1
-                    s1 += wt
-                    sw += wt * rv
-                    sww += wt * rv * rv
-                    st += wt * t
-                    stt += wt * t * t
-                    stw += wt * t * rv
+            # Whether every sample's weight is that of the last step: then so is
+            # the block of the normal equations of the offset and the light.
+            same = it > 0
+            _warped_columns(base, d, wr_cols, cols, frac, inside)
+            for j in range(nw):
+                rv, gv, wrt = _warped_sample(right, wr, rows[j], cols[j], frac[j], inside[j])
+                wt = wlm[j] * wrt
+                same = same and w_[j] == wt
+                w_[j] = wt
+                t = tv[j]
+                e = t - g * rv - o
+                for k in range(SHADE_TERMS):
+                    e -= c[k] * jc[1 + k, j]
+                e_[j] = e
+                j0[j] = -g * gv
+                j1[j] = rv
+                jw0[j] = wt * j0[j]
+                jw1[j] = wt * rv
+                s1 += wt
+                sw += wt * rv
+                sww += wt * rv * rv
+                st += wt * t
+                stt += wt * t * t
+                stw += wt * t * rv
             if s1 < 0.5 * nw:
                 ok = False
                 break
             score = _ncc(s1, st, sw, stt, sww, stw)
-            for r in range(_SHADED_UNKNOWNS):
-                acc = 0.0
-                for m in range(ns):
-                    acc += Jw[r, m] * et[m]
-                b[r] = acc
-                for m2 in range(r, _SHADED_UNKNOWNS):
-                    acc = 0.0
-                    for m in range(ns):
-                        acc += Jw[r, m] * Jt[m2, m]
-                    A[r, m2] = acc
-                    A[m2, r] = acc
-            for k in range(SHADE_TERMS):
-                A[3 + k, 3 + k] += ridge * s1
-            sol, ok = cholesky_solve(A, b)
+            if not same:
+                for r in range(nc):
+                    for j in range(nw):
+                        jwc[r, j] = w_[j] * jc[r, j]
+            b0 = 0.0
+            b1 = 0.0
+            a00 = 0.0
+            a01 = 0.0
+            a11 = 0.0
+            for j in range(nw):
+                b0 += jw0[j] * e_[j]
+                b1 += jw1[j] * e_[j]
+                a00 += jw0[j] * j0[j]
+                a01 += jw0[j] * j1[j]
+                a11 += jw1[j] * j1[j]
+            b[0] = b0
+            b[1] = b1
+            A[0, 0] = a00
+            A[0, 1] = a01
+            A[1, 0] = a01
+            A[1, 1] = a11
+            for r in range(nc):
+                x0 = 0.0
+                x1 = 0.0
+                xe = 0.0
+                for j in range(nw):
+                    x0 += jw0[j] * jc[r, j]
+                    x1 += jw1[j] * jc[r, j]
+                    xe += jwc[r, j] * e_[j]
+                A[0, 2 + r] = x0
+                A[2 + r, 0] = x0
+                A[1, 2 + r] = x1
+                A[2 + r, 1] = x1
+                b[2 + r] = xe
+            if not same:
+                for r in range(nc):
+                    for r2 in range(r, nc):
+                        acc = 0.0
+                        for j in range(nw):
+                            acc += jwc[r, j] * jc[r2, j]
+                        A[2 + r, 2 + r2] = acc
+                        A[2 + r2, 2 + r] = acc
+                for k in range(SHADE_TERMS):
+                    A[3 + k, 3 + k] += ridge * s1
+            ok = cholesky_solve_into(A, b, chol, fwd, sol)
             if not ok:
                 break
             dd = min(max(sol[0], -1.0), 1.0)
@@ -747,6 +824,91 @@ def fill_row_gaps(disparity, passes):  # pragma: no cover
                     row[x] = s / np.float32(c)
 
 
+@njit(cache=True, nogil=True)
+def triangulate_matches(
+    x_left,
+    rows,
+    d_ref,
+    score,
+    step,
+    d_init,
+    keep,
+    geometry,
+    R,
+    centre,
+    lo,
+    hi,
+    limits,
+    full,
+    out_pts,
+    out_score,
+):  # pragma: no cover
+    """The accepted matches of one pair as rig-frame points, and its disparity map.
+
+    A match is accepted with a finite disparity, ``score >= min_score``, within
+    ``max_shift_px`` of its start and a last step under ``converged_px``
+    (``limits``, in that order, after ``z_min_mm``); its point is kept inside the
+    box ``lo``..``hi`` (rig frame) and not below ``z_min_mm``. Every kept match draws its
+    disparity into ``full`` (rounded pixel; NaN elsewhere, written by the
+    caller), and those with ``keep`` (an empty array: all) give points, written
+    to the first rows of ``out_pts`` and ``out_score``.
+
+    Parameters
+    ----------
+    geometry : (5,) float64
+        ``fb, offset_px, f_px, cx_left, cy`` of the rectified pair.
+    R, centre : the pair's ``R_rect_rig`` and ``centre_left``.
+    limits : (4,) float64
+        ``z_min_mm, min_score, max_shift_px, converged_px``.
+
+    Returns
+    -------
+    (points written, matches accepted)
+    """
+    fb, offset, f_px, cx, cy = geometry[0], geometry[1], geometry[2], geometry[3], geometry[4]
+    z_min = limits[0]
+    # The matches' figures are float32: compared in float32, as numpy compares them.
+    min_score = np.float32(limits[1])
+    max_shift = np.float32(limits[2])
+    converged = np.float32(limits[3])
+    w_img = full.shape[1]
+    use_keep = keep.shape[0] > 0
+    n_out = 0
+    n_good = 0
+    for i in range(x_left.shape[0]):
+        di = d_ref[i]
+        if not (
+            np.isfinite(di)
+            and score[i] >= min_score
+            and abs(di - d_init[i]) <= max_shift
+            and abs(step[i]) < converged
+        ):
+            continue
+        n_good += 1
+        d = np.float64(di)
+        x = x_left[i]
+        y = np.float64(rows[i])
+        z = fb / (d - offset)
+        qx = (x - cx) * z / f_px
+        qy = (y - cy) * z / f_px
+        inside = True
+        p = np.empty(3)
+        for j in range(3):
+            p[j] = qx * R[0, j] + qy * R[1, j] + z * R[2, j] + centre[j]
+            inside = inside and lo[j] <= p[j] <= hi[j]
+        if not (inside and p[2] >= z_min):
+            continue
+        xi = min(max(int(np.rint(x)), 0), w_img - 1)
+        full[rows[i], xi] = d
+        if use_keep and not keep[i]:
+            continue
+        for j in range(3):
+            out_pts[n_out, j] = p[j]
+        out_score[n_out] = score[i]
+        n_out += 1
+    return n_out, n_good
+
+
 __all__ = [
     "SHADE_TERMS",
     "field_slopes",
@@ -755,4 +917,5 @@ __all__ = [
     "refine_pixels",
     "refine_warped",
     "refine_warped_shaded",
+    "triangulate_matches",
 ]

@@ -397,31 +397,39 @@ def triangulate_pair(
 ) -> PairResult:
     """Accepted matches of one pair as rig-frame points, and its disparity map
     (``keep``: the matches that give points; the map is drawn from all of them)."""
-    lo, hi = frame.lo, frame.hi
-    good = (
-        np.isfinite(d_ref)
-        & (score >= p.min_score)
-        & (np.abs(d_ref - d_init) <= p.max_shift_px)
-        & (np.abs(step) < p.converged_px)
-    )
-    w_img = frame.shape[1]
-    xg = x_left[good]
-    yg = rows[good].astype(np.float64)
-    d = d_ref[good].astype(np.float64)
-    xi = np.clip(np.rint(xg).astype(np.int64), 0, w_img - 1)
-    yi = rows[good]
-    pts = pair.triangulate(xg, yg, d)
-    inside = np.all((pts >= lo) & (pts <= hi), axis=1) & (pts[:, 2] >= p.z_min_mm)
-    # The disparity map of the left view, for the other pair's consistency check.
+    n = len(x_left)
     full = np.full(frame.shape, np.nan, np.float32)
-    full[yi[inside], xi[inside]] = d[inside]
+    pts = np.empty((n, 3))
+    kept_score = np.empty(n, np.float32)
+    geometry = np.array([pair.fb, pair.offset_px, pair.f_px, pair.cx_left, pair.cy])
+    limits = np.array([p.z_min_mm, p.min_score, p.max_shift_px, p.converged_px])
+    n_out, n_good = kernels.triangulate_matches(
+        np.ascontiguousarray(x_left, dtype=np.float64),
+        np.ascontiguousarray(rows, dtype=np.int64),
+        d_ref,
+        score,
+        step,
+        d_init,
+        _NO_KEEP if keep is None else keep,
+        geometry,
+        pair.R_rect_rig,
+        pair.centre_left,
+        frame.lo,
+        frame.hi,
+        limits,
+        full,
+        pts,
+        kept_score,
+    )
+    # The disparity map of the left view, for the other pair's consistency check.
     fill_gaps(full, p.stride)
-    if keep is not None:
-        inside &= keep[good]
-    pts = pts[inside]
-    score = score[good][inside]
-    rep = replace(frame.report, refined=int(good.sum()), in_volume=len(pts))
+    pts = pts[:n_out].copy()
+    score = kept_score[:n_out].copy()
+    rep = replace(frame.report, refined=int(n_good), in_volume=len(pts))
     return PairResult(rep, pts, score, full, frame.coarse)
+
+
+_NO_KEEP = np.zeros(0, np.bool_)
 
 
 def fill_gaps(disparity: npt.NDArray[np.float32], stride: int) -> None:

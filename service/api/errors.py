@@ -12,6 +12,7 @@ Codes are stable (clients switch on them); messages are for people.
     PartNotReady           -> 409        part_not_ready
     PartConflict           -> 409        part_conflict
     CadLoadError           -> 422        invalid_cad
+    StoreError             -> 503        store_unavailable (the database cannot be reached)
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from inspection.errors import CadLoadError, InvalidInput
 
 from ..models import ErrorBody, ErrorDetail
 from ..parts import PartConflict, PartNotReady, UnknownPart
+from ..store import StoreError
 
 log = logging.getLogger(__name__)
 
@@ -107,6 +109,15 @@ def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(CadLoadError)
     async def _cad(request: Request, exc: CadLoadError) -> JSONResponse:
         return error_response(422, "invalid_cad", str(exc))
+
+    @app.exception_handler(StoreError)
+    async def _store(request: Request, exc: StoreError) -> JSONResponse:
+        # A database server on another host can be down while the API is up: the
+        # client may retry, as after any 503. Where the database is stays in the log.
+        log.error("result store: %s", exc)
+        return error_response(
+            503, "store_unavailable", "the result store cannot be reached; retry shortly"
+        )
 
     @app.exception_handler(Exception)
     async def _internal(request: Request, exc: Exception) -> JSONResponse:

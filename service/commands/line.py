@@ -72,14 +72,15 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def _on_bus(run: Any) -> int:
-    """Run a piece of the line; a zenoh session that cannot open, or a Dask cluster that
-    cannot be reached, is said, not a traceback."""
+    """Run a piece of the line; a zenoh session or a result store that cannot open, or a
+    Dask cluster that cannot be reached, is said, not a traceback."""
     from service.bus import BusError
     from service.executor import ExecutorError
+    from service.store import StoreError
 
     try:
         return int(run())
-    except (BusError, ExecutorError) as exc:
+    except (BusError, ExecutorError, StoreError) as exc:
         print(f"inspection: {exc}", file=sys.stderr)
         return 1
 

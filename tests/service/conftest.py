@@ -1,10 +1,12 @@
-"""Fixtures of the line's tests: one tree cache for the whole session."""
+"""Fixtures of the line's tests: one tree cache and one PostgreSQL server for the session."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from pgserver import PgServer, ServerUnavailable
 
 
 @pytest.fixture(scope="session")
@@ -12,3 +14,25 @@ def trees(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The tree cache every test of the session shares: the demo panel's tree is built
     once, then loaded (by this process and by the line processes the tests start)."""
     return tmp_path_factory.mktemp("trees")
+
+
+@pytest.fixture(scope="session")
+def pg_server() -> Iterator[PgServer]:
+    """A PostgreSQL server on loopback for the whole session; its tests skip where
+    the server's binaries are not installed."""
+    try:
+        server = PgServer.start()
+    except ServerUnavailable as exc:
+        pytest.skip(str(exc))
+    yield server
+    server.stop()
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def store_target(request: pytest.FixtureRequest, tmp_path: Path) -> str | Path:
+    """Where a new, empty result store goes: an SQLite file, or a database of its
+    own on the session's PostgreSQL server. One test body, both backends."""
+    if request.param == "sqlite":
+        return tmp_path / "results.sqlite"
+    server: PgServer = request.getfixturevalue("pg_server")
+    return server.new_database()

@@ -18,6 +18,7 @@ from types import SimpleNamespace
 
 import cv2
 import numpy as np
+import psycopg
 import pytest
 from fastapi.testclient import TestClient
 from linekit import uvicorn_server
@@ -110,10 +111,22 @@ def line(tmp_path_factory):
 
 
 @pytest.fixture
-def app_parts(line, tmp_path):
+def api_store_target(request, tmp_path):
+    """The API's store: an SQLite file, or with ``indirect`` parametrization
+    ``"postgresql"``, a database of its own on the session's server."""
+    if getattr(request, "param", "sqlite") == "sqlite":
+        return tmp_path / "results.sqlite"
+    return request.getfixturevalue("pg_server").new_database()
+
+
+BOTH_STORES = pytest.mark.parametrize("api_store_target", ["sqlite", "postgresql"], indirect=True)
+
+
+@pytest.fixture
+def app_parts(line, tmp_path, api_store_target):
     """A fresh store, archive and app per test, sharing the module's built part."""
     cfg, reg = line
-    store = ResultStore(tmp_path / "results.sqlite")
+    store = ResultStore(api_store_target)
     archive = DeviationArchive(tmp_path / "deviations")
     hub = ResultHub()
     zenoh_up = {"value": True}
@@ -247,6 +260,7 @@ def test_bad_part_uploads(client, files, data, status, code):
 # ----------------------------------------------------------------------------- inspections
 
 
+@BOTH_STORES
 def test_list_filters_and_pagination(client, app_parts):
     store = app_parts[1]
     for i in range(7):
@@ -276,6 +290,24 @@ def test_list_filters_and_pagination(client, app_parts):
     }
     one = client.get(f"/v1/inspections/{seen[0]['id']}").json()
     assert InspectionResult.model_validate(one) == store.get(seen[0]["id"])
+
+
+@pytest.mark.parametrize("api_store_target", ["postgresql"], indirect=True)
+def test_a_database_out_of_reach_is_a_503_and_the_api_goes_on(client, app_parts, pg_server):
+    store = app_parts[1]
+    store.put(stored_result(1))
+    name = store.where.rsplit("/", 1)[1]
+    with psycopg.connect(pg_server.url(), autocommit=True) as admin:
+        admin.execute(f"ALTER DATABASE {name} WITH ALLOW_CONNECTIONS false")
+        admin.execute(
+            "SELECT pg_terminate_backend(pid, 10000) FROM pg_stat_activity WHERE datname = %s",
+            (name,),
+        )
+        err = assert_error(client.get("/v1/inspections"), 503, "store_unavailable")
+        assert "127.0.0.1" not in err["message"]  # where the database is stays in the log
+        assert client.get(f"/v1/parts/{PART}").status_code == 200
+        admin.execute(f"ALTER DATABASE {name} WITH ALLOW_CONNECTIONS true")
+    assert [r["seq"] for r in client.get("/v1/inspections").json()["items"]] == [1]
 
 
 @pytest.mark.parametrize(
@@ -335,6 +367,7 @@ def test_colormap_renders_the_archived_deviations(client, app_parts):
     )
 
 
+@BOTH_STORES
 def test_trends(client, app_parts):
     store = app_parts[1]
     devs = np.random.default_rng(3).normal(0.05, 0.02, 15)

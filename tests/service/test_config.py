@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import tomllib
 from pathlib import Path
 
@@ -65,6 +66,9 @@ def test_defaults_equal_an_empty_file(tmp_path):
         ("[station]\nguided_matching = 'sometimes'\n", "station.guided_matching"),
         ("[bogus]\n", "bogus"),
         ("[storage]\nmcap_rotate_mb = nan\n", "storage.mcap_rotate_mb"),
+        ("[storage]\nurl = 'mysql://db/results'\n", "storage.url"),
+        ("[storage]\nurl = 'runs/results.sqlite'\n", "storage.url"),
+        ("[storage]\nurl = 'postgresql://db/results?sslmod=require'\n", "storage.url"),
     ],
 )
 def test_bad_line_files_fail_with_the_key(tmp_path, text, where):
@@ -97,6 +101,31 @@ def test_environment_then_flags_override(tmp_path):
     assert cfg2.http.port == 9002
     with pytest.raises(ConfigError, match="http.port"):
         load_line_config(path, env={"INSPECTION_HTTP_PORT": "eighty"})
+
+
+def test_the_store_is_the_sqlite_file_unless_a_postgresql_url_is_given(tmp_path):
+    path = write(tmp_path, "line.toml", "[storage]\ndata_dir = 'd'\n")
+    assert load_line_config(path).storage.store_target() == Path("d") / "results.sqlite"
+    url = "postgresql://insp:s3cret@db.plant:5432/results?sslmode=require"
+    cfg = load_line_config(path, env={"INSPECTION_STORAGE_URL": url})
+    assert cfg.storage.store_target() == url
+    # The effective config goes into the logs and every recording: never the password.
+    shown = cfg.effective()["storage"]["url"]
+    assert shown == "postgresql://insp:***@db.plant:5432/results?sslmode=require"
+    assert "s3cret" not in json.dumps(cfg.effective())
+    off = load_line_config(path, env={"INSPECTION_STORAGE_URL": ""})
+    assert off.storage.store_target() == Path("d") / "results.sqlite"
+
+
+def test_a_bad_storage_url_is_told_without_its_password(tmp_path):
+    path = write(tmp_path, "line.toml", "[storage]\nurl = 'mysql://u:s3cret@db/results'\n")
+    with pytest.raises(ConfigError, match="a postgresql://") as err:
+        load_line_config(path)
+    assert "mysql://" in str(err.value) and "s3cret" not in str(err.value)
+    path = write(tmp_path, "line.toml", "[storage]\nurl = 'postgresql://u:s%zz3cret@db/r'\n")
+    with pytest.raises(ConfigError, match="not a valid PostgreSQL URL") as err:
+        load_line_config(path)
+    assert "s%zz3cret" not in str(err.value) and "s3cret" not in str(err.value)
 
 
 def test_hash_follows_the_effective_values(tmp_path):

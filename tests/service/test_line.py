@@ -14,6 +14,7 @@ import urllib.error
 import urllib.request
 from pathlib import Path
 
+import psycopg
 import pytest
 import zenoh
 from linekit import LINE, ROOT, STATION, client, free_port
@@ -158,10 +159,10 @@ def wait_for_token(session: zenoh.Session, key: str, timeout_s: float) -> bool:
     return got.is_set()
 
 
-def cli(*args: str) -> subprocess.Popen:
+def cli(*args: str, env: dict[str, str] | None = None) -> subprocess.Popen:
     return subprocess.Popen(
         [sys.executable, "-m", "service.cli", *args],
-        env=ENV,
+        env={**ENV, **(env or {})},
         cwd=ROOT,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -233,14 +234,18 @@ def test_line_as_separate_processes(tmp_path, trees):
     db.close()
 
 
-def test_cli_run_stops_by_itself_after_n_parts(tmp_path, trees):
+@pytest.mark.parametrize("store", ["sqlite", "postgresql"])
+def test_cli_run_stops_by_itself_after_n_parts(tmp_path, trees, store, request):
     """``inspection run --parts N``: the line stops on its own after N results, exit
-    code 0, with every result it counted stored and recorded."""
+    code 0, with every result it counted stored (in the SQLite file, or in the
+    PostgreSQL database that ``$INSPECTION_STORAGE_URL`` names) and recorded."""
     port, http_port = free_port(), free_port()
     data = tmp_path / "data"
     config = line_file(tmp_path, trees, period_s=1.0, queue_size=1)
+    url = request.getfixturevalue("pg_server").new_database() if store == "postgresql" else None
     run = cli("run", "--config", str(config), "--data-dir", str(data), "--parts", "2",
-              "--http-port", str(http_port), "--zenoh-listen", f"tcp/127.0.0.1:{port}")  # fmt: skip
+              "--http-port", str(http_port), "--zenoh-listen", f"tcp/127.0.0.1:{port}",
+              env={"INSPECTION_STORAGE_URL": url} if url else None)  # fmt: skip
     try:
         out, err = run.communicate(timeout=300)
     finally:
@@ -251,8 +256,13 @@ def test_cli_run_stops_by_itself_after_n_parts(tmp_path, trees):
     assert counted is not None, out
     n = int(counted.group(1))
     assert n >= 2
-    db = sqlite3.connect(data / "results.sqlite")
-    rows = {r[0] for r in db.execute("SELECT id FROM results").fetchall()}
-    db.close()
+    if url is None:
+        db = sqlite3.connect(data / "results.sqlite")
+        rows = {r[0] for r in db.execute("SELECT id FROM results").fetchall()}
+        db.close()
+    else:
+        assert f"results: {url}" in out and not (data / "results.sqlite").exists()
+        with psycopg.connect(url) as pg:
+            rows = {r[0] for r in pg.execute("SELECT id FROM results").fetchall()}
     _, recorded = read_recording(sorted((data / "mcap").glob("*.mcap")))
     assert len(rows) == n and {t.result.id for t in recorded} == rows

@@ -13,8 +13,8 @@ from service.retention import Janitor
 from service.store import DeviationArchive, ResultStore
 
 
-def test_the_oldest_rows_go_beyond_the_size_budget(tmp_path):
-    with ResultStore(tmp_path / "r.sqlite") as store:
+def test_the_oldest_rows_go_beyond_the_size_budget(store_target):
+    with ResultStore(store_target) as store:
         for seq in range(50):
             store.put(res(seq))
         body = len(store.get(res(0).id).model_dump_json())
@@ -25,9 +25,9 @@ def test_the_oldest_rows_go_beyond_the_size_budget(tmp_path):
         assert store.enforce(max_bytes=20 * body + body // 2, max_age_s=None) == 0
 
 
-def test_rows_older_than_the_age_limit_go(tmp_path):
+def test_rows_older_than_the_age_limit_go(store_target):
     now = time.time_ns()
-    with ResultStore(tmp_path / "r.sqlite") as store:
+    with ResultStore(store_target) as store:
         store.put(res(1, t=now - 3 * 86400 * 10**9))
         store.put(res(2, t=now - 3600 * 10**9))
         assert store.enforce(max_bytes=None, max_age_s=86400) == 1
@@ -48,8 +48,8 @@ def test_the_archive_keeps_within_its_budget_newest_first(tmp_path):
     assert arc.enforce(max_bytes=None, max_age_s=1.0) == 4  # all older than a second
 
 
-def test_the_janitor_applies_the_config(tmp_path):
-    store = ResultStore(tmp_path / "r.sqlite")
+def test_the_janitor_applies_the_config(tmp_path, store_target):
+    store = ResultStore(store_target)
     arc = DeviationArchive(tmp_path / "dev")
     for seq in range(5):
         store.put(res(seq))

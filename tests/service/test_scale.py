@@ -42,8 +42,9 @@ DASK_WORKERS = ("w0", "w1", "w2")
 @pytest.fixture
 def storage() -> str:
     """``[storage]`` lines the dispatcher and the API share: the embedded SQLite store of the
-    data directory. A PostgreSQL server fixture puts both on it with ``url = "postgresql://..."``
-    here; the checks read the store through the API, whatever its backend."""
+    data directory. On PostgreSQL: ``url = "..."`` with a database of the ``pg_server``
+    fixture (``pg_server.new_database()``); the checks read the store through the API,
+    whatever its backend."""
     return ""
 
 

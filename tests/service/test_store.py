@@ -1,15 +1,30 @@
-"""The SQLite result store: one row per trigger, filters, pagination, trends, migrations."""
+"""The result store: one row per trigger, filters, pagination, trends, migrations.
+
+Each test that takes ``store`` or ``store_target`` runs on SQLite and on a real
+PostgreSQL server (see ``conftest.py``): one test body, both backends.
+"""
 
 from __future__ import annotations
 
+import contextlib
+import socket
 import sqlite3
 import threading
 
 import numpy as np
+import pgserver
+import psycopg
 import pytest
 
-from service.models import InspectionResult, PointResult, make_result_id, software_version
+from service.models import (
+    InspectionResult,
+    PointResult,
+    Status,
+    make_result_id,
+    software_version,
+)
 from service.store import (
+    MIGRATIONS,
     SCHEMA_VERSION,
     DeviationArchive,
     Filters,
@@ -18,6 +33,7 @@ from service.store import (
     StoreError,
     encode_cursor,
 )
+from service.store_url import is_postgres_url
 
 T0 = 1_700_000_000_000_000_000
 
@@ -51,9 +67,34 @@ def res(
     )
 
 
+@contextlib.contextmanager
+def raw_connection(target):
+    """A connection of the database's own driver beside the store's, committing each
+    statement: what another program sees, and a way to set up what the store refuses."""
+    if is_postgres_url(target):
+        with psycopg.connect(target, autocommit=True) as db:
+            yield db
+    else:
+        db = sqlite3.connect(target, isolation_level=None)
+        try:
+            yield db
+        finally:
+            db.close()
+
+
+def index_names(target) -> set[str]:
+    with raw_connection(target) as db:
+        sql = (
+            "SELECT indexname FROM pg_indexes WHERE tablename = 'results'"
+            if is_postgres_url(target)
+            else "SELECT name FROM sqlite_master WHERE type = 'index' AND tbl_name = 'results'"
+        )
+        return {r[0] for r in db.execute(sql).fetchall()}
+
+
 @pytest.fixture
-def store(tmp_path):
-    with ResultStore(tmp_path / "results.sqlite") as s:
+def store(store_target):
+    with ResultStore(store_target) as s:
         yield s
 
 
@@ -63,31 +104,44 @@ def test_upsert_keeps_one_row_per_id(store):
     assert store.count() == 1
     assert store.get(res(1).id).status == "fail"
     assert store.get("nope") is None
+    assert store.has(res(1).id) and not store.has("nope")
 
 
-def test_wal_mode_and_schema_version(tmp_path, store):
-    mode = store._db.execute("PRAGMA journal_mode").fetchone()[0]
-    assert mode == "wal"
+def test_put_many_writes_a_batch_once_however_often_it_comes(store):
+    batch = [res(i) for i in range(30)]
+    assert store.put_many(batch) == 30
+    assert store.put_many([*batch[:10], res(3, status="fail")]) == 11
+    assert store.count() == 30
+    assert store.get(res(3).id).status == "fail"
+    assert store.put_many([]) == 0
+
+
+def test_a_new_store_is_at_the_current_schema(store):
     assert store.schema_version == SCHEMA_VERSION
 
 
-def test_reopen_keeps_results(tmp_path):
+def test_the_sqlite_file_is_in_wal_mode(tmp_path):
     path = tmp_path / "r.sqlite"
-    with ResultStore(path) as s:
+    ResultStore(path).close()
+    with raw_connection(path) as db:
+        assert db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+
+
+def test_reopen_keeps_results(store_target):
+    with ResultStore(store_target) as s:
         for i in range(5):
             s.put(res(i))
-    with ResultStore(path) as s:
+    with ResultStore(store_target) as s:
         assert s.count() == 5
         assert s.get(res(3).id) == res(3)
 
 
-def test_newer_schema_is_refused(tmp_path):
-    path = tmp_path / "r.sqlite"
-    ResultStore(path).close()
-    with sqlite3.connect(path) as db:
-        db.execute("UPDATE schema_version SET version = ?", (SCHEMA_VERSION + 1,))
+def test_newer_schema_is_refused(store_target):
+    ResultStore(store_target).close()
+    with raw_connection(store_target) as db:
+        db.execute(f"UPDATE schema_version SET version = {SCHEMA_VERSION + 1}")
     with pytest.raises(StoreError, match="newer"):
-        ResultStore(path)
+        ResultStore(store_target)
 
 
 def test_not_a_database_is_refused(tmp_path):
@@ -95,6 +149,57 @@ def test_not_a_database_is_refused(tmp_path):
     path.write_bytes(b"this is not sqlite" * 100)
     with pytest.raises(StoreError, match="not a result store"):
         ResultStore(path)
+
+
+@pytest.mark.parametrize("version", range(SCHEMA_VERSION))
+def test_an_older_store_is_migrated_on_open_and_keeps_its_rows(store_target, version):
+    """A database left at each earlier schema version (with a row where it has the
+    table) is brought to the current one when opened."""
+    old = res(1)
+    with raw_connection(store_target) as db:
+        db.execute("CREATE TABLE schema_version (version INTEGER NOT NULL)")
+        db.execute(f"INSERT INTO schema_version VALUES ({version})")
+        for script in MIGRATIONS[:version]:
+            for stmt in script.split(";"):
+                if stmt.strip():
+                    db.execute(stmt)
+        if version >= 1:
+            body = old.model_dump_json().replace("'", "''")
+            db.execute(
+                "INSERT INTO results VALUES ("
+                f"'{old.id}', 'line1', 'st1', 'demo-panel', 'SN1', 1, {old.triggered_ns}, "
+                f"'pass', '{body}', 0)"
+            )
+    with ResultStore(store_target) as s:
+        assert s.schema_version == SCHEMA_VERSION
+        assert s.count() == (1 if version >= 1 else 0)
+        assert version < 1 or s.get(old.id) == old
+        s.put(res(2))
+        assert s.last_trigger("line1", "st1") == (2, res(2).triggered_ns)
+    assert "results_station_seq" in index_names(store_target)
+
+
+def test_a_new_store_opened_four_times_at_once_is_migrated_once(store_target):
+    """A worker and an API starting together: each opens its own connection."""
+    barrier = threading.Barrier(4)
+    versions, errors = [], []
+
+    def open_it():
+        barrier.wait()
+        try:
+            with ResultStore(store_target) as s:
+                versions.append(s.schema_version)
+        except Exception as exc:  # pragma: no cover - reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=open_it) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert errors == [] and versions == [SCHEMA_VERSION] * 4
+    with raw_connection(store_target) as db:
+        assert db.execute("SELECT version FROM schema_version").fetchall() == [(SCHEMA_VERSION,)]
 
 
 def test_pagination_visits_every_row_once_newest_first(store):
@@ -203,27 +308,94 @@ def test_deviation_archive_round_trip(tmp_path):
         arc.save("x", pts, d[:5])
 
 
-def test_an_older_file_is_migrated_on_open(tmp_path):
-    path = tmp_path / "old.sqlite"
-    with sqlite3.connect(path) as db:
-        db.execute("CREATE TABLE schema_version (version INTEGER NOT NULL)")
-        db.execute("INSERT INTO schema_version VALUES (0)")
-    with ResultStore(path) as s:
-        assert s.schema_version == SCHEMA_VERSION
+def test_other_connections_see_each_put_at_once(store_target):
+    """Each put is committed when it returns: the API of another process, or `sqlite3`
+    and `psql` on the shell, read it while the store is open (SQLite: WAL)."""
+    with ResultStore(store_target) as s:
         s.put(res(1))
-        assert s.count() == 1
-    with sqlite3.connect(path) as db:
-        tables = {r[0] for r in db.execute("SELECT name FROM sqlite_master WHERE type='table'")}
-    assert {"schema_version", "results"} <= tables
-
-
-def test_readers_in_other_processes_see_committed_rows(tmp_path):
-    """WAL: a second connection (e.g. `sqlite3` on the shell) reads while the store is open."""
-    path = tmp_path / "r.sqlite"
-    with ResultStore(path) as s:
-        s.put(res(1))
-        with sqlite3.connect(path) as db:
+        with raw_connection(store_target) as db:
             assert db.execute("SELECT COUNT(*) FROM results").fetchone()[0] == 1
+
+
+def test_a_station_s_triggers_by_seq_and_time(store):
+    for seq in range(10):
+        store.put(res(seq, status="fail" if seq == 4 else "pass"))
+    store.put(res(7, status="error", t=T0 + 7_500_000_000))  # a repeat of seq 7, refused
+    other = res(20).model_copy(
+        update={"station": "st2", "id": make_result_id("line1", "st2", 20, T0)}
+    )
+    store.put(other)
+    assert store.last_trigger("line1", "st1") == (9, res(9).triggered_ns)
+    assert store.last_trigger("line1", "st2") == (20, other.triggered_ns)
+    assert store.last_trigger("line1", "nowhere") is None
+    got = store.station_results("line1", "st1", seq=(5, 8))
+    assert [(r.seq, r.status) for r in got] == [(5, "pass"), (6, "pass"), (7, "pass"),
+                                                (7, "error"), (8, "pass")]  # fmt: skip
+    by_time = store.station_results("line1", "st1", since_ns=T0 + 2 * 10**9,
+                                    until_ns=T0 + 3 * 10**9)  # fmt: skip
+    assert [r.seq for r in by_time] == [2, 3]
+    assert [r.seq for r in store.station_results("line1", "st1", limit=3)] == [0, 1, 2]
+    counts = {s.value: 0 for s in Status} | {"pass": 10, "fail": 1, "error": 1}
+    assert store.status_counts() == counts
+
+
+def test_deleting_a_part_deletes_its_results_only(store):
+    for seq in range(6):
+        store.put(res(seq, part="a" if seq % 2 else "b"))
+    assert store.delete_part("a") == 3
+    assert store.delete_part("a") == 0
+    assert sorted(r.seq for r in store.iter_all()) == [0, 2, 4]
+
+
+# ----------------------------------------------------------------------------- PostgreSQL
+
+
+def test_a_connection_the_server_dropped_is_replaced_without_losing_a_put(pg_server, caplog):
+    """A server restart or a dropped link between two results: the next put reconnects
+    and is stored."""
+    url = pg_server.new_database()
+    with ResultStore(url) as s:
+        s.put(res(1))
+        with psycopg.connect(url, autocommit=True) as admin:
+            (pid,) = admin.execute(
+                "SELECT pid FROM pg_stat_activity WHERE application_name = 'inspection' "
+                "AND datname = current_database()"
+            ).fetchone()
+            # With a timeout the call returns once the server process has gone.
+            assert admin.execute("SELECT pg_terminate_backend(%s, 10000)", (pid,)).fetchone()[0]
+        s.put(res(2))
+        assert s.count() == 2
+    assert "connection lost" in caplog.text
+
+
+def test_a_database_that_went_away_is_a_store_error(pg_server):
+    url = pg_server.new_database()
+    with ResultStore(url) as s:
+        s.put(res(1))
+        name = url.rsplit("/", 1)[1]
+        with psycopg.connect(pg_server.url(), autocommit=True) as admin:
+            admin.execute(f"DROP DATABASE {name} WITH (FORCE)")
+        with pytest.raises(StoreError, match=f'database "{name}" does not exist'):
+            s.put(res(2))
+
+
+def test_a_server_that_is_not_there_is_a_clear_error_without_the_password(pg_server):
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]  # bound and not listening: nothing answers there
+        with pytest.raises(StoreError, match="cannot connect") as err:
+            ResultStore(f"postgresql://postgres:s3cret@127.0.0.1:{port}/results")
+    assert "s3cret" not in str(err.value) and "postgres:***@" in str(err.value)
+    with pytest.raises(StoreError, match='database "nope" does not exist'):
+        ResultStore(pg_server.url("nope"))
+    with pytest.raises(StoreError, match="not a valid PostgreSQL URL"):
+        ResultStore("postgresql://postgres:s3cret@127.0.0.1/results?sslmod=require")
+
+
+def test_without_a_server_installed_the_postgresql_variants_say_how_to_get_one(monkeypatch):
+    monkeypatch.setattr(pgserver, "find_bindir", lambda: None)
+    with pytest.raises(pgserver.ServerUnavailable, match="apt-get install postgresql"):
+        pgserver.PgServer.start()
 
 
 def test_the_archive_keeps_at_most_its_points_evenly_spread(tmp_path):
