@@ -326,3 +326,26 @@ def test_the_in_process_executor_answers_before_handle_returns(quick_part, quick
     w.handle(job(quick_sets[0]))
     assert [r.seq for r in got.results] == [0]
     assert w.executor_status()["kind"] == IN_PROCESS and w.executor_status()["in_flight"] == 0
+
+
+def test_the_metrics_show_who_measured_and_what_is_in_flight(quick_part, quick_sets):
+    from service.metrics import Metrics, executor_collector
+
+    p = pipeline(quick_part)
+    gate = Gated(p, slots=3)
+    metrics = Metrics()
+    w = Worker(p, JobQueue(4), [], line=LINE, station=STATION, executor=gate, metrics=metrics)
+    metrics.collector(executor_collector(w.executor_status))
+    for fs in quick_sets[:3]:
+        w.handle(job(fs))
+    gate.finish(0)
+    gate.finish(1)
+    assert w.drain(0.0) is False  # seq 2 is still being measured
+    text = metrics.render().decode()
+    assert "inspection_executor_in_flight 1.0" in text
+    assert "inspection_executor_slots 3.0" in text and "inspection_executor_workers 2.0" in text
+    assert 'inspection_executor_job_seconds_count{worker="gate-0"} 1.0' in text
+    assert 'inspection_executor_job_seconds_count{worker="gate-1"} 1.0' in text
+    assert "inspection_executor_dispatch_seconds_count 2.0" in text
+    gate.finish(2)
+    assert w.drain(30)
