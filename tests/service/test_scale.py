@@ -24,6 +24,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+import zenoh
 from linekit import ROOT, STATION, client, free_port
 from test_faults import KEYS, Frames, Line, Stream
 from test_line import ENV, get_json
@@ -130,6 +131,49 @@ class Results(Stream):
             return self._cond.wait_for(lambda: ids <= {r.id for r in self.got}, timeout_s)
 
 
+class Beats:
+    """The dispatcher's last status heartbeat."""
+
+    def __init__(self) -> None:
+        self.last = ""
+
+    def __call__(self, sample) -> None:
+        self.last = sample.payload.to_bytes().decode()
+
+
+def why(line: Line, beats: Beats) -> str:
+    """What the dispatcher says, for a failed wait: its last status and, stopped, its log."""
+    p = line.procs.get("worker")
+    said = "(not running)"
+    if p is not None:
+        if p.poll() is None:
+            p.send_signal(signal.SIGINT)
+            p.wait(60)
+        said = p.stderr.read()[-4000:]
+    return f"last status: {beats.last}\nlog: {said}"
+
+
+def wait_for_dispatcher(session, line: Line, timeout_s: float = 300) -> bool:
+    """Wait for the liveliness token of the dispatcher running now: its id holds its pid,
+    so the token of one killed before, which the router may not have dropped yet, does
+    not count."""
+    pid = line.procs["worker"].pid
+    sub = session.liveliness().declare_subscriber(
+        KEYS.workers(), zenoh.handlers.FifoChannel(64), history=True
+    )
+    try:
+        deadline = time.monotonic() + timeout_s
+        pause = threading.Event()
+        while time.monotonic() < deadline:
+            while (sample := sub.handler.try_recv()) is not None:
+                if sample.kind == zenoh.SampleKind.PUT and f"-{pid}-" in str(sample.key_expr):
+                    return True
+            pause.wait(0.1)
+        return False
+    finally:
+        sub.undeclare()
+
+
 def stored_results(http_port: int) -> list[dict]:
     """Every result of the station in the store, read page by page through the API."""
     out, cursor = [], None
@@ -157,16 +201,18 @@ def test_a_station_on_dask_answers_every_trigger_once_through_kills(
         with bus.open_session(client(line.port)) as session:
             sub = bus.RingSubscriber(session, KEYS.results(), stream, capacity=256)
             seen = bus.RingSubscriber(session, KEYS.frames(STATION), frames, capacity=64)
+            beats = Beats()
+            heard = bus.RingSubscriber(session, KEYS.status(STATION), beats, capacity=8)
             try:
                 line.start("worker", *dispatcher)
                 line.start("api")
-                line.wait_ready(session)
+                assert wait_for_dispatcher(session, line), why(line, beats)
                 line.wait_api()
                 line.start("ingest")
 
                 def measured(n: int) -> None:
                     target = stream.last_seq() + n
-                    assert stream.wait_seq(target, 120), line._stderr("worker")
+                    assert stream.wait_seq(target, 120), why(line, beats)
 
                 measured(4)
                 killed, jobs = cluster.kill_mid_job()
@@ -174,11 +220,11 @@ def test_a_station_on_dask_answers_every_trigger_once_through_kills(
                 line.kill("worker")  # the dispatcher, with jobs in flight and journaled
                 assert frames.wait_seq(frames.seq + 2, 60)  # two triggers while it is down
                 line.start("worker", *dispatcher)
-                line.wait_ready(session)
+                assert wait_for_dispatcher(session, line), why(line, beats)
                 assert frames.wait_seq(SHIFT - 1, 300), line._stderr("ingest")
                 line.stop("ingest")
                 last = line.fired() - 1
-                assert stream.wait_seq(last, 120), line._stderr("worker")
+                assert stream.wait_seq(last, 120), why(line, beats)
                 fetched = fetch_results(session, KEYS, STATION)
                 # Results finish out of seq order: some may still be in flight. Stopped,
                 # the dispatcher answers them before it exits.
@@ -189,6 +235,7 @@ def test_a_station_on_dask_answers_every_trigger_once_through_kills(
             finally:
                 sub.close()
                 seen.close()
+                heard.close()
         events = cluster.events()
         for name in ("api", "router"):
             line.stop(name)
