@@ -21,6 +21,7 @@ import os
 import re
 import tomllib
 from collections.abc import Mapping
+from dataclasses import dataclass
 from enum import StrEnum
 from pathlib import Path
 from typing import Annotated, Any
@@ -282,6 +283,68 @@ class LineSection(_Strict):
     )
 
 
+class ExecutorKind(StrEnum):
+    """Where a station's measurements run."""
+
+    in_process = "in-process"
+    dask = "dask"
+
+
+DASK_LOCAL_MAX_WORKERS = 64
+"""Worker processes ``local:N`` may start on this host at most."""
+
+DASK_ADDRESS_RULE = (
+    "tcp://HOST:PORT (a Dask scheduler's address) or local:N "
+    f"(N single-threaded worker processes on this host, 1 to {DASK_LOCAL_MAX_WORKERS})"
+)
+
+
+@dataclass(frozen=True)
+class DaskAddress:
+    """A Dask cluster to measure on: a running scheduler, or one started here.
+
+    Attributes
+    ----------
+    scheduler : str or None
+        ``tcp://HOST:PORT`` of a running scheduler.
+    local_workers : int or None
+        Start a cluster of this many single-threaded worker processes on this host.
+    """
+
+    scheduler: str | None = None
+    local_workers: int | None = None
+
+    def __str__(self) -> str:
+        return self.scheduler if self.scheduler is not None else f"local:{self.local_workers}"
+
+
+_TCP_ADDRESS = re.compile(
+    r"tcp://(?P<host>[A-Za-z0-9.-]{1,253}|\[[0-9A-Fa-f:.]{2,45}\]):(?P<port>\d{1,5})"
+)
+
+
+def parse_dask_address(text: object) -> DaskAddress:
+    """``tcp://HOST:PORT`` or ``local:N`` as a :class:`DaskAddress`.
+
+    Raises
+    ------
+    ValueError
+        Anything else, with the rule in the message.
+    """
+    if not isinstance(text, str):
+        raise ValueError(f"a Dask address must be a string: {DASK_ADDRESS_RULE}")
+    shown = text if len(text) <= 80 else text[:80] + "..."
+    if text.startswith("local:"):
+        n = text.removeprefix("local:")
+        if n.isascii() and n.isdigit() and 1 <= int(n) <= DASK_LOCAL_MAX_WORKERS:
+            return DaskAddress(local_workers=int(n))
+        raise ValueError(f"{shown!r} is not a Dask address: {DASK_ADDRESS_RULE}")
+    m = _TCP_ADDRESS.fullmatch(text)
+    if m is None or not 1 <= int(m["port"]) <= 65535:
+        raise ValueError(f"{shown!r} is not a Dask address: {DASK_ADDRESS_RULE}")
+    return DaskAddress(scheduler=text)
+
+
 class StationSection(_Strict):
     name: Name = "st1"
     rig_calibration: str | None = Field(
@@ -321,12 +384,49 @@ class StationSection(_Strict):
         ),
     )
 
+    executor: ExecutorKind = Field(
+        default=ExecutorKind.in_process,
+        description=(
+            "Where the station's parts are measured: `in-process` (in the worker itself), or "
+            "`dask` (on the Dask cluster of `dask_scheduler`; the worker still accounts for "
+            "every trigger)."
+        ),
+    )
+    dask_scheduler: str | None = Field(
+        default=None,
+        description=f'With `executor = "dask"`: {DASK_ADDRESS_RULE}.',
+    )
+
     @field_validator("parts")
     @classmethod
     def _unique(cls, v: list[str]) -> list[str]:
         if len(set(v)) != len(v):
             raise ValueError("station parts must be unique")
         return v
+
+    @field_validator("dask_scheduler")
+    @classmethod
+    def _dask_address(cls, v: str | None) -> str | None:
+        if v is not None:
+            parse_dask_address(v)
+        return v
+
+    @model_validator(mode="after")
+    def _executor_has_its_address(self) -> StationSection:
+        if self.executor is ExecutorKind.dask and self.dask_scheduler is None:
+            raise ValueError(f'executor = "dask" needs dask_scheduler: {DASK_ADDRESS_RULE}')
+        if self.executor is ExecutorKind.in_process and self.dask_scheduler is not None:
+            raise ValueError(
+                'dask_scheduler is set but executor is "in-process": set executor = "dask" '
+                "or remove dask_scheduler"
+            )
+        return self
+
+    def dask_address(self) -> DaskAddress | None:
+        """The Dask cluster to measure on (None: in-process)."""
+        if self.executor is ExecutorKind.in_process or self.dask_scheduler is None:
+            return None
+        return parse_dask_address(self.dask_scheduler)
 
 
 class ProjectorSection(_Strict):

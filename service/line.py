@@ -33,6 +33,7 @@ from inspection.transforms import apply
 from . import bus
 from .api import ResultHub, create_app
 from .config import LineConfig, PartSpec, load_part_spec
+from .executor import Executor, InProcessExecutor
 from .ingest import Ingest, SeqState, SimPart, SimulatedRig, SimulationSettings, line_rig
 from .journal import Journal
 from .metrics import Metrics
@@ -294,6 +295,30 @@ def worker_state(cfg: LineConfig, store: ResultStore) -> dict[str, Any]:
     )
 
 
+def make_executor(cfg: LineConfig, station: Station) -> Executor:
+    """Where the station's measurements run, as ``[station] executor`` says.
+
+    In-process: the worker's own pipeline. Dask: connected to the cluster
+    (or a local one started), the station loaded and warmed up on every
+    worker there, with a FrameSet rendered here.
+
+    Raises
+    ------
+    service.executor.ExecutorError
+        The cluster cannot be reached or cannot load the station.
+    """
+    address = cfg.station.dask_address()
+    pipeline = station.pipeline()
+    if address is None:
+        return InProcessExecutor(pipeline)
+    from .dask_executor import DaskExecutor
+
+    warm_up = station.simulated_rig().capture(0, time.time_ns()) if station.cads else None
+    return DaskExecutor.connect(
+        address, pipeline, warm_up=warm_up, trees_dir=cfg.storage.trees_path()
+    )
+
+
 def make_ingest(cfg: LineConfig, station: Station, publish: Callable[[bytes], None]) -> Ingest:
     """The station's simulated ingest, numbering on from where it stopped last."""
     return Ingest(
@@ -444,6 +469,7 @@ class LineHandles:
     hub: ResultHub
     app: Api | None = None
     janitor: Janitor | None = None
+    executor: Executor | None = None
 
     def close(self) -> None:
         """Stop triggering, let the worker finish what was triggered, close everything."""
@@ -452,6 +478,8 @@ class LineHandles:
         if last >= 0 and not self.counter.wait_seq(last, 60.0):
             log.warning("stopping before the result of seq %d arrived", last)
         self.worker.close()
+        if self.executor is not None:
+            self.executor.close()
         self.recorder.close()
         if self.janitor is not None:
             self.janitor.close()
@@ -475,13 +503,20 @@ def start_line(
 ) -> LineHandles:
     """Start the whole line in this process; see :func:`run_line`."""
     log.info("line config %s: %s", cfg.hash()[:12], json.dumps(cfg.effective()))
-    station = Station.load(cfg, stages)
+    # Measuring here warms the kernels up; a station measured on Dask warms its workers.
+    station = Station.load(cfg, stages, warm_up=cfg.station.dask_address() is None)
     try:
-        session = bus.open_session(bus_settings(cfg, "peer"))
+        executor = make_executor(cfg, station)
     except BaseException:
         station.close()
         raise
-    opened: list[Any] = [station, session]
+    try:
+        session = bus.open_session(bus_settings(cfg, "peer"))
+    except BaseException:
+        executor.close()
+        station.close()
+        raise
+    opened: list[Any] = [station, executor, session]
     try:
         store = ResultStore(cfg.storage.store_target())
         opened.append(store)
@@ -507,6 +542,7 @@ def start_line(
             after_publish=[recorder.record, counter],
             missed_part=station.missed_part(),
             metrics=metrics,
+            executor=executor,
             **worker_state(cfg, store),
         )
         opened.append(worker)
@@ -517,7 +553,10 @@ def start_line(
                 cfg,
                 store=store,
                 hub=hub,
-                checks={"zenoh": lambda: not session.is_closed()},
+                checks={
+                    "zenoh": lambda: not session.is_closed(),
+                    "executor": lambda: worker.worker.executor_status()["workers"] > 0,
+                },
                 registry=station.registry,
                 metrics=metrics,
             )
@@ -534,8 +573,9 @@ def start_line(
         bus.close_all(reversed(opened))
         raise
     return LineHandles(
-        session, station, store, recorder, worker, ingest, counter, api, hub, made, janitor
-    )
+        session, station, store, recorder, worker, ingest, counter, api, hub, made, janitor,
+        executor,
+    )  # fmt: skip
 
 
 def run_line(
@@ -591,10 +631,12 @@ def run_ingest(cfg: LineConfig, stop: threading.Event, *, count: int | None = No
 
 
 def run_worker(cfg: LineConfig, stop: threading.Event) -> int:
-    """A worker alone: measures, publishes, stores and records until ``stop``."""
-    station = Station.load(cfg)
+    """A worker alone: measures (or has its executor measure), publishes, stores and
+    records until ``stop``."""
+    station = Station.load(cfg, warm_up=cfg.station.dask_address() is None)
     with (
         contextlib.closing(station),
+        contextlib.closing(make_executor(cfg, station)) as executor,
         contextlib.closing(bus.open_session(bus_settings(cfg))) as session,
     ):
         store = ResultStore(cfg.storage.store_target())
@@ -617,6 +659,7 @@ def run_worker(cfg: LineConfig, stop: threading.Event) -> int:
             after_publish=[recorder.record],
             missed_part=station.missed_part(),
             metrics=metrics,
+            executor=executor,
             **worker_state(cfg, store),
         )
         try:

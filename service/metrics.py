@@ -18,6 +18,13 @@ the histograms it observes as it answers):
 ``inspection_worker_queue_depth``           FrameSets waiting (gauge), and ``_capacity``
 ``inspection_stage_seconds``                time of each measuring stage, by ``stage``
 ``inspection_latency_seconds``              trigger to answered result
+``inspection_executor_workers``             who measures (gauge): Dask workers, or 1
+                                            in-process; ``_threads``, ``_slots`` and
+                                            ``_in_flight`` beside it
+``inspection_executor_job_seconds``         time of each measurement where it ran, by
+                                            ``worker`` (a Dask worker's address, or
+                                            ``in-process``)
+``inspection_executor_dispatch_seconds``    a measurement's round trip less its own time
 ==========================================  ===========================================
 """
 
@@ -171,5 +178,22 @@ def worker_collector(stats: Any, depth: Callable[[], int], capacity: int) -> Cal
         yield GaugeMetricFamily(
             "inspection_worker_queue_capacity", "FrameSets that may wait.", value=capacity
         )
+
+    return collect
+
+
+def executor_collector(status: Callable[[], dict[str, Any]]) -> Callable[[], Any]:
+    """The gauges of a worker's executor (``status``: its
+    :meth:`~service.worker.Worker.executor_status`)."""
+
+    def collect() -> Iterator[Metric]:
+        st = status()
+        for key, help_ in (
+            ("workers", "Who measures: Dask workers (1 in-process)."),
+            ("threads", "Measurements the executor's workers run at once."),
+            ("slots", "Measurements the worker keeps in flight at most."),
+            ("in_flight", "Measurements handed out and not yet answered."),
+        ):
+            yield GaugeMetricFamily(f"inspection_executor_{key}", help_, value=st.get(key, 0))
 
     return collect

@@ -267,6 +267,20 @@ def load_part(
     report = progress or (lambda f, m: None)
     report(0.05, "loading CAD")
     cad = load_part_cad(spec, base_dir)
+    return part_from_cad(spec, cad, trees_dir, report, alignment=alignment, models=models)
+
+
+def part_from_cad(
+    spec: PartSpec,
+    cad: CadModel,
+    trees_dir: Path,
+    progress: Callable[[float, str], None] | None = None,
+    *,
+    alignment: bool = True,
+    models: MutableMapping[str, AlignmentModel] | None = None,
+) -> LoadedPart:
+    """:func:`load_part` from a CAD model already loaded (or received from another host)."""
+    report = progress or (lambda f, m: None)
     tree = build_or_load_tree(cad, spec, trees_dir, report)
     model = None
     if alignment:

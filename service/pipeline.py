@@ -21,7 +21,6 @@ import logging
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -71,6 +70,10 @@ class Stages:
         Whether ``measure`` matches the frames a second time, guided by the CAD.
     calibration_toml : str or None
         The calibrated rig itself, for the recordings.
+    remake : callable(threads) -> Stages, or None
+        Builds the same measuring stages in another process (a Dask worker),
+        matching stereo pairs on ``threads`` threads; picklable. None: these
+        stages exist in this process only.
     """
 
     name: str
@@ -81,6 +84,7 @@ class Stages:
     calibrations: Callable[[], list[dict[str, Any]]] = list
     guided: bool = True
     calibration_toml: str | None = None
+    remake: Callable[[int], Stages] | None = None
 
 
 @dataclass(frozen=True)
@@ -98,36 +102,61 @@ class FlashRender:
         return simulate(rig, mesh, T_rig_part, seed=seed, options=self.options)
 
 
+@dataclass(frozen=True)
+class FlashRemake:
+    """A :attr:`Stages.remake` for :func:`flash_stages`: the calibrated rig as TOML text
+    and the matching mode, which is all a process elsewhere needs to measure the same way."""
+
+    calibration_toml: str
+    guided: bool
+
+    def __call__(self, threads: int) -> Stages:
+        from inspection.rig import Rig
+
+        return flash_stages(
+            Rig.from_toml(self.calibration_toml), guided=self.guided, threads=threads
+        )
+
+
 def flash_stages(
-    rig_calibration: str | Path | None = None,
+    rig_calibration: Any = None,
     *,
     guided: bool = True,
     truth: Any = None,
     render_options: Any = None,
+    threads: int | None = None,
 ) -> Stages:
     """The line's stages: ``inspection.simulate`` renders with the rig as built;
     ``inspection.measure_frames`` with the calibrated rig measures.
 
     Parameters
     ----------
-    rig_calibration : path, optional
-        Calibrated rig (TOML, written by ``inspection calibrate``); absent:
-        ``Rig.default()``. A named file that does not exist is an error.
+    rig_calibration : path or inspection.Rig, optional
+        Calibrated rig (TOML, written by ``inspection calibrate``, or the rig
+        itself); absent: ``Rig.default()``. A named file that does not exist
+        is an error.
     guided : bool
         With the CAD-guided second matching pass.
     truth : inspection.Rig, optional
         The rig the simulator renders with; default ``Rig.nominal()``.
     render_options : inspection.RenderOptions, optional
         The simulator's options (the flash); default its own.
+    threads : int, optional
+        Stereo pairs matched at once (``ReconstructParams.threads``; default
+        its own). The pairs are matched the same whatever the count.
     """
     from inspection.measure import measure_frames
-    from inspection.reconstruct import Reconstructor
+    from inspection.reconstruct import Reconstructor, ReconstructParams
     from inspection.rig import Rig
     from inspection.simulate import RenderOptions
 
-    calibrated = Rig.load(rig_calibration) if rig_calibration else Rig.default()
+    if isinstance(rig_calibration, Rig):
+        calibrated = rig_calibration
+    else:
+        calibrated = Rig.load(rig_calibration) if rig_calibration else Rig.default()
     nominal = truth if truth is not None else Rig.nominal()
-    reconstructor = Reconstructor.build(calibrated)
+    params = ReconstructParams() if threads is None else ReconstructParams(threads=threads)
+    reconstructor = Reconstructor.build(calibrated, params)
 
     def measure(part: LoadedPart, frames: list[np.ndarray]) -> Measurement:
         params = dataclasses.replace(part.params, guided=guided)
@@ -159,6 +188,7 @@ def flash_stages(
         calibrations=calibrations,
         guided=guided,
         calibration_toml=calibrated.to_toml(),
+        remake=FlashRemake(calibrated.to_toml(), guided),
     )
 
 
@@ -205,7 +235,7 @@ class Pipeline:
         t_start = time.perf_counter()
         trigger = self._trigger(fs)
         try:
-            refused = self._refusal(fs)
+            refused = self.refusal(fs)
             if refused is not None:
                 return self._error(trigger, refused, t_start)
             measured = self.stages.measure(self.parts[fs.part], fs.images)
@@ -217,8 +247,9 @@ class Pipeline:
             reason = f"internal error: {type(exc).__name__}: {exc}"
         return self._error(trigger, reason, t_start)
 
-    def _refusal(self, fs: FrameSet) -> str | None:
-        """Why this pipeline does not measure ``fs``, or None."""
+    def refusal(self, fs: FrameSet) -> str | None:
+        """Why this pipeline does not measure ``fs`` (wrong station, unknown part, other
+        calibration), or None."""
         if self.line is not None and fs.line != self.line:
             return f"FrameSet of line {fs.line!r}, this is {self.line!r}"
         if self.station is not None and fs.station != self.station:

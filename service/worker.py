@@ -1,13 +1,22 @@
-"""The worker: FrameSets in, InspectionResults out, one trigger at a time.
+"""The worker: FrameSets in, InspectionResults out, exactly one per trigger.
 
-Jobs come from a :class:`JobSource`. Today that is :class:`ZenohFrameSource`,
-a subscription to the station's frames key; a dispatcher shared by several
-workers can replace it later without touching :class:`Worker`.
+Jobs come from a :class:`JobSource`: :class:`ZenohFrameSource`, a
+subscription to the station's frames key. The worker accounts for each of
+them and hands what it accepted to an :class:`~service.executor.Executor`,
+which measures it: in this process by default
+(:class:`~service.executor.InProcessExecutor`, one at a time, in the worker's
+thread), or on a Dask cluster (:mod:`service.dask_executor`), several at
+once, whose results come back in the order they finish, not in seq order.
 
 What happens to every trigger, and why none is silently lost:
 
 - the zenoh reading thread only copies the payload into a bounded queue
-  (:class:`JobQueue`); the pipeline runs on the worker's own thread;
+  (:class:`JobQueue`); the worker's thread takes a job from it only when the
+  executor has a free slot (:meth:`~service.executor.Executor.slots` jobs in
+  flight at most), so that what the executor cannot take yet waits there;
+- the accounting (seq, duplicates, journal, statistics, the sinks) happens
+  under one lock, whether in the worker's thread or in the thread that hands
+  out finished measurements: one result per trigger, whoever finishes first;
 - when the queue is full the *oldest* waiting FrameSet is dropped, and a
   marker keeps its place: it becomes a ``missed`` result carrying the serial
   and seq read from its header;
@@ -36,15 +45,17 @@ import logging
 import threading
 import time
 from collections.abc import Callable, Iterable
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import zenoh
 
 from . import bus
+from .executor import Executor, InProcessExecutor, Measured
 from .history import HistoryQueryable
 from .journal import Journal
-from .metrics import LATENCY_BUCKETS_S, Metrics, worker_collector
+from .metrics import LATENCY_BUCKETS_S, Metrics, executor_collector, worker_collector
 from .models import Alarm, AlarmKind, InspectionResult, Status, make_result_id
 from .pipeline import Outcome, Pipeline, error_result, missed_result
 from .protocol import FrameSet, Keys, ProtocolError, decode_frameset, peek_identity
@@ -294,6 +305,10 @@ class SeqTracker:
                         f"seq jumped from {nxt - 1} to {seq}, beyond the bound of "
                         f"{self.max_jump}: refused, not answered as missed"))  # fmt: skip
 
+    def behind(self, seq: int) -> bool:
+        """Whether ``seq`` is below the count (answered, or owed from before a restart)."""
+        return self.next is not None and seq < self.next
+
     def note_unreadable(self, seq: int | None) -> None:
         """An undecodable FrameSet claimed ``seq``: answered already, never missing.
 
@@ -320,6 +335,23 @@ class SeqTracker:
         return SeqCheck(True, missing, alarm)
 
 
+@dataclass(frozen=True, eq=False)
+class InFlight:
+    """A FrameSet handed to the executor, and the journal entry it leaves once answered."""
+
+    fs: FrameSet
+    journal_key: str | None
+
+
+@dataclass
+class JobTimes:
+    """Measurements one executor worker made: how many, and their time (s)."""
+
+    jobs: int = 0
+    total_s: float = 0.0
+    last_s: float = 0.0
+
+
 @dataclass
 class WorkerStats:
     processed: int = 0
@@ -331,14 +363,18 @@ class WorkerStats:
     by_status: dict[str, int] = field(default_factory=dict)
     missed_by_cause: dict[str, int] = field(default_factory=dict)
     alarms_by_kind: dict[str, int] = field(default_factory=dict)
+    lost: int = 0
+    by_worker: dict[str, JobTimes] = field(default_factory=dict)
 
 
 class Worker:
-    """Runs the pipeline on every job of a source and hands each outcome to the sinks.
+    """Accounts for every job of a source, has the executor measure those it accepts, and
+    hands each outcome to the sinks.
 
     Parameters
     ----------
     pipeline : Pipeline
+        What the station measures with; the in-process executor runs it.
     source : JobSource
     sinks : iterable of ResultSink
         Called in order for each outcome; a failing sink is logged and skipped.
@@ -364,6 +400,9 @@ class Worker:
     cameras : list of (name, width, height), optional
         The station's cameras: a FrameSet announcing other images is refused
         before its images are decoded.
+    executor : Executor, optional
+        Where the measurements run; default :class:`~service.executor.InProcessExecutor`
+        on ``pipeline``.
     """
 
     def __init__(
@@ -382,8 +421,10 @@ class Worker:
         journal: Journal | None = None,
         metrics: Metrics | None = None,
         cameras: list[tuple[str, int, int]] | None = None,
+        executor: Executor | None = None,
     ) -> None:
         self.pipeline = pipeline
+        self.executor: Executor = executor if executor is not None else InProcessExecutor(pipeline)
         self.metrics = metrics
         self.cameras = cameras
         self.source = source
@@ -397,51 +438,117 @@ class Worker:
         self.journal = journal
         self.stats = WorkerStats()
         self._recent: collections.OrderedDict[str, None] = collections.OrderedDict()
+        # The accounting's one lock; ``_changed`` wakes whoever waits for a
+        # finished measurement or a free slot.
+        self._lock = threading.RLock()
+        self._changed = threading.Condition(self._lock)
+        self._in_flight: dict[str, InFlight] = {}
+        self._finished: collections.deque[tuple[str, Future[Measured]]] = collections.deque()
         self._stop = threading.Event()
+        self._closed = False
         self._thread: threading.Thread | None = None
+        self._results: threading.Thread | None = None
 
     # ------------------------------------------------------------------ lifecycle
 
     def start(self) -> None:
         self._thread = threading.Thread(target=self.run, name=f"worker-{self.station}", daemon=True)
+        self._results = threading.Thread(
+            target=self._hand_out, name=f"results-{self.station}", daemon=True
+        )
         self._thread.start()
+        self._results.start()
 
     def stop(self, timeout_s: float = 60.0) -> None:
         """Stop after measuring what is already waiting (stop the source first).
 
-        The queue holds at most its capacity, so this ends; a trigger that was
-        accepted is measured, not dropped on the floor.
+        The queue holds at most its capacity and the executor its slots, so
+        this ends; a trigger that was accepted is measured, not dropped on the
+        floor. One still being measured after ``timeout_s`` stays in the
+        journal, measured again at the next start.
         """
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout_s)
+        with self._changed:
+            self._closed = True
+            self._changed.notify_all()
+        if self._results is not None:
+            self._results.join(timeout_s)
 
-    def run(self) -> None:
-        """Process jobs until :meth:`stop`, then what is still queued. Never raises."""
+    def run(self, drain_s: float = 60.0) -> None:
+        """Process jobs until :meth:`stop`, then what is still queued and being measured,
+        for at most ``drain_s`` after the stop. Never raises."""
+        deadline: float | None = None
         while True:
             stopping = self._stop.is_set()
+            if stopping and deadline is None:
+                deadline = time.monotonic() + drain_s
+            if deadline is not None and time.monotonic() > deadline:
+                break
             try:
+                if not self._wait_for_slot(0.2):
+                    continue
                 item = self.source.get(0.0 if stopping else 0.2)
                 if item is None:
                     if stopping:
-                        return
+                        break
                     continue
                 self.handle(item)
             except Exception:  # the loop must survive anything
                 log.exception("worker loop error")
+        left = 0.0 if deadline is None else max(0.0, deadline - time.monotonic())
+        if not self.drain(left):
+            log.warning("stopping with %d FrameSet(s) still being measured: they stay in "
+                        "the journal", len(self._in_flight))  # fmt: skip
+
+    def _wait_for_slot(self, timeout_s: float) -> bool:
+        """Hand out finished measurements until the executor has a free slot (or timeout)."""
+        with self._changed:
+            return self._changed.wait_for(
+                lambda: self._hand_out_finished() or len(self._in_flight) < self.executor.slots(),
+                timeout_s,
+            )
+
+    def _hand_out(self) -> None:
+        """The results thread: every measurement as it finishes, to the sinks."""
+        with self._changed:
+            while True:
+                self._changed.wait_for(lambda: bool(self._finished) or self._closed)
+                if not self._finished and self._closed:
+                    return
+                try:
+                    self._hand_out_finished()
+                except Exception:  # the thread must survive anything
+                    log.exception("results thread error")
 
     # ------------------------------------------------------------------ one job
 
     def handle(self, item: Job | Dropped) -> None:
-        """Process one job or drop marker (public so tests and replay can drive it)."""
-        try:
-            if isinstance(item, Dropped):
-                self._dropped(item)
-            else:
-                self._job(item)
-        finally:
-            if self.journal is not None:
-                self.journal.remove(item.journal_key)
+        """Process one job or drop marker (public so tests and replay can drive it).
+
+        With the in-process executor its result has gone to the sinks when
+        this returns; with another one, when the measurement finishes.
+        """
+        with self._lock:
+            submitted = False
+            try:
+                if isinstance(item, Dropped):
+                    self._dropped(item)
+                else:
+                    submitted = self._job(item)
+            finally:
+                if not submitted and self.journal is not None:
+                    self.journal.remove(item.journal_key)
+            self._hand_out_finished()
+
+    def drain(self, timeout_s: float) -> bool:
+        """Wait until every measurement handed out has gone to the sinks (tests and replay,
+        without :meth:`start`); whether none is left."""
+        with self._changed:
+            return self._changed.wait_for(
+                lambda: self._hand_out_finished() or not self._in_flight, timeout_s
+            )
 
     def _dropped(self, item: Dropped) -> None:
         ident = item.identity
@@ -455,7 +562,11 @@ class Worker:
             part=ident.get("part") or self.missed_part, serial=ident.get("serial"),
             calibration_id=ident.get("calibration_id"),
         )  # fmt: skip
-        if seq is not None and (line, station) == (self.line, self.station):
+        if (
+            seq is not None
+            and (line, station) == (self.line, self.station)
+            and not self._owed(seq, item.replayed)
+        ):
             check = self.seqs.check(seq, t_ns)
             if not self._admit(check, seq, t_ns):
                 self._emit(Outcome(error_result(reason=_refusal(check), **fields)), None)
@@ -463,7 +574,8 @@ class Worker:
         self._alarm(AlarmKind.queue_overflow, item.reason, t_ns, seq)
         self._emit(Outcome(missed_result(reason=item.reason, **fields)), None, "queue_full")
 
-    def _job(self, item: Job) -> None:
+    def _job(self, item: Job) -> bool:
+        """Account for one job; whether it went to the executor (its journal entry stays)."""
         try:
             fs = decode_frameset(item.payload, cameras=self.cameras)
         except ProtocolError as exc:
@@ -474,7 +586,7 @@ class Worker:
             if self._answered(
                 make_result_id(line, station, seq or 0, t_ns), seq, t_ns, item.replayed
             ):
-                return
+                return False
             if (line, station) == (self.line, self.station):
                 self.seqs.note_unreadable(seq)
             log.warning("bad FrameSet (seq %s): %s", seq, exc)
@@ -495,11 +607,13 @@ class Worker:
                 ),
                 None,
             )
-            return
+            return False
         id_ = make_result_id(fs.line, fs.station, fs.seq, fs.triggered_ns)
         if self._answered(id_, fs.seq, fs.triggered_ns, item.replayed):
-            return
-        if (fs.line, fs.station) == (self.line, self.station):
+            return False
+        if (fs.line, fs.station) == (self.line, self.station) and not self._owed(
+            fs.seq, item.replayed
+        ):
             check = self.seqs.check(fs.seq, fs.triggered_ns)
             if not self._admit(check, fs.seq, fs.triggered_ns):
                 result = error_result(
@@ -508,16 +622,99 @@ class Worker:
                     reason=_refusal(check),
                 )  # fmt: skip
                 self._emit(Outcome(result), fs)
-                return
-        self._emit(self.pipeline.run(fs), fs)
+                return False
+        self._in_flight[id_] = InFlight(fs, item.journal_key)
+        try:
+            future = self.executor.submit(fs)
+        except Exception as exc:  # an executor that cannot take it: still one result
+            del self._in_flight[id_]
+            self._emit(self._lost(fs, exc), fs)
+            return False
+        future.add_done_callback(lambda f: self._on_finished(id_, f))
+        return True
+
+    def _on_finished(self, id_: str, future: Future[Measured]) -> None:
+        """Called by the executor's future, in whatever thread finished it."""
+        with self._changed:
+            self._finished.append((id_, future))
+            self._changed.notify_all()
+
+    def _hand_out_finished(self) -> bool:
+        """Give every finished measurement to the sinks, in the order they finished (lock held).
+
+        Returns False, so that it can sit in a wait's condition.
+        """
+        while self._finished:
+            id_, future = self._finished.popleft()
+            flight = self._in_flight.pop(id_)
+            try:
+                measured = future.result()
+            except Exception as exc:  # the cluster gave up on it: still one result
+                outcome = self._lost(flight.fs, exc)
+            else:
+                outcome = measured.outcome
+                self._count_job(measured)
+            try:
+                self._emit(outcome, flight.fs)
+            finally:
+                if self.journal is not None:
+                    self.journal.remove(flight.journal_key)
+            self._changed.notify_all()
+        return False
+
+    def _lost(self, fs: FrameSet, exc: Exception) -> Outcome:
+        """The error result of a FrameSet whose measurement never came back."""
+        self.stats.lost += 1
+        reason = f"the measurement was lost: {type(exc).__name__}: {exc}"
+        log.error("seq %d: %s", fs.seq, reason)
+        return Outcome(
+            error_result(
+                line=fs.line, station=fs.station, seq=fs.seq, triggered_ns=fs.triggered_ns,
+                part=fs.part, serial=fs.serial, calibration_id=fs.calibration_id or None,
+                reason=reason,
+            )
+        )  # fmt: skip
+
+    def _count_job(self, m: Measured) -> None:
+        times = self.stats.by_worker.setdefault(m.where, JobTimes())
+        times.jobs += 1
+        times.total_s += m.seconds
+        times.last_s = m.seconds
+        if self.metrics is not None:
+            self.metrics.observe(
+                "inspection_executor_job_seconds", "Time of a measurement, by who made it.",
+                m.seconds, worker=m.where,
+            )  # fmt: skip
+            self.metrics.observe(
+                "inspection_executor_dispatch_seconds",
+                "Round trip of a measurement less its own time: sending, queueing, returning.",
+                max(0.0, m.round_trip_s - m.seconds),
+            )
+
+    def _owed(self, seq: int, replayed: bool) -> bool:
+        """Whether a journal entry is owed its result from before a stop, below the count.
+
+        Results finish out of seq order: the store's last seq, where counting
+        goes on, may be above a trigger that was still being measured at a
+        kill. Its journal entry (not in the store, or it would be answered
+        already) is answered now, and the count stays where it is.
+        """
+        if not (replayed and self.seqs.behind(seq)):
+            return False
+        log.info("journal: seq %d, accepted before the stop, is answered now", seq)
+        return True
 
     def _answered(self, id_: str, seq: int | None, triggered_ns: int, replayed: bool) -> bool:
-        """Whether the trigger with this result id was answered already.
+        """Whether the trigger with this result id was answered already (or is being measured).
 
         A trigger delivered again is not answered again, and raises an alarm;
         a journal entry answered just before a kill is simply done.
         """
-        if id_ not in self._recent and not (self.is_stored is not None and self.is_stored(id_)):
+        if (
+            id_ not in self._recent
+            and id_ not in self._in_flight
+            and not (self.is_stored is not None and self.is_stored(id_))
+        ):
             return False
         self.stats.duplicates += 1
         if replayed:
@@ -602,6 +799,19 @@ class Worker:
                 buckets=LATENCY_BUCKETS_S,
             )  # fmt: skip
 
+    def executor_status(self) -> dict[str, Any]:
+        """The executor's own status, with the jobs in flight and the measurements each of
+        its workers made (count, mean and last time, s)."""
+        # No lock: the heartbeat and a scrape must not wait for an in-process measurement.
+        # Snapshots of the dicts suffice; a count one job behind is no harm.
+        in_flight = len(self._in_flight)
+        jobs = {
+            where: {"jobs": t.jobs, "mean_s": t.total_s / t.jobs, "last_s": t.last_s}
+            for where, t in sorted(dict(self.stats.by_worker).items())
+            if t.jobs
+        }
+        return {**self.executor.status(), "in_flight": in_flight, "jobs": jobs}
+
     def status(self, worker_id: str, state: str) -> dict[str, Any]:
         return {
             "worker": worker_id,
@@ -616,6 +826,7 @@ class Worker:
             "alarms": self.stats.alarms,
             "duplicates": self.stats.duplicates,
             "last_seq": self.stats.last_seq,
+            "executor": self.executor_status(),
         }
 
 
@@ -673,6 +884,7 @@ class ZenohWorker:
         journal: Journal | None = None,
         max_seq_jump: int = DEFAULT_MAX_SEQ_JUMP,
         metrics: Metrics | None = None,
+        executor: Executor | None = None,
     ) -> None:
         self.id = bus.worker_id(station)
         self.session = session
@@ -701,11 +913,13 @@ class ZenohWorker:
             journal=journal,
             metrics=metrics,
             cameras=[(c["name"], c["width"], c["height"]) for c in cals] or None,
+            executor=executor,
         )
         if metrics is not None:
             metrics.collector(
                 worker_collector(self.worker.stats, self.source.depth, self.source.capacity)
             )
+            metrics.collector(executor_collector(self.worker.executor_status))
         self._state = "ready"
         self.token = session.liveliness().declare_token(keys.worker_token(station, self.id))
         self.heartbeat = bus.Heartbeat(

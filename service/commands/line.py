@@ -34,6 +34,10 @@ def _config(args: argparse.Namespace, *, mode: str | None = None) -> Any:
         ("storage", "data_dir"): getattr(args, "data_dir", None),
         ("http", "port"): getattr(args, "http_port", None),
     }
+    dask = getattr(args, "dask", None)
+    if dask is not None:
+        overrides[("station", "executor")] = "dask"
+        overrides[("station", "dask_scheduler")] = str(dask)
     listen = getattr(args, "zenoh_listen", None)
     connect = getattr(args, "zenoh_connect", None)
     if listen is not None:
@@ -68,16 +72,26 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def _on_bus(run: Any) -> int:
-    """Run a piece of the line; a zenoh session or a result store that cannot open is
-    said, not a traceback."""
+    """Run a piece of the line; a zenoh session or a result store that cannot open, or a
+    Dask cluster that cannot be reached, is said, not a traceback."""
     from service.bus import BusError
+    from service.executor import ExecutorError
     from service.store import StoreError
 
     try:
         return int(run())
-    except (BusError, StoreError) as exc:
+    except (BusError, ExecutorError, StoreError) as exc:
         print(f"inspection: {exc}", file=sys.stderr)
         return 1
+
+
+def _dask_address(text: str) -> Any:
+    from service.config import parse_dask_address
+
+    try:
+        return parse_dask_address(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def cmd_router(args: argparse.Namespace) -> int:
@@ -164,4 +178,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
             p.add_argument("--http-port", type=int, help="REST API port (default from config)")
         if name == "ingest":
             p.add_argument("--count", type=int, help="stop after this many triggers")
+        if name == "worker":
+            p.add_argument(
+                "--dask",
+                type=_dask_address,
+                metavar="ADDRESS",
+                help="measure on a Dask cluster: tcp://HOST:PORT (its scheduler) or local:N "
+                "(N single-threaded worker processes started here); the worker still accounts "
+                "for every trigger. Default: [station] executor in the config",
+            )
         p.set_defaults(func=cmd_piece)

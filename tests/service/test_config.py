@@ -297,3 +297,31 @@ def test_the_belt_the_flash_and_the_slide_reach_the_simulator():
 def test_flash_and_dent_keys_are_bounded(tmp_path, section, text, message):
     with pytest.raises(ConfigError, match=message):
         load_line_config(write(tmp_path, "line.toml", f"[{section}]\n{text}\n"))
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ('executor = "dask"\n', 'executor = "dask" needs dask_scheduler'),
+        ('dask_scheduler = "local:2"\n', 'executor is "in-process"'),
+        ('executor = "dask"\ndask_scheduler = "host:8786"\n', "is not a Dask address"),
+        ('executor = "dask"\ndask_scheduler = "local:0"\n', "is not a Dask address"),
+        ('executor = "threads"\n', "station.executor"),
+    ],
+)
+def test_a_dask_executor_needs_a_valid_address(tmp_path, text, message):
+    with pytest.raises(ConfigError, match=message):
+        load_line_config(write(tmp_path, "line.toml", f"[station]\n{text}"))
+
+
+def test_the_executor_is_in_process_unless_a_cluster_is_named(tmp_path):
+    from service.config import DaskAddress
+
+    assert load_line_config(LINE).station.dask_address() is None
+    for address, want in (
+        ("tcp://10.0.0.5:8786", DaskAddress(scheduler="tcp://10.0.0.5:8786")),
+        ("local:3", DaskAddress(local_workers=3)),
+    ):
+        dask = {("station", "executor"): "dask", ("station", "dask_scheduler"): address}
+        cfg = load_line_config(LINE, overrides=dask)
+        assert cfg.station.dask_address() == want and str(want) == address

@@ -643,3 +643,32 @@ def test_a_burst_of_garbage_gets_a_result_each(framesets, quick_part):
     assert len(got.results) == 31
     assert sum(r.status in (Status.error, Status.missed) for r in got.results) == 30
     assert got.results[-1].seq == 0 and got.results[-1].status is not Status.error
+
+
+def test_a_journal_entry_below_the_stores_last_seq_is_answered_not_refused(
+    tmp_path, framesets, quick_part
+):
+    """Results finish out of seq order on a cluster: at a kill, seq 1 may still be measured
+    while seq 2 is stored. The restarted worker goes on after seq 2 and answers seq 1 from
+    its journal; a live FrameSet repeating seq 1 is still refused."""
+    from service.line import store_sink
+    from service.store import ResultStore
+
+    p = pipeline(quick_part)
+    with ResultStore(tmp_path / "r.sqlite") as store:
+        for fs in (framesets[0], framesets[2]):
+            store.put(p.run(fs).result)
+        w, got, alarms = checked_worker(
+            p, resume=store.last_trigger(LINE, STATION), is_stored=store.has
+        )
+        w.sinks.insert(0, store_sink(store))
+        w.handle(Job(encode_frameset(framesets[1]), 0, None, replayed=True))
+        w.handle(Job(encode_frameset(framesets[2]), 0, None, replayed=True))  # stored: done
+        w.handle(job(framesets[3]))
+        w.handle(job(at(framesets[1], 1, dt_ns=1_000)))  # another trigger claiming seq 1
+        assert [(r.seq, r.status is Status.error) for r in got.results] == [
+            (1, False), (3, False), (1, True)
+        ]  # fmt: skip
+        assert alarms.kinds() == ["seq_repeat"] and w.stats.duplicates == 1
+        measured = [r.seq for r in store.station_results(LINE, STATION) if r.status != "error"]
+        assert sorted(measured) == [0, 1, 2, 3]
