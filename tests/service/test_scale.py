@@ -41,12 +41,16 @@ DASK_WORKERS = ("w0", "w1", "w2")
 
 
 @pytest.fixture
-def storage() -> str:
-    """``[storage]`` lines the dispatcher and the API share: the embedded SQLite store of the
-    data directory. On PostgreSQL: ``url = "..."`` with a database of the ``pg_server``
-    fixture (``pg_server.new_database()``); the checks read the store through the API,
-    whatever its backend."""
-    return ""
+def storage(request) -> str:
+    """``[storage]`` lines the dispatcher and the API share: a database of the session's
+    PostgreSQL server, the plant-wide store of docs/line.md; where no such server can
+    run here, the embedded SQLite store of the data directory (the checks read the
+    store through the API, whatever its backend)."""
+    try:
+        server = request.getfixturevalue("pg_server")
+    except pytest.skip.Exception:
+        return ""
+    return f'url = "{server.new_database()}"\n'
 
 
 class Cluster:
@@ -194,6 +198,7 @@ def test_a_station_on_dask_answers_every_trigger_once_through_kills(
     if storage:
         config = Path(line.common[1])
         config.write_text(config.read_text().replace("[storage]\n", f"[storage]\n{storage}"))
+        assert storage in config.read_text(), "the line's config has no [storage] table"
     stream, frames = Results(), Frames()
     dispatcher = ("--dask", cluster.address)
     try:
