@@ -139,7 +139,7 @@ class Access:
                 "no API key is configured and the API listens beyond this machine: set "
                 f"{KEYS_ENV} or [http] api_keys_file"
             )  # fmt: skip
-        presented = _presented_key(headers)
+        presented = presented_key(headers)
         if presented is None:
             return 401, "unauthorized", (
                 "this needs an API key: send 'Authorization: Bearer <key>' or 'X-API-Key: <key>'"
@@ -179,7 +179,7 @@ async def drain(receive: Receive, max_bytes: int) -> None:
             return
 
 
-def _presented_key(headers: Mapping[str, str]) -> bytes | None:
+def presented_key(headers: Mapping[str, str]) -> bytes | None:
     auth = headers.get("authorization")
     if auth is not None:
         scheme, _, token = auth.partition(" ")
