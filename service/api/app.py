@@ -16,6 +16,7 @@ from fastapi import FastAPI
 from pydantic.json_schema import models_json_schema
 from starlette.middleware.cors import CORSMiddleware
 
+from .. import web
 from ..config import AuthScope, LineConfig
 from ..models import PartCreate, software_version
 from ..parts import PartRegistry
@@ -114,6 +115,9 @@ def create_app(
         summary="In-line shape inspection: parts, results, trends, live stream.",
         version=software_version(),
         lifespan=lifespan,
+        # Served by service.web from the package's own copies: no CDN.
+        docs_url=None,
+        redoc_url=None,
     )
     app.state.services = svc
     install_error_handlers(app)
@@ -121,6 +125,7 @@ def create_app(
     app.include_router(part_routes.router)
     app.include_router(inspection_routes.router)
     app.include_router(quality_routes.router)
+    web.install(app)
     _register_gauges(svc)
 
     # Innermost: answers OPTIONS and 405 for a whole path, from the methods of every
@@ -133,6 +138,7 @@ def create_app(
             part_routes.router,
             inspection_routes.router,
             quality_routes.router,
+            web.router,
         ],  # fmt: skip
     )
     # A plain ASGI middleware (not BaseHTTPMiddleware): it does not buffer

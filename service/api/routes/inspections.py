@@ -9,18 +9,21 @@ from datetime import UTC, datetime
 from typing import Any
 
 from fastapi import APIRouter, Depends, Query, Request
-from fastapi.responses import Response
+from fastapi.responses import HTMLResponse, Response
 from starlette.requests import ClientDisconnect
 
 from inspection.measure import validate_cloud
 
 from ...models import ErrorBody, InspectionResult, Page, Recording, Status, new_upload_id
 from ...names import NAME_MAX_LEN, NAME_PATTERN, NAME_RULE, is_valid_name
+from ...parts import UnknownPart
 from ...recordings import locate
+from ...report import PdfUnavailable, ReportContext, report_html, report_pdf
 from ...results import upload_trigger
+from ...spc import PART_FEATURES, SpcSettings, part_chart
 from ...store import Filters, InvalidCursor
 from ..clouds import UnsupportedCloudFormat, parse_cloud
-from ..colormap import Marker, render_top_view
+from ..colormap import Marker, PointMark, render_top_view
 from ..deps import NameQuery, PartQuery, Services, ServicesDep
 from ..errors import ApiError
 from ..forms import file_field, only_fields, read_multipart, text_field
@@ -291,16 +294,32 @@ def colormap(
     id: str,
     limit_mm: float | None = Query(None, gt=0, le=1000, description="Colour saturation, mm"),
     size_px: int = Query(800, ge=100, le=4000),
+    annotated: bool = Query(
+        False, description="Mark and name the comparison points; draw mm axes (CAD frame)"
+    ),
 ) -> Response:
     result = _result(svc, id)
+    png = colormap_png(svc, result, limit_mm=limit_mm, size_px=size_px, annotated=annotated)
+    return Response(png, media_type="image/png", headers={"Cache-Control": "max-age=3600"})
+
+
+def colormap_png(
+    svc: Services,
+    result: InspectionResult,
+    *,
+    limit_mm: float | None = None,
+    size_px: int = 800,
+    annotated: bool = True,
+) -> bytes:
+    """The result's top-view deviation map (404 ``no_deviations`` when none were kept)."""
     arrays = None
     if svc.archive is not None:
         try:
-            arrays = svc.archive.load(id)
+            arrays = svc.archive.load(result.id)
         except ValueError:
             arrays = None
     if arrays is None:
-        raise ApiError(404, "no_deviations", f"no per-point deviations were kept for {id!r}")
+        raise ApiError(404, "no_deviations", f"no per-point deviations were kept for {result.id!r}")
     points, distances = arrays
     if limit_mm is None:
         tol = [max(abs(c.lower_mm), abs(c.upper_mm)) for c in result.comparison]
@@ -309,15 +328,27 @@ def colormap(
         Marker(tuple(f.center_mm), f.area_mm2, f"{f.kind} {f.peak_mm:+.2f} mm")  # type: ignore[arg-type]
         for f in result.defects
     ]
-    png = render_top_view(
+    marks: list[PointMark] = []
+    if annotated:
+        verdicts = {c.name: c.verdict.value for c in result.comparison}
+        try:
+            specs = svc.parts.public(result.part).points
+        except UnknownPart:
+            specs = []  # a part deleted since: its points are not known any more
+        marks = [
+            PointMark(tuple(p.position_mm), p.name, verdicts.get(p.name) == "fail")  # type: ignore[arg-type]
+            for p in specs
+        ]
+    return render_top_view(
         points,
         distances,
         limit_mm=limit_mm,
         size_px=size_px,
         title=f"{result.part} {result.serial} {result.status.value}",
         markers=markers,
+        points_marked=marks,
+        axes=annotated,
     )
-    return Response(png, media_type="image/png", headers={"Cache-Control": "max-age=3600"})
 
 
 @router.get(
@@ -336,3 +367,54 @@ def recording(svc: ServicesDep, id: str) -> Recording:
         )  # fmt: skip
     return Recording(file=found.file, start_ns=found.start_ns, end_ns=found.end_ns,
                      topics=found.topics, finished=found.finished)  # fmt: skip
+
+
+def _report_page(svc: Services, id: str) -> str:
+    result = _result(svc, id)
+    try:
+        png: bytes | None = colormap_png(svc, result, size_px=900)
+    except ApiError:
+        png = None  # no deviations kept: the report says so
+    settings = SpcSettings.from_config(svc.settings.spc)
+    try:
+        subgroup = svc.parts.public(result.part).subgroup_size
+    except UnknownPart:
+        subgroup = 1
+    charts = []
+    if result.status.value in ("pass", "fail"):
+        names = [c.name for c in result.comparison] + list(PART_FEATURES)
+        charts = [part_chart(svc.store, result.part, n, settings, subgroup) for n in names]
+    found = locate(svc.settings.storage.mcap_path(), result.id, result.triggered_ns)
+    where = None if found is None else f"{found.file} at {found.start_ns} ns"
+    return report_html(result, ReportContext(png, charts, where))
+
+
+@router.get(
+    "/v1/inspections/{id}/report.html",
+    response_class=HTMLResponse,
+    responses={**_READ_ERRORS, 200: {"content": {"text/html": {}}}},
+    summary="The part's report: colour map, comparison table, defects, fit, traceability, trends",
+)
+def report_page(svc: ServicesDep, id: str) -> HTMLResponse:
+    return HTMLResponse(_report_page(svc, id))
+
+
+@router.get(
+    "/v1/inspections/{id}/report.pdf",
+    response_class=Response,
+    responses={
+        **_READ_ERRORS,
+        200: {"content": {"application/pdf": {}}},
+        503: {"model": ErrorBody, "description": "The PDF renderer is not installed"},
+    },
+    summary="The part's report as PDF",
+)
+def report_document(svc: ServicesDep, id: str) -> Response:
+    page = _report_page(svc, id)
+    try:
+        pdf = report_pdf(page)
+    except PdfUnavailable as exc:
+        raise ApiError(503, "pdf_unavailable", str(exc)) from exc
+    name = re.sub(r"[^A-Za-z0-9._-]", "_", _result(svc, id).serial)
+    disposition = f'inline; filename="report-{name}.pdf"'
+    return Response(pdf, media_type="application/pdf", headers={"Content-Disposition": disposition})
