@@ -208,7 +208,9 @@ def run_rules(
     if limits.sigma <= 0:
         # A baseline without spread (every value alike) has no zones: only a
         # value off the centre line can be flagged, and it is by rule 1.
-        z = np.where(a == limits.center, 0.0, np.sign(a - limits.center) * np.inf)
+        z = np.zeros_like(a)
+        z[a > limits.center] = np.inf
+        z[a < limits.center] = -np.inf
     else:
         z = (a - limits.center) / limits.sigma
     hits = []

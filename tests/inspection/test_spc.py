@@ -143,3 +143,9 @@ def test_limits_refuse_too_few_or_non_finite_values():
         individuals_limits([1.0, np.nan, 2.0])
     with pytest.raises(InvalidInput):
         xbar_r_limits(np.zeros((1, 3)))
+
+
+def test_a_baseline_without_spread_flags_any_other_value_by_the_first_rule():
+    flat = individuals_limits([0.0, 0.0, 0.0])
+    hits = run_rules([0.0, 0.0, 1.0], flat, ["nelson1", "nelson2"])
+    assert [(h.rule, h.index) for h in hits] == [("nelson1", 2)]

@@ -24,6 +24,7 @@ import pytest
 from fastapi.testclient import TestClient
 from linekit import uvicorn_server
 
+from inspection.deviations import Verdict
 from inspection.panel import PanelSpec, panel_height, sheet_metal_panel
 from inspection.rig import belt_pose
 from inspection.transforms import apply
@@ -935,3 +936,35 @@ def test_stream_resumes_after_the_last_event_id_and_carries_alarms(server, app_p
     event = [resp.readline() for _ in range(3)]
     assert event[0] == b"event: alarm\n"
     assert Alarm.model_validate_json(event[1][len(b"data: ") :]) == alarm
+
+
+def test_report_of_a_failed_part_as_html_and_pdf(client, app_parts):
+    pypdf = pytest.importorskip("pypdf")
+    try:
+        import weasyprint  # noqa: F401
+    except (ImportError, OSError) as exc:
+        pytest.skip(
+            f"PDF reports need WeasyPrint and Pango ({exc}): pip install weasyprint; "
+            "apt-get install libpango-1.0-0 libpangoft2-1.0-0 fonts-dejavu-core"
+        )
+    _, store, archive, *_ = app_parts
+    for i in range(25):
+        store.put(stored_result(i, dev=0.01 * (i % 3)))
+    bad = stored_result(25, status="fail", dev=0.45)
+    bad = bad.model_copy(
+        update={"comparison": [bad.comparison[0].model_copy(update={"verdict": Verdict.FAIL})]}
+    )
+    store.put(bad)
+    xy = np.random.default_rng(0).uniform(-60, 60, (4000, 2))
+    archive.save(bad.id, np.c_[xy, np.zeros(len(xy))], np.where(xy[:, 0] > 0, 0.45, 0.0))
+    page = client.get(f"/v1/inspections/{bad.id}/report.html")
+    assert page.status_code == 200 and "data:image/png;base64," in page.text
+    assert "<script" not in page.text and "http" not in page.text.split("<body>")[1]
+    resp = client.get(f"/v1/inspections/{bad.id}/report.pdf")
+    assert resp.status_code == 200 and resp.headers["content-type"] == "application/pdf"
+    pdf = pypdf.PdfReader(io.BytesIO(resp.content))
+    assert 1 <= len(pdf.pages) <= 4
+    text = " ".join(p.extract_text() for p in pdf.pages)
+    assert "SN25" in text and "FAIL" in text and "failing: c" in text
+    assert "nelson1" in text  # the trend context: this part breaks the chart's limits
+    assert_error(client.get("/v1/inspections/nope/report.pdf"), 404, "unknown_inspection")
