@@ -70,7 +70,7 @@ def _indexed(path: Path, result_id: str, t: int) -> Located | None:
             return None
         topics: set[str] = set()
         hit = False
-        for _, channel, message in reader.iter_messages(start_time=t, end_time=t + 1):
+        for _, channel, message in reader.iter_messages(starting_at=t, ending_at=t):
             if message.log_time != t:
                 continue
             topics.add(channel.topic)
