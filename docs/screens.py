@@ -52,9 +52,10 @@ def main() -> None:
     text = (ROOT / "configs" / "line.toml").read_text()
     text = text.replace('parts_dir = "parts"', f'parts_dir = "{ROOT / "configs" / "parts"}"')
     text = text.replace("trigger_period_s = 2.0", "trigger_period_s = 3.0")
-    text = text.replace("seed = 0 ", f'seed = 0\ndrift_point = "centre"\ndrift_after_seq = '
-                        f"{BASELINE + 2}\ndrift_mm_per_part = 0.03\n", 1)  # fmt: skip
-    text += f"\n[spc]\nbaseline_parts = {BASELINE}\n"
+    text = text.replace('# drift_point = "centre" ', 'drift_point = "centre" ')
+    text = text.replace("drift_after_seq = 20 ", f"drift_after_seq = {BASELINE + 2} ")
+    text = text.replace("drift_mm_per_part = 0.02 ", "drift_mm_per_part = 0.03 ")
+    text = text.replace("baseline_parts = 20 ", f"baseline_parts = {BASELINE} ")
     config = ROOT / "configs" / ".screens-line.toml"  # beside the parts it names
     config.write_text(text)
     http_port, zenoh_port = _port(), _port()

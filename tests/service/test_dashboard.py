@@ -89,15 +89,18 @@ def line(tmp_path_factory, trees) -> Iterator[dict]:
     rig_file = tmp / "rig.toml"
     Rig.default().with_image_size(*SIZE).save(rig_file)
     config = line_file(tmp, trees, period_s=PERIOD_S, queue_size=8)
-    text = (
-        config.read_text()
-        .replace("[station]\n", f'[station]\nrig_calibration = "{rig_file}"\n', 1)
-        .replace("guided_matching = true", "guided_matching = false")
-        .replace("defect_rate = 0.1 ", "defect_rate = 0.0 ")
-        .replace("seed = 0 ", f'seed = 0\ndrift_point = "{DRIFT_POINT}"\n'
-                 f"drift_after_seq = {BASELINE + 1}\ndrift_mm_per_part = 0.08\n", 1)
-    )  # fmt: skip
-    text += f"\n[spc]\nbaseline_parts = {BASELINE}\n"
+    text = config.read_text()
+    for old, new in [
+        ("[station]\n", f'[station]\nrig_calibration = "{rig_file}"\n'),
+        ("guided_matching = true", "guided_matching = false"),
+        ("defect_rate = 0.1 ", "defect_rate = 0.0 "),
+        ('# drift_point = "centre" ', f'drift_point = "{DRIFT_POINT}" '),
+        ("drift_after_seq = 20 ", f"drift_after_seq = {BASELINE + 1} "),
+        ("drift_mm_per_part = 0.02 ", "drift_mm_per_part = 0.08 "),
+        ("baseline_parts = 20 ", f"baseline_parts = {BASELINE} "),
+    ]:
+        assert old in text, old
+        text = text.replace(old, new, 1)
     config.write_text(text)
     port, http_port = free_port(), free_port()
     run = cli("run", "--config", str(config), "--data-dir", str(tmp / "data"),

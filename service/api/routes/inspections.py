@@ -391,11 +391,12 @@ def _report_page(svc: Services, id: str) -> str:
 
 @router.get(
     "/v1/inspections/{id}/report.html",
-    response_class=HTMLResponse,
+    # A plain Response: with HTMLResponse the errors would be documented as HTML too.
+    response_class=Response,
     responses={**_READ_ERRORS, 200: {"content": {"text/html": {}}}},
     summary="The part's report: colour map, comparison table, defects, fit, traceability, trends",
 )
-def report_page(svc: ServicesDep, id: str) -> HTMLResponse:
+def report_page(svc: ServicesDep, id: str) -> Response:
     return HTMLResponse(_report_page(svc, id))
 
 
