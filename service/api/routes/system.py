@@ -49,7 +49,8 @@ def metrics(svc: ServicesDep) -> PlainTextResponse:
 
 @router.get(
     "/v1/stream",
-    summary="Server-sent events: one `result` event per new result",
+    summary="Server-sent events: one `result` event per new result, one `alarm` per alarm; "
+    "resumes after `Last-Event-ID`",
     response_class=StreamingResponse,
     responses={
         200: {"content": {"text/event-stream": {}}},
