@@ -221,6 +221,13 @@ class PartSpecBase(_Strict):
     registration: RegistrationSettings = Field(default_factory=RegistrationSettings)
     surface: SurfaceSettings = Field(default_factory=SurfaceSettings)
     tree: TreeSettings = Field(default_factory=TreeSettings)
+    subgroup_size: int = Field(
+        default=1,
+        ge=1,
+        le=10,
+        description="Parts per subgroup of its control charts: 1 gives individuals and "
+        "moving-range charts, 2..10 X-bar/R charts.",
+    )
 
     @field_validator("points")
     @classmethod
@@ -702,6 +709,15 @@ class SimulatorSection(_Strict):
     )
     flip: bool = Field(default=False, description="Half of the parts arrive turned by 180 deg.")
     seed: int = Field(default=0, ge=0)
+    drift_point: Name | None = Field(
+        default=None,
+        description="A comparison point of the station's first part where a dent grows part "
+        "by part (a process drifting, for trying the control charts).",
+    )
+    drift_after_seq: int = Field(default=0, ge=0, description="The drift starts after this seq.")
+    drift_mm_per_part: float = Field(
+        default=0.02, gt=0, le=1, description="How much deeper the dent is at each part, mm."
+    )
 
     @field_validator("dent_depth_mm", "dent_radius_mm", mode="before")
     @classmethod
@@ -770,6 +786,13 @@ class HttpSection(_Strict):
     max_waiting_measurements: int = Field(
         default=2, ge=0, le=1000, description="Uploads waiting for a turn; more get 503."
     )
+    max_point_offset_mm: float = Field(
+        default=1.0,
+        gt=0,
+        le=100,
+        description="A part created over the API is refused when one of its comparison "
+        "points lies farther than this from its CAD surface.",
+    )
 
     @field_validator("allowed_origins")
     @classmethod
@@ -782,6 +805,42 @@ class HttpSection(_Strict):
 
 ZENOH_TLS_FILES = ("tls_ca_certificate", "tls_certificate", "tls_private_key")
 """The keys of ``[zenoh]`` that name files (relative to the line file)."""
+
+
+class SpcSection(_Strict):
+    """Control charts and their alarms (see :mod:`inspection.spc`)."""
+
+    rules: list[str] = Field(
+        default_factory=lambda: ["nelson1"],
+        max_length=20,
+        description="Run rules (nelson1..nelson8, we4) or sets (iso7870, western_electric, "
+        "nelson); ISO 7870-2 suggests the 3-sigma rule alone (nelson1) for routine use.",
+    )
+    baseline_parts: int = Field(
+        default=20,
+        ge=2,
+        le=10_000,
+        description="Until a person freezes a baseline, limits come from a part's first "
+        "this many results.",
+    )
+    window: int = Field(default=100, ge=2, le=100_000, description="Parts on a chart.")
+    min_capability_n: int = Field(
+        default=25, ge=2, le=10_000, description="Fewest values a capability figure needs."
+    )
+    alarms: bool = Field(default=True, description="A rule that fires raises an alarm.")
+
+    @field_validator("rules")
+    @classmethod
+    def _known_rules(cls, v: list[str]) -> list[str]:
+        # Imported here: the rules module loads scipy.stats, which reading a config does not need.
+        from inspection.errors import InvalidInput
+        from inspection.spc import resolve_rules
+
+        try:
+            resolve_rules(v)
+        except InvalidInput as exc:
+            raise ValueError(str(exc)) from exc
+        return v
 
 
 class LineConfig(_Strict):
@@ -798,6 +857,7 @@ class LineConfig(_Strict):
     storage: StorageSection = Field(default_factory=StorageSection)
     retention: RetentionSection = Field(default_factory=RetentionSection)
     simulator: SimulatorSection = Field(default_factory=SimulatorSection)
+    spc: SpcSection = Field(default_factory=SpcSection)
     http: HttpSection = Field(default_factory=HttpSection)
     base_dir: str = Field(default=".", exclude=True)
 

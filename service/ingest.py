@@ -49,6 +49,25 @@ class FrameSource(Protocol):
 
 
 @dataclass(frozen=True)
+class Drift:
+    """A dent pressed at ``center_mm`` (part frame) into every part after seq ``after_seq``,
+    ``mm_per_part`` deeper at each: a tool wearing, a die drifting."""
+
+    center_mm: tuple[float, float, float]
+    normal: tuple[float, float, float]
+    after_seq: int = 0
+    mm_per_part: float = 0.02
+    radius_mm: float = 20.0
+    flat_mm: float = 12.0
+
+    def dent(self, seq: int) -> Dent | None:
+        if seq <= self.after_seq:
+            return None
+        depth = (seq - self.after_seq) * self.mm_per_part
+        return Dent(self.center_mm, self.normal, depth, self.radius_mm, self.flat_mm)
+
+
+@dataclass(frozen=True)
 class SimulationSettings:
     """What the simulated rig varies from part to part.
 
@@ -76,6 +95,8 @@ class SimulationSettings:
     seed : int
         With ``seq``, fixes everything about a part: the same (seed, seq)
         gives the same part, pose, serial and images.
+    drift : Drift, optional
+        A dent that grows part by part at one place (a process drifting).
     """
 
     defect_rate: float = 0.1
@@ -87,6 +108,7 @@ class SimulationSettings:
     yaw_range_deg: float = 180.0
     flip: bool = False
     seed: int = 0
+    drift: Drift | None = None
 
     def __post_init__(self) -> None:
         if not 0 <= self.defect_rate <= 1:
@@ -187,6 +209,10 @@ class SimulatedRig:
         mesh = part.mesh
         if rng.random() < s.defect_rate:
             defects = (self._random_dent(part, T_rig_part, rng),)
+        drifted = s.drift.dent(seq) if s.drift is not None and part is self.parts[0] else None
+        if drifted is not None:
+            defects = (*defects, drifted)
+        if defects:
             mesh = press(part.mesh, defects)
         images = self.stages.render(self.stages.rig, mesh, T_rig_part, int(rng.integers(2**31)))
         return FrameSet(

@@ -32,19 +32,28 @@ from inspection.transforms import apply
 
 from . import bus
 from .api import ResultHub, create_app
-from .config import LineConfig, PartSpec, load_part_spec
+from .config import ConfigError, LineConfig, PartSpec, load_part_spec
 from .executor import Executor, InProcessExecutor
-from .ingest import Ingest, SeqState, SimPart, SimulatedRig, SimulationSettings, line_rig
+from .ingest import (
+    Drift,
+    Ingest,
+    SeqState,
+    SimPart,
+    SimulatedRig,
+    SimulationSettings,
+    line_rig,
+)
 from .journal import Journal
 from .metrics import Metrics
-from .models import software_version
+from .models import Alarm, software_version
 from .parts import LoadedPart, PartRegistry, load_part_cad
 from .pipeline import Outcome, Pipeline, Stages, flash_stages
 from .protocol import FrameSet, Keys
 from .recorder import Recorder, Retention
 from .retention import Janitor
+from .spc import SpcMonitor, SpcSettings
 from .store import DeviationArchive, ResultStore
-from .worker import ZenohWorker, result_from_json
+from .worker import ZenohWorker, result_from_json, zenoh_alarm_sink
 
 log = logging.getLogger(__name__)
 
@@ -166,8 +175,23 @@ class Station:
                 yaw_range_deg=sim.yaw_range_deg,
                 flip=sim.flip,
                 seed=sim.seed,
+                drift=self._drift(),
             ),
         )
+
+    def _drift(self) -> Drift | None:
+        sim = self.cfg.simulator
+        if sim.drift_point is None:
+            return None
+        spec, _ = next(iter(self.cads.values()))
+        point = next((p for p in spec.points if p.name == sim.drift_point), None)
+        if point is None:
+            raise ConfigError(f"[simulator] drift_point {sim.drift_point!r} is not a comparison "
+                              f"point of {spec.name!r}")  # fmt: skip
+        return Drift(
+            tuple(point.position_mm), tuple(point.normal),  # type: ignore[arg-type]
+            after_seq=sim.drift_after_seq, mm_per_part=sim.drift_mm_per_part,
+        )  # fmt: skip
 
     def metadata(self) -> dict[str, dict[str, str]]:
         """MCAP metadata: effective config and hash, rig calibration, CAD and tree hashes."""
@@ -444,6 +468,18 @@ def make_app(
     return Api(app, reg, owns_registry=own)
 
 
+def spc_monitor(
+    cfg: LineConfig, station: Station, store: ResultStore, alarms: list[Callable[[Alarm], object]]
+) -> SpcMonitor:
+    """Charts each measured part of the station; run rules that fire go to ``alarms``."""
+    return SpcMonitor(
+        store,
+        SpcSettings.from_config(cfg.spc),
+        subgroups={name: p.spec.subgroup_size for name, p in station.parts.items()},
+        alarms=alarms,
+    )
+
+
 def hub_sink(hub: ResultHub) -> Callable[[Outcome, FrameSet | None], None]:
     def sink(outcome: Outcome, fs: FrameSet | None) -> None:
         hub.publish(outcome.result)
@@ -531,6 +567,9 @@ def start_line(
         janitor = Janitor(store, archive, cfg.retention)
         opened.append(janitor)
         sinks = [archive_sink(archive), store_sink(store), *extra_sinks, hub_sink(hub)]
+        alarms = [store.put_alarm, hub.publish, recorder.record_alarm]
+        published = [zenoh_alarm_sink(session, station.keys), *alarms]
+        monitor = spc_monitor(cfg, station, store, published)
         worker = ZenohWorker(
             session,
             station.keys,
@@ -538,11 +577,13 @@ def start_line(
             station.pipeline(),
             queue_size=cfg.station.queue_size,
             sinks=sinks,
-            # Counted once recorded: stopping after N results stops with N recorded.
-            after_publish=[recorder.record, counter],
+            # Counted once recorded and charted: stopping after N results stops with N
+            # recorded, and their alarms raised.
+            after_publish=[recorder.record, monitor, counter],
             missed_part=station.missed_part(),
             metrics=metrics,
             executor=executor,
+            alarms=alarms,
             **worker_state(cfg, store),
         )
         opened.append(worker)
@@ -656,10 +697,23 @@ def run_worker(cfg: LineConfig, stop: threading.Event) -> int:
             station.pipeline(),
             queue_size=cfg.station.queue_size,
             sinks=[archive_sink(archive), store_sink(store)],
-            after_publish=[recorder.record],
+            after_publish=[
+                recorder.record,
+                spc_monitor(
+                    cfg,
+                    station,
+                    store,
+                    [
+                        zenoh_alarm_sink(session, station.keys),
+                        store.put_alarm,
+                        recorder.record_alarm,
+                    ],
+                ),
+            ],  # fmt: skip
             missed_part=station.missed_part(),
             metrics=metrics,
             executor=executor,
+            alarms=[store.put_alarm, recorder.record_alarm],
             **worker_state(cfg, store),
         )
         try:
@@ -684,8 +738,14 @@ def run_api(cfg: LineConfig, stop: threading.Event) -> int:
         def on_result(sample: zenoh.Sample) -> None:
             hub.publish(result_from_json(sample.payload.to_bytes()))
 
+        def on_alarm(sample: zenoh.Sample) -> None:
+            hub.publish(Alarm.model_validate_json(sample.payload.to_bytes()))
+
         sub = bus.RingSubscriber(
             session, keys.results(), on_result, capacity=256, name="results-rx"
+        )
+        alarm_sub = bus.RingSubscriber(
+            session, keys.alarms(), on_alarm, capacity=256, name="alarms-rx"
         )
         made = make_app(
             cfg, store=store, hub=hub, checks={"zenoh": lambda: bus.is_connected(session)}
@@ -701,5 +761,6 @@ def run_api(cfg: LineConfig, stop: threading.Event) -> int:
             if made is not None:
                 made.close()
             sub.close()
+            alarm_sub.close()
             store.close()
     return 0

@@ -206,6 +206,12 @@ class AlarmKind(StrEnum):
     seq_rebased = "seq_rebased"
     bad_frameset = "bad_frameset"
     queue_overflow = "queue_overflow"
+    spc_rule = "spc_rule"
+
+
+def new_alarm_id() -> str:
+    """A fresh alarm id, ordered by time like the results' ids."""
+    return f"alarm.{time.time_ns()}.{os.urandom(4).hex()}"
 
 
 class Alarm(_Model):
@@ -213,9 +219,12 @@ class Alarm(_Model):
 
     Alarms come with a result where there is one (the ``error`` result of a
     FrameSet whose seq was refused, say); they say what the result cannot:
-    that the trigger source misbehaves.
+    that the trigger source misbehaves, or (``spc_rule``) that a control
+    chart's run rule holds at the newest part. An alarm stays open until a
+    person acknowledges it through the API, which records who and when.
     """
 
+    id: str = Field(default_factory=new_alarm_id, pattern=ID_PATTERN, max_length=64)
     kind: AlarmKind
     message: str = Field(max_length=2000)
     triggered_ns: int = Field(description="The trigger it is about (or when it was raised), ns.")
@@ -223,6 +232,21 @@ class Alarm(_Model):
     station: Name
     seq: int | None = Field(default=None, description="The seq it is about, when there is one.")
     raised_ns: int = Field(description="When the worker raised it, ns since the epoch.")
+    part: Name | None = Field(default=None, description="spc_rule: the part type.")
+    feature: str | None = Field(
+        default=None,
+        max_length=128,
+        description="spc_rule: the charted feature: a comparison point's name, "
+        "'fit_rms' or 'defects'.",
+    )
+    rule: str | None = Field(default=None, max_length=32, description="spc_rule: e.g. nelson1.")
+    value: float | None = Field(default=None, description="spc_rule: the value that fired it.")
+    result_id: str | None = Field(
+        default=None, max_length=MAX_ID_LEN, description="The result it is about, if any."
+    )
+    serial: Name | None = None
+    acknowledged_by: str | None = Field(default=None, max_length=200)
+    acknowledged_ns: int | None = None
 
 
 def make_result_id(line: str, station: str, seq: int, triggered_ns: int) -> str:
@@ -303,6 +327,7 @@ class PartPublic(_Model):
         default=None, description="The tree build job, while building or if failed."
     )
     points: list[ComparisonPointSpec]
+    subgroup_size: int = Field(default=1, description="Parts per subgroup of its charts.")
     faces: int | None = None
     extents_mm: list[float] | None = None
 
@@ -327,21 +352,40 @@ class Job(_Model):
     finished_ns: int | None = None
 
 
-class TrendPoint(_Model):
-    """Process statistics of one comparison point over the last parts.
+class ConfidenceInterval(_Model):
+    low: float
+    high: float
+    level: float = Field(gt=0, lt=1, description="0.95: a 95 % interval.")
 
-    ``cp = (upper - lower) / (6 sigma)``, ``cpk = min(upper - mean, mean -
-    lower) / (3 sigma)``; null with fewer than two measurements or zero sigma.
+
+class TrendPoint(_Model):
+    """Statistics and capability of one charted feature over the last parts.
+
+    ``cp``/``cpk`` use the within sigma (average moving range / 1.128): what the
+    process can do from part to part. ``pp``/``ppk`` use the overall sample
+    standard deviation: what it delivered in the window, drifts included.
+    ``C = (upper - lower) / (6 sigma)``, ``Ck = min(upper - mean, mean - lower)
+    / (3 sigma)``. None below the minimum sample size: ``capability_note`` says why.
     """
 
     name: str
     n: int = Field(ge=0, description="Measurements used (not-measurable ones are left out).")
     mean_mm: float | None = None
-    sigma_mm: float | None = None
+    sigma_within_mm: float | None = Field(default=None, description="Moving range / d2.")
+    sigma_overall_mm: float | None = Field(default=None, description="Sample std (n - 1).")
     lower_mm: float | None = None
     upper_mm: float | None = None
     cp: float | None = None
     cpk: float | None = None
+    pp: float | None = None
+    ppk: float | None = None
+    cp_ci: ConfidenceInterval | None = None
+    cpk_ci: ConfidenceInterval | None = None
+    pp_ci: ConfidenceInterval | None = None
+    ppk_ci: ConfidenceInterval | None = None
+    capability_note: str | None = Field(
+        default=None, description="Why there is no capability figure."
+    )
     fails: int = Field(default=0, ge=0)
 
 
@@ -354,6 +398,86 @@ class Trend(_Model):
     since_ns: int | None = None
     until_ns: int | None = None
     points: list[TrendPoint]
+
+
+class ChartLimits(_Model):
+    """A control chart's limits (within sigma), and where they come from."""
+
+    center: float
+    sigma: float
+    lcl: float
+    ucl: float
+    spread_center: float = Field(description="Moving range (or range) chart's centre line.")
+    spread_lcl: float
+    spread_ucl: float
+    subgroup: int = Field(ge=1, description="1: individuals and moving range; else X-bar/R.")
+    n: int = Field(ge=0, description="Baseline values (or subgroups).")
+    frozen: bool = Field(description="Frozen by a person; else the part's first results.")
+    frozen_by: str | None = None
+    frozen_ns: int | None = None
+
+
+class ChartPoint(_Model):
+    """One plotted value: a part (or a subgroup, its last part's identity)."""
+
+    result_id: str
+    serial: str
+    triggered_ns: int
+    value: float | None = Field(description="The deviation (or subgroup mean); null: unmeasured.")
+    spread: float | None = Field(description="Moving range (or subgroup range).")
+    rules: list[str] = Field(default_factory=list, description="Run rules holding here.")
+
+
+class ControlChart(_Model):
+    """A control chart of one feature of a part: a comparison point, ``fit_rms`` or ``defects``."""
+
+    part: str
+    feature: str
+    unit: str = "mm"
+    rules: list[str] = Field(description="The run rules checked.")
+    limits: ChartLimits | None = None
+    limits_note: str | None = Field(default=None, description="Why there are no limits yet.")
+    lower_mm: float | None = Field(default=None, description="Tolerance, for a comparison point.")
+    upper_mm: float | None = None
+    points: list[ChartPoint]
+    capability: TrendPoint | None = None
+
+
+class BaselineCreate(_Model):
+    """Freeze a part's control limits from the results of a period judged stable."""
+
+    since_ns: int | None = Field(default=None, ge=0, description="From (default: the first).")
+    until_ns: int | None = Field(default=None, ge=0, description="To (default: now).")
+    by: str = Field(default="", max_length=100, description="Who freezes it (a name).")
+
+
+class Baseline(_Model):
+    """A part's frozen baseline: the limits per charted feature and who froze them."""
+
+    part: str
+    since_ns: int | None
+    until_ns: int | None
+    frozen_ns: int
+    frozen_by: str
+    results: int = Field(ge=0)
+    limits: dict[str, ChartLimits]
+
+
+class AlarmAck(_Model):
+    """Acknowledge an alarm."""
+
+    by: str = Field(default="", max_length=100, description="Who acknowledges it (a name).")
+
+
+class Recording(_Model):
+    """Where one inspection is recorded: open ``file`` in the recordings folder (Foxglove,
+    the MCAP library) at the log times ``start_ns`` .. ``end_ns``."""
+
+    file: str
+    start_ns: int
+    end_ns: int
+    topics: list[str]
+    finished: bool = Field(description="Complete and indexed; else still being written.")
 
 
 class Health(_Model):

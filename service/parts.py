@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import trimesh
 
 from inspection.alignment import (
     MODEL_FORMAT_VERSION,
@@ -72,6 +73,10 @@ class UnknownPart(PartError, KeyError):
 
 class PartNotReady(PartError):
     """The part exists but its tree is not usable (building, or the build failed)."""
+
+
+class PointOffSurface(PartError):
+    """A comparison point of a new part lies too far from its CAD surface."""
 
 
 class PartConflict(PartError):
@@ -122,6 +127,25 @@ def comparison_points(spec: PartSpec) -> tuple[ComparisonPoint, ...]:
         )
         for p in spec.points
     )
+
+
+def check_point_offsets(cad: CadModel, spec: PartSpecBase, max_mm: float) -> None:
+    """Refuse comparison points that lie farther than ``max_mm`` from the CAD surface.
+
+    A point off the surface measures the distance to where it was put, not a
+    deviation: a typo in a coordinate would pass as a process offset.
+    """
+    if not spec.points:
+        return
+    mesh = trimesh.Trimesh(cad.vertices, cad.faces, process=False)
+    where = np.array([p.position_mm for p in spec.points], dtype=np.float64)
+    _, dist, _ = trimesh.proximity.closest_point(mesh, where)
+    far = [(p.name, float(d)) for p, d in zip(spec.points, dist, strict=True) if d > max_mm]
+    if far:
+        listed = ", ".join(f"{n!r} at {d:.3f} mm" for n, d in far[:10])
+        raise PointOffSurface(
+            f"comparison points farther than {max_mm:g} mm from the CAD surface: {listed}"
+        )
 
 
 def measure_params(spec: PartSpec, *, guided: bool = True) -> MeasureParams:
@@ -480,7 +504,14 @@ class PartRegistry:
             raise PartConflict(f"part {name!r}: its folder would lie outside the uploads folder")
         return folder
 
-    def create(self, spec: PartSpecBase, cad_bytes: bytes, filename: str) -> Job:
+    def create(
+        self,
+        spec: PartSpecBase,
+        cad_bytes: bytes,
+        filename: str,
+        *,
+        max_point_offset_mm: float | None = None,
+    ) -> Job:
         """Create a part from an uploaded CAD file and start building its tree.
 
         The files are written into a new staging folder of the service's own,
@@ -495,6 +526,8 @@ class PartRegistry:
             service did not make is in the way.
         inspection.CadLoadError
             The upload is not a usable mesh, or its file name has no CAD suffix.
+        PointOffSurface
+            A comparison point farther than ``max_point_offset_mm`` from the surface.
         """
         suffix = Path(filename).suffix.lower()
         if suffix not in UPLOAD_SUFFIXES:
@@ -520,12 +553,14 @@ class PartRegistry:
             staging = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=self.uploads_dir.resolve()))
             (staging / full.cad).write_bytes(cad_bytes)
             try:
-                load_cad(staging / full.cad, scale=full.scale, name=full.name)  # fail fast
+                cad = load_cad(staging / full.cad, scale=full.scale, name=full.name)  # fail fast
             except CadLoadError as exc:
                 # Its message starts with the staging file's path: name the client's file.
                 raise CadLoadError(
                     hide_paths(str(exc), {staging / full.cad: filename, staging: "upload"})
                 ) from exc
+            if max_point_offset_mm is not None:
+                check_point_offsets(cad, full, max_point_offset_mm)
             (staging / SPEC_FILE).write_text(full.model_dump_json(indent=2))
             if target.exists() or target.is_symlink():
                 raise PartConflict(f"part {spec.name!r}: a folder of that name appeared meanwhile")
@@ -724,6 +759,7 @@ class PartRegistry:
                 state=e.state,
                 job=e.job,
                 points=list(e.spec.points),
+                subgroup_size=e.spec.subgroup_size,
                 faces=len(loaded.cad.faces) if loaded else None,
                 extents_mm=[float(x) for x in loaded.cad.extents] if loaded else None,
             )

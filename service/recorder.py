@@ -16,6 +16,7 @@ topic                          schema                          what
                                                                ``deviation`` (mm, float32)
 ``/part/pose``                 foxglove.FrameTransform         T_rig_cad (parent ``rig``)
 ``/result``                    JSON (InspectionResult)         every result, always
+``/alarm``                     JSON (Alarm)                    every alarm, when raised
 =============================  ==============================  ===========================
 
 All timestamps are ns since the Unix epoch; every message of one trigger has
@@ -65,7 +66,7 @@ from mcap.writer import Writer as McapWriter
 from mcap_protobuf.schema import build_file_descriptor_set
 
 from .config import RetentionSection
-from .models import InspectionResult, Status
+from .models import Alarm, InspectionResult, Status
 from .pipeline import Outcome
 from .protocol import FrameSet
 
@@ -290,6 +291,7 @@ class Recorder:
         self._index = 0
         self._file: _File | None = None
         self._schema = result_json_schema()
+        self._alarm_schema = json.dumps(Alarm.model_json_schema())
         self.files: list[Path] = []
         self.recorded = 0
         self.frames_recorded = 0
@@ -391,6 +393,15 @@ class Recorder:
             return keep
 
     __call__ = record
+
+    def record_alarm(self, alarm: Alarm) -> None:
+        """Write one alarm, at the time it was raised; flushes before returning."""
+        with self._lock:
+            if self._file is None:
+                return  # closed: the alarm is in the store and on zenoh
+            doc = alarm.model_dump_json().encode()
+            self._file.json("/alarm", "Alarm", self._alarm_schema, doc, alarm.raised_ns)
+            self._file.flush()
 
     def _image(self, cam: str, img: np.ndarray, t: int) -> Any:
         if self.image_encoding == "png":

@@ -25,9 +25,9 @@ from __future__ import annotations
 
 import base64
 import binascii
+import builtins
 import contextlib
 import logging
-import math
 import os
 import re
 import sqlite3
@@ -40,7 +40,7 @@ from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
 import numpy as np
 
-from .models import InspectionResult, Status, Trend, TrendPoint, Verdict
+from .models import Alarm, Baseline, InspectionResult, Status
 from .names import ID_PATTERN
 from .store_url import check_postgres_url, is_postgres_url, redact_url
 
@@ -72,6 +72,26 @@ MIGRATIONS: list[str] = [
     # 2: a restarted worker asks for its station's last trigger.
     """
     CREATE INDEX results_station_seq ON results (line, station, seq);
+    """,
+    # 3: alarms (acknowledged by a person, or open) and frozen control-chart baselines;
+    # look-ups by serial.
+    """
+    CREATE TABLE alarms (
+        id            TEXT PRIMARY KEY,
+        line          TEXT NOT NULL,
+        station       TEXT NOT NULL,
+        kind          TEXT NOT NULL,
+        raised_ns     BIGINT NOT NULL,
+        acknowledged  INTEGER NOT NULL,
+        body          TEXT NOT NULL
+    );
+    CREATE INDEX alarms_time ON alarms (raised_ns, id);
+    CREATE TABLE baselines (
+        part          TEXT PRIMARY KEY,
+        frozen_ns     BIGINT NOT NULL,
+        body          TEXT NOT NULL
+    );
+    CREATE INDEX results_serial ON results (serial, triggered_ns, id);
     """,
 ]
 """Schema migrations, in order; the database's version is the number applied.
@@ -115,6 +135,10 @@ class Filters:
     part: str | None = None
     status: Status | None = None
     since_ns: int | None = None
+    until_ns: int | None = None
+    """Up to and including this trigger time."""
+    serial: str | None = None
+    station: str | None = None
 
 
 def encode_cursor(triggered_ns: int, id_: str) -> str:
@@ -589,55 +613,95 @@ class ResultStore:
         )
         return {s.value: 0 for s in Status} | {r[0]: int(r[1]) for r in rows}
 
-    def trend(self, part: str, window: int = 50) -> Trend:
-        """Process statistics per comparison point over the last ``window`` measured parts.
+    def measured(
+        self,
+        part: str,
+        *,
+        limit: int = 50,
+        oldest: bool = False,
+        since_ns: int = 0,
+        until_ns: int = 2**63 - 1,
+    ) -> builtins.list[InspectionResult]:
+        """A part's results with a measurement (status pass or fail), oldest first.
 
-        Only results with status pass or fail count (a part with an error or a
-        missed part has no measurement). Per point, not-measurable entries are
-        left out; sigma is the sample standard deviation (n - 1).
+        ``limit`` of them: the newest (default) or the oldest ones within the
+        trigger-time range (both ends included). A part with an error or a
+        missed part has no measurement, and a not-measurable one none to chart.
         """
-        if window < 1:
-            raise ValueError(f"window must be at least 1, got {window}")
+        if limit < 1:
+            raise ValueError(f"limit must be at least 1, got {limit}")
+        order = "ASC" if oldest else "DESC"
         rows = self._run(
             lambda db: db.execute(
-                """
+                f"""
                 SELECT body FROM results WHERE part = ? AND status IN (?, ?)
-                ORDER BY triggered_ns DESC, id DESC LIMIT ?
+                AND triggered_ns BETWEEN ? AND ?
+                ORDER BY triggered_ns {order}, id {order} LIMIT ?
                 """,
-                (part, Status.passed.value, Status.fail.value, window),
+                (part, Status.passed.value, Status.fail.value, since_ns, until_ns, limit),
             ).fetchall()
         )
-        results = [InspectionResult.model_validate_json(r[0]) for r in rows]
-        values: dict[str, list[float]] = {}
-        limits: dict[str, tuple[float, float]] = {}
-        fails: dict[str, int] = {}
-        order: list[str] = []
-        # Oldest first so the newest limits win when a spec changed in the window.
-        for res in reversed(results):
-            for c in res.comparison:
-                if c.name not in values:
-                    values[c.name] = []
-                    fails[c.name] = 0
-                    order.append(c.name)
-                limits[c.name] = (c.lower_mm, c.upper_mm)
-                if c.verdict == Verdict.FAIL:
-                    fails[c.name] += 1
-                if c.deviation_mm is not None and c.verdict != Verdict.NOT_MEASURABLE:
-                    values[c.name].append(c.deviation_mm)
-        points = [
-            _trend_point(
-                name, np.asarray(values[name], dtype=np.float64), limits[name], fails[name]
+        out = [InspectionResult.model_validate_json(r[0]) for r in rows]
+        return out if oldest else out[::-1]
+
+    # ------------------------------------------------------------------ alarms
+
+    def put_alarm(self, alarm: Alarm) -> None:
+        """Insert ``alarm`` or replace the one with its id (an acknowledgement)."""
+        row = (
+            alarm.id, alarm.line, alarm.station, alarm.kind.value, alarm.raised_ns,
+            int(alarm.acknowledged_ns is not None), alarm.model_dump_json(),
+        )  # fmt: skip
+        self._run(
+            lambda db: db.execute(
+                "INSERT INTO alarms (id, line, station, kind, raised_ns, acknowledged, body) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?) ON CONFLICT (id) DO UPDATE SET "
+                "acknowledged = excluded.acknowledged, body = excluded.body",
+                row,
             )
-            for name in order
-        ]
-        return Trend(
-            part=part,
-            window=window,
-            parts=len(results),
-            since_ns=results[-1].triggered_ns if results else None,
-            until_ns=results[0].triggered_ns if results else None,
-            points=points,
         )
+
+    def alarm(self, id_: str) -> Alarm | None:
+        row = self._run(
+            lambda db: db.execute("SELECT body FROM alarms WHERE id = ?", (id_,)).fetchone()
+        )
+        return None if row is None else Alarm.model_validate_json(row[0])
+
+    def alarms(self, *, open_only: bool = False, limit: int = 50) -> builtins.list[Alarm]:
+        """The newest alarms first; ``open_only``: those nobody acknowledged."""
+        where = "WHERE acknowledged = 0" if open_only else ""
+        rows = self._run(
+            lambda db: db.execute(
+                f"SELECT body FROM alarms {where} ORDER BY raised_ns DESC, id DESC LIMIT ?",
+                (limit,),
+            ).fetchall()
+        )
+        return [Alarm.model_validate_json(r[0]) for r in rows]
+
+    # ------------------------------------------------------------------ baselines
+
+    def put_baseline(self, baseline: Baseline) -> None:
+        row = (baseline.part, baseline.frozen_ns, baseline.model_dump_json())
+        self._run(
+            lambda db: db.execute(
+                "INSERT INTO baselines (part, frozen_ns, body) VALUES (?, ?, ?) "
+                "ON CONFLICT (part) DO UPDATE SET frozen_ns = excluded.frozen_ns, "
+                "body = excluded.body",
+                row,
+            )
+        )
+
+    def baseline(self, part: str) -> Baseline | None:
+        row = self._run(
+            lambda db: db.execute("SELECT body FROM baselines WHERE part = ?", (part,)).fetchone()
+        )
+        return None if row is None else Baseline.model_validate_json(row[0])
+
+    def delete_baseline(self, part: str) -> bool:
+        n = self._run(
+            lambda db: db.execute("DELETE FROM baselines WHERE part = ?", (part,)).rowcount
+        )
+        return bool(n)
 
 
 def copy_results(source: ResultStore, target: ResultStore, *, page: int = 500) -> int:
@@ -649,34 +713,6 @@ def copy_results(source: ResultStore, target: ResultStore, *, page: int = 500) -
         copied += target.put_many(items)
         if cursor is None:
             return copied
-
-
-def _trend_point(name: str, x: np.ndarray, limits: tuple[float, float], fails: int) -> TrendPoint:
-    lower, upper = limits
-    n = len(x)
-    mean = float(x.mean()) if n else None
-    sigma = float(x.std(ddof=1)) if n >= 2 else None
-    cp = cpk = None
-    if mean is not None and sigma is not None and sigma > 0:
-        # Process capability: the tolerance band over six sigma, and its
-        # one-sided version from the mean to the nearer limit.
-        cp = (upper - lower) / (6.0 * sigma)
-        cpk = min(upper - mean, mean - lower) / (3.0 * sigma)
-    return TrendPoint(
-        name=name,
-        n=n,
-        mean_mm=_finite(mean),
-        sigma_mm=_finite(sigma),
-        lower_mm=lower,
-        upper_mm=upper,
-        cp=_finite(cp),
-        cpk=_finite(cpk),
-        fails=fails,
-    )
-
-
-def _finite(x: float | None) -> float | None:
-    return x if x is not None and math.isfinite(x) else None
 
 
 def _where(f: Filters) -> tuple[str, list[object]]:
@@ -691,6 +727,15 @@ def _where(f: Filters) -> tuple[str, list[object]]:
     if f.since_ns is not None:
         clauses.append("triggered_ns >= ?")
         params.append(int(f.since_ns))
+    if f.until_ns is not None:
+        clauses.append("triggered_ns <= ?")
+        params.append(int(f.until_ns))
+    if f.serial is not None:
+        clauses.append("serial = ?")
+        params.append(f.serial)
+    if f.station is not None:
+        clauses.append("station = ?")
+        params.append(f.station)
     return ("WHERE " + " AND ".join(clauses) if clauses else ""), params
 
 

@@ -865,7 +865,8 @@ class ZenohWorker:
     from the station's last stored seq, answers a trigger already stored
     once, and serves the stored results on the station's history queryable
     (:mod:`service.history`). With a ``journal``, what it had accepted before
-    a kill is measured first. Alarms go to ``<prefix>/<line>/<station>/alarm``.
+    a kill is measured first. Alarms go to ``<prefix>/<line>/<station>/alarm``, then
+    to ``alarms`` (the store, the streams, the recording).
     """
 
     def __init__(
@@ -885,6 +886,7 @@ class ZenohWorker:
         max_seq_jump: int = DEFAULT_MAX_SEQ_JUMP,
         metrics: Metrics | None = None,
         executor: Executor | None = None,
+        alarms: Iterable[AlarmSink] = (),
     ) -> None:
         self.id = bus.worker_id(station)
         self.session = session
@@ -909,7 +911,7 @@ class ZenohWorker:
             max_seq_jump=max_seq_jump,
             resume=resume,
             is_stored=store.has if store is not None else None,
-            alarms=[zenoh_alarm_sink(session, keys)],
+            alarms=[zenoh_alarm_sink(session, keys), *alarms],
             journal=journal,
             metrics=metrics,
             cameras=[(c["name"], c["width"], c["height"]) for c in cals] or None,

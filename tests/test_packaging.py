@@ -107,3 +107,14 @@ def test_the_check_would_see_a_wheel_without_the_rig(installed: Path, tmp_path) 
     proc = default_rig_outside_checkout(site, work)
     assert proc.returncode != 0
     assert "FileNotFoundError" in proc.stderr and "installation is incomplete" in proc.stderr
+
+
+def test_the_wheel_carries_the_dashboard_and_its_vendored_libraries(wheel: Path) -> None:
+    static = REPO / "service" / "web" / "static"
+    wanted = sorted(str(p.relative_to(REPO)) for p in static.rglob("*") if p.is_file())
+    with zipfile.ZipFile(wheel) as zf:
+        names = set(zf.namelist())
+    assert [w for w in wanted if w not in names] == []
+    # Each vendored library travels with its licence.
+    for lib in ("uplot", "swagger-ui", "redoc"):
+        assert f"service/web/static/vendor/{lib}/LICENSE" in names

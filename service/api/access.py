@@ -7,9 +7,11 @@
   line file itself, whose contents go into every recording's metadata.
   ``[http] auth`` says what needs a key: ``writes`` (POST, PUT, PATCH,
   DELETE; the default), ``all`` (reads too, ``/metrics`` included) or
-  ``none``. Health probes never do. A missing or wrong key is 401 with
-  ``WWW-Authenticate: Bearer``; every configured key is compared in constant
-  time, so the answer's timing says nothing of how close a guess was.
+  ``none``. Health probes never do, nor the dashboard's pages (their scripts
+  send the key a person entered, kept for the browser tab's session). A
+  missing or wrong key is 401 with ``WWW-Authenticate: Bearer``; every
+  configured key is compared in constant time, so the answer's timing says
+  nothing of how close a guess was.
 - **No keys configured.** Writes are open only on a server bound to a
   loopback address (the machine's own user, as ``make run`` has it); bound
   anywhere else they are refused (403 ``writes_disabled``) until a key is
@@ -40,6 +42,10 @@ KEYS_ENV = "INSPECTION_API_KEYS"
 WRITE_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})
 OPEN_PATHS = frozenset({"/v1/health", "/v1/health/live"})
 """Answered without a key: probes of orchestrators and load balancers carry none."""
+
+OPEN_PAGES = (frozenset({"/", "/docs", "/redoc"}), ("/ui/", "/static/"))
+"""The dashboard's pages and assets (paths, prefixes): they hold no data, and a browser
+cannot send a key when it opens a page; their scripts send it with each API request."""
 
 
 class AccessError(ValueError):
@@ -127,7 +133,10 @@ class Access:
                     f"writes from the page at {origin[:200]!r} are refused: add it to "
                     "[http] allowed_origins to allow it"
                 )  # fmt: skip
-        if scope["path"] in OPEN_PATHS or method == "OPTIONS":
+        path = scope["path"]
+        if path in OPEN_PATHS or method == "OPTIONS":
+            return None
+        if not write and (path in OPEN_PAGES[0] or path.startswith(OPEN_PAGES[1])):
             return None
         needs_key = self.auth == "all" or (self.auth == "writes" and write)
         if not needs_key:
@@ -139,7 +148,7 @@ class Access:
                 "no API key is configured and the API listens beyond this machine: set "
                 f"{KEYS_ENV} or [http] api_keys_file"
             )  # fmt: skip
-        presented = _presented_key(headers)
+        presented = presented_key(headers)
         if presented is None:
             return 401, "unauthorized", (
                 "this needs an API key: send 'Authorization: Bearer <key>' or 'X-API-Key: <key>'"
@@ -179,7 +188,7 @@ async def drain(receive: Receive, max_bytes: int) -> None:
             return
 
 
-def _presented_key(headers: Mapping[str, str]) -> bytes | None:
+def presented_key(headers: Mapping[str, str]) -> bytes | None:
     auth = headers.get("authorization")
     if auth is not None:
         scheme, _, token = auth.partition(" ")

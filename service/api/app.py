@@ -13,10 +13,12 @@ from contextlib import asynccontextmanager
 from typing import Any
 
 from fastapi import FastAPI
+from pydantic.json_schema import models_json_schema
 from starlette.middleware.cors import CORSMiddleware
 
+from .. import web
 from ..config import AuthScope, LineConfig
-from ..models import software_version
+from ..models import PartCreate, software_version
 from ..parts import PartRegistry
 from ..results import measure_upload
 from ..store import DeviationArchive, ResultStore
@@ -30,6 +32,7 @@ from .methods import MethodRouting
 from .metrics import Metrics, RequestMetrics
 from .routes import inspections as inspection_routes
 from .routes import parts as part_routes
+from .routes import quality as quality_routes
 from .routes import system as system_routes
 
 log = logging.getLogger(__name__)
@@ -112,19 +115,31 @@ def create_app(
         summary="In-line shape inspection: parts, results, trends, live stream.",
         version=software_version(),
         lifespan=lifespan,
+        # Served by service.web from the package's own copies: no CDN.
+        docs_url=None,
+        redoc_url=None,
     )
     app.state.services = svc
     install_error_handlers(app)
     app.include_router(system_routes.router)
     app.include_router(part_routes.router)
     app.include_router(inspection_routes.router)
+    app.include_router(quality_routes.router)
+    web.install(app)
     _register_gauges(svc)
 
     # Innermost: answers OPTIONS and 405 for a whole path, from the methods of every
     # router's routes (FastAPI keeps included routers apart: list each one here).
     app.add_middleware(
         MethodRouting,
-        routers=[app.router, system_routes.router, part_routes.router, inspection_routes.router],
+        routers=[
+            app.router,
+            system_routes.router,
+            part_routes.router,
+            inspection_routes.router,
+            quality_routes.router,
+            web.router,
+        ],  # fmt: skip
     )
     # A plain ASGI middleware (not BaseHTTPMiddleware): it does not buffer
     # streamed responses such as /v1/stream.
@@ -162,6 +177,14 @@ def _document_access(app: FastAPI, auth: AuthScope, *, keys_needed: bool) -> Non
         if app.openapi_schema is not None:
             return app.openapi_schema
         schema = make_schema()
+        # The spec travels as a JSON text inside a multipart form, which OpenAPI cannot
+        # reference: listed here, a client generator still makes a type of it.
+        _, defs = models_json_schema(
+            [(PartCreate, "validation")], ref_template="#/components/schemas/{model}"
+        )
+        components = schema.setdefault("components", {}).setdefault("schemas", {})
+        for name, model_schema in defs["$defs"].items():
+            components.setdefault(name, model_schema)
         error = {"application/json": {"schema": {"$ref": "#/components/schemas/ErrorBody"}}}
         if keys_needed and auth is not AuthScope.none:
             schema.setdefault("components", {})["securitySchemes"] = {

@@ -32,6 +32,12 @@ PartQuery = Annotated[
 ]
 """An optional part name in a query string."""
 
+NameQuery = Annotated[
+    str | None,
+    Query(pattern=NAME_PATTERN, max_length=NAME_MAX_LEN, description=f"A name: {NAME_RULE}"),
+]
+"""An optional serial or station name in a query string."""
+
 Pipeline = Callable[..., Any]
 """``pipeline(part, points, trigger, *, frame) -> Outcome``, as ``results.measure_upload``."""
 

@@ -12,6 +12,8 @@ Codes are stable (clients switch on them); messages are for people.
     PartNotReady           -> 409        part_not_ready
     PartConflict           -> 409        part_conflict
     CadLoadError           -> 422        invalid_cad
+    PointOffSurface        -> 422        point_off_surface (with each point's distance)
+    unknown query param    -> 422        unknown_parameter
     StoreError             -> 503        store_unavailable (the database cannot be reached)
 """
 
@@ -27,7 +29,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from inspection.errors import CadLoadError, InvalidInput
 
 from ..models import ErrorBody, ErrorDetail
-from ..parts import PartConflict, PartNotReady, UnknownPart
+from ..parts import PartConflict, PartNotReady, PointOffSurface, UnknownPart
 from ..store import StoreError
 
 log = logging.getLogger(__name__)
@@ -101,6 +103,10 @@ def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(PartConflict)
     async def _conflict(request: Request, exc: PartConflict) -> JSONResponse:
         return error_response(409, "part_conflict", str(exc))
+
+    @app.exception_handler(PointOffSurface)
+    async def _off_surface(request: Request, exc: PointOffSurface) -> JSONResponse:
+        return error_response(422, "point_off_surface", str(exc))
 
     @app.exception_handler(InvalidInput)
     async def _invalid(request: Request, exc: InvalidInput) -> JSONResponse:

@@ -12,10 +12,10 @@ from __future__ import annotations
 import asyncio
 import logging
 import threading
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
 
-from ..models import InspectionResult
+from ..models import Alarm, InspectionResult
 
 log = logging.getLogger(__name__)
 
@@ -51,15 +51,19 @@ class ResultHub:
         with self._lock:
             return len(self._subs)
 
-    def publish(self, result: InspectionResult) -> None:
-        """Queue ``result`` for every open stream (thread-safe, never blocks)."""
+    def publish(self, result: InspectionResult | Alarm) -> None:
+        """Queue a result or an alarm for every open stream (thread-safe, never blocks).
+
+        Alarms go to every stream, whatever it filters results by.
+        """
         with self._lock:
             subs = list(self._subs)
         for sub in subs:
-            if sub.part is not None and result.part != sub.part:
-                continue
-            if sub.status is not None and result.status.value != sub.status:
-                continue
+            if isinstance(result, InspectionResult):
+                if sub.part is not None and result.part != sub.part:
+                    continue
+                if sub.status is not None and result.status.value != sub.status:
+                    continue
             try:
                 sub.loop.call_soon_threadsafe(self._offer, sub, result)
             except RuntimeError:  # the stream's loop is closed
@@ -85,13 +89,23 @@ class ResultHub:
                 pass
 
     async def stream(
-        self, *, part: str | None = None, status: str | None = None, keepalive_s: float = 15.0
+        self,
+        *,
+        part: str | None = None,
+        status: str | None = None,
+        keepalive_s: float = 15.0,
+        backlog: Callable[[], list[InspectionResult]] | None = None,
     ) -> AsyncIterator[str]:
-        """Server-sent events: a ``ready`` event, then one ``result`` event per new result.
+        """Server-sent events: a ``ready`` event, then one ``result`` event per new result
+        and one ``alarm`` event per alarm.
 
-        A comment line is sent every ``keepalive_s`` without results so that
-        proxies keep the connection open; a ``dropped`` event says how many
-        results a slow client missed.
+        ``backlog`` (called once subscribed, so nothing falls between) gives the
+        results a resuming client missed, oldest first: they are sent first, and
+        any of them also arriving live is sent once. A result event's ``id`` is
+        the result's: a browser's EventSource sends the last one back as
+        ``Last-Event-ID`` when it reconnects. A comment line is sent every
+        ``keepalive_s`` without events so that proxies keep the connection
+        open; a ``dropped`` event says how many a slow client missed.
         """
         sub = _Subscriber(
             loop=asyncio.get_running_loop(),
@@ -107,6 +121,11 @@ class ResultHub:
             # Tells the client that it is subscribed: what it triggers from
             # now on will be streamed.
             yield "event: ready\ndata: {}\n\n"
+            sent: set[str] = set()
+            if backlog is not None:
+                for r in await asyncio.to_thread(backlog):
+                    sent.add(r.id)
+                    yield _result_event(r)
             while True:
                 try:
                     item = await asyncio.wait_for(sub.queue.get(), keepalive_s)
@@ -118,8 +137,18 @@ class ResultHub:
                 if sub.dropped:
                     yield f'event: dropped\ndata: {{"count": {sub.dropped}}}\n\n'
                     sub.dropped = 0
+                if isinstance(item, Alarm):
+                    yield f"event: alarm\ndata: {item.model_dump_json()}\n\n"
+                    continue
                 assert isinstance(item, InspectionResult)
-                yield f"event: result\nid: {item.id}\ndata: {item.model_dump_json()}\n\n"
+                if item.id in sent:
+                    sent.discard(item.id)
+                    continue
+                yield _result_event(item)
         finally:
             with self._lock:
                 self._subs.discard(sub)
+
+
+def _result_event(r: InspectionResult) -> str:
+    return f"event: result\nid: {r.id}\ndata: {r.model_dump_json()}\n\n"

@@ -7,6 +7,7 @@ kind must get a clear 4xx error body and leave earlier results intact.
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import hashlib
 import http.client
@@ -23,12 +24,19 @@ import pytest
 from fastapi.testclient import TestClient
 from linekit import uvicorn_server
 
+from inspection.deviations import Verdict
 from inspection.panel import PanelSpec, panel_height, sheet_metal_panel
 from inspection.rig import belt_pose
 from inspection.transforms import apply
 from service.api import ResultHub, create_app
 from service.config import PartSpecBase, load_line_config
-from service.models import InspectionResult, PointResult, make_result_id, software_version
+from service.models import (
+    InspectionResult,
+    PointResult,
+    Status,
+    make_result_id,
+    software_version,
+)
 from service.parts import PartRegistry
 from service.store import DeviationArchive, ResultStore, encode_cursor
 
@@ -226,6 +234,24 @@ def test_create_part_builds_tree_as_a_job_then_delete(client, line, tmp_path):
     assert_error(client.get("/v1/jobs/job-0"), 404, "unknown_job")
 
 
+def test_a_point_off_the_cad_surface_is_refused_with_its_distance(client, tmp_path):
+    small = PanelSpec().scaled(120.0, 80.0)
+    stl = tmp_path / "p.stl"
+    sheet_metal_panel(small).to_trimesh().export(stl)
+    top = float(panel_height(small, np.array([10.0]), np.array([5.0]))[0])
+    points = [
+        {"name": n, "position_mm": [10.0, 5.0, top + dz], "normal": [0, 0, 1], "lower_mm": -0.2,
+         "upper_mm": 0.2, "radius_mm": 5.0}
+        for n, dz in (("on", 0.0), ("above", 3.0))
+    ]  # fmt: skip
+    spec = {"name": "offset", "points": points}
+    r = client.post("/v1/parts", files={"cad": ("p.stl", stl.read_bytes())},
+                    data={"spec": json.dumps(spec)})  # fmt: skip
+    err = assert_error(r, 422, "point_off_surface")
+    assert "'above' at 3." in err["message"] and "'on'" not in err["message"]
+    assert [p["name"] for p in client.get("/v1/parts").json()["items"]] == [PART]
+
+
 @pytest.mark.parametrize(
     "files, data, status, code",
     [
@@ -290,6 +316,37 @@ def test_list_filters_and_pagination(client, app_parts):
     }
     one = client.get(f"/v1/inspections/{seen[0]['id']}").json()
     assert InspectionResult.model_validate(one) == store.get(seen[0]["id"])
+    by_serial = client.get("/v1/inspections", params={"serial": "SN4"}).json()["items"]
+    assert [r["seq"] for r in by_serial] == [4]
+    until = client.get("/v1/inspections", params={"until": str(1_700_000_000_000_000_000 + 10**9)})
+    assert [r["seq"] for r in until.json()["items"]] == [1, 0]
+    assert client.get("/v1/inspections", params={"station": "st9"}).json()["items"] == []
+
+
+def test_csv_in_long_format(client, app_parts):
+    store = app_parts[1]
+    two = stored_result(1, status="fail").model_copy(
+        update={"comparison": [*stored_result(1).comparison,
+                               stored_result(1).comparison[0].model_copy(update={"name": "e"})],
+                "reason": "=HYPERLINK(1)"}
+    )  # fmt: skip
+    store.put(two)
+    store.put(stored_result(2).model_copy(update={"comparison": [], "status": Status.error}))
+    resp = client.get("/v1/inspections", headers={"Accept": "text/csv"})
+    assert resp.status_code == 200 and resp.headers["content-type"].startswith("text/csv")
+    rows = list(csv.DictReader(io.StringIO(resp.text)))
+    assert [(r["serial"], r["point"]) for r in rows] == [("SN2", ""), ("SN1", "c"), ("SN1", "e")]
+    assert rows[1]["deviation_mm"] == "0.1" and rows[1]["lower_mm"] == "-0.3"
+    assert rows[1]["reason"] == "'=HYPERLINK(1)"  # never a formula in a spreadsheet
+    page = client.get("/v1/inspections", params={"limit": 1}, headers={"Accept": "text/csv"})
+    assert page.headers["x-next-cursor"]
+    assert client.get("/v1/inspections").headers["content-type"] == "application/json"
+
+
+def test_recording_of_an_unrecorded_inspection_is_404(client, app_parts):
+    app_parts[1].put(stored_result(1))
+    assert_error(client.get(f"/v1/inspections/{stored_result(1).id}/recording"), 404,
+                 "not_recorded")  # fmt: skip
 
 
 @pytest.mark.parametrize("api_store_target", ["postgresql"], indirect=True)
@@ -322,6 +379,10 @@ def test_a_database_out_of_reach_is_a_503_and_the_api_goes_on(client, app_parts,
         ({"cursor": "garbage!"}, "invalid_cursor"),
         ({"cursor": encode_cursor(2**64, "x.1")}, "invalid_cursor"),
         ({"part": "a/b"}, "validation_error"),
+        ({"serial": "a b"}, "validation_error"),
+        ({"until": "tomorrow"}, "validation_error"),
+        ({"serail": "SN1"}, "unknown_parameter"),
+        ({"status": "pass", "colour": "red"}, "unknown_parameter"),
     ],
 )
 def test_list_bad_queries(client, params, code):
@@ -368,18 +429,81 @@ def test_colormap_renders_the_archived_deviations(client, app_parts):
 
 
 @BOTH_STORES
-def test_trends(client, app_parts):
+def test_trends_name_each_capability_for_its_sigma(client, app_parts):
     store = app_parts[1]
-    devs = np.random.default_rng(3).normal(0.05, 0.02, 15)
+    devs = np.random.default_rng(3).normal(0.05, 0.02, 40)
     for i, d in enumerate(devs):
         store.put(stored_result(i, dev=float(d)))
     t = client.get(f"/v1/parts/{PART}/trends").json()
     assert t["window"] == 10 and t["parts"] == 10
     (p,) = t["points"]
-    assert p["mean_mm"] == pytest.approx(devs[-10:].mean())
-    assert p["cpk"] == pytest.approx((0.3 - devs[-10:].mean()) / (3 * devs[-10:].std(ddof=1)))
+    assert p["n"] == 10 and p["mean_mm"] == pytest.approx(devs[-10:].mean())
+    # Too few for a capability figure: none, and the reason.
+    assert p["cp"] is p["cpk"] is p["pp"] is p["ppk"] is None
+    assert "10 values" in p["capability_note"]
+    (p,) = client.get(f"/v1/parts/{PART}/trends", params={"window": 40}).json()["points"]
+    overall = devs.std(ddof=1)
+    within = np.abs(np.diff(devs)).mean() / 1.128
+    assert p["n"] == 40 and p["capability_note"] is None
+    assert p["ppk"] == pytest.approx((0.3 - devs.mean()) / (3 * overall))
+    assert p["pp"] == pytest.approx(0.6 / (6 * overall))
+    assert p["cp"] == pytest.approx(0.6 / (6 * within))
+    assert p["cpk_ci"]["low"] < p["cpk"] < p["cpk_ci"]["high"]
     assert client.get(f"/v1/parts/{PART}/trends", params={"window": 4}).json()["parts"] == 4
     assert_error(client.get("/v1/parts/nope/trends"), 404, "unknown_part")
+
+
+def test_control_chart_flags_the_rule_and_a_frozen_baseline_moves_its_limits(client, app_parts):
+    store = app_parts[1]
+    rng = np.random.default_rng(4)
+    devs = [*rng.normal(0.0, 0.01, 20), 0.0, 0.2]  # a part far beyond three sigma
+    for i, d in enumerate(devs):
+        store.put(stored_result(i, dev=float(d)))
+    ch = client.get(f"/v1/parts/{PART}/charts/c").json()
+    assert ch["limits"]["frozen"] is False and ch["limits"]["n"] == 20
+    assert ch["rules"] == ["nelson1"]
+    assert [p["rules"] for p in ch["points"]][-2:] == [[], ["nelson1"]]
+    assert ch["points"][-1]["serial"] == "SN21"
+    assert ch["lower_mm"] == -0.3 and ch["capability"]["n"] == 22
+    # Frozen over the whole period (the excursion included), the limits widen.
+    t_end = stored_result(21).triggered_ns
+    frozen = client.post(f"/v1/parts/{PART}/baseline", json={"until_ns": t_end, "by": "qe"})
+    assert frozen.status_code == 201, frozen.text
+    assert frozen.json()["frozen_by"].startswith("qe")
+    ch2 = client.get(f"/v1/parts/{PART}/charts/c").json()
+    assert ch2["limits"]["frozen"] is True and ch2["limits"]["ucl"] > ch["limits"]["ucl"]
+    assert client.get(f"/v1/parts/{PART}/charts/fit_rms").json()["feature"] == "fit_rms"
+    assert_error(client.get(f"/v1/parts/{PART}/charts/nope"), 404, "unknown_feature")
+    assert client.delete(f"/v1/parts/{PART}/baseline").status_code == 204
+    assert_error(client.get(f"/v1/parts/{PART}/baseline"), 404, "no_baseline")
+    assert_error(
+        client.post(f"/v1/parts/{PART}/baseline", json={"until_ns": 5}), 422, "too_few_results"
+    )
+
+
+def test_few_parts_give_no_limits_and_say_why(client, app_parts):
+    for i in range(3):
+        app_parts[1].put(stored_result(i))
+    ch = client.get(f"/v1/parts/{PART}/charts/c").json()
+    assert ch["limits"] is None and "3 of the 20" in ch["limits_note"]
+    assert all(p["rules"] == [] for p in ch["points"])
+
+
+def test_alarms_are_listed_and_acknowledged_once(client, app_parts):
+    from service.models import Alarm
+
+    a = Alarm(kind="spc_rule", message="c beyond 3 sigma", triggered_ns=1, line="line1",
+              station="st1", raised_ns=2, part=PART, feature="c", rule="nelson1")  # fmt: skip
+    app_parts[1].put_alarm(a)
+    assert [x["id"] for x in client.get("/v1/alarms", params={"open": True}).json()] == [a.id]
+    acked = client.post(f"/v1/alarms/{a.id}/ack", json={"by": "Ann"}, headers={"X-API-Key": "k1"})
+    assert acked.status_code == 200, acked.text
+    body = acked.json()
+    assert body["acknowledged_by"].startswith("Ann (key ") and body["acknowledged_ns"] > 0
+    again = client.post(f"/v1/alarms/{a.id}/ack", json={"by": "Bob"}).json()
+    assert again["acknowledged_by"] == body["acknowledged_by"]
+    assert client.get("/v1/alarms", params={"open": True}).json() == []
+    assert_error(client.post("/v1/alarms/nope/ack", json={}), 404, "unknown_alarm")
 
 
 # ----------------------------------------------------------------------------- bad uploads
@@ -530,6 +654,9 @@ def test_openapi_documents_the_routes(client):
         "multipart/form-data" in spec["paths"]["/v1/inspections"]["post"]["requestBody"]["content"]
     )
     assert client.get("/docs").status_code == 200
+    schemas = spec["components"]["schemas"]
+    assert {"PartCreate", "ComparisonPointSpec"} <= set(schemas)
+    assert "subgroup_size" in schemas["PartCreate"]["properties"]
 
 
 # ----------------------------------------------------------------------------- real server
@@ -783,3 +910,61 @@ def test_dot_names_touch_no_file_of_the_data_directory(server, app_parts, line, 
 
 def _spec_base(name: str) -> PartSpecBase:
     return PartSpecBase(name=name)
+
+
+def test_stream_resumes_after_the_last_event_id_and_carries_alarms(server, app_parts):
+    from service.models import Alarm
+
+    store, hub = app_parts[1], app_parts[3]
+    for i in range(4):
+        store.put(stored_result(i))
+    conn = http.client.HTTPConnection("127.0.0.1", server.port, timeout=60)
+    server.close_after.append(conn)
+    conn.request("GET", "/v1/stream", headers={"Last-Event-ID": stored_result(1).id})
+    resp = conn.getresponse()
+    assert resp.readline() == b"event: ready\n"
+    resp.readline(), resp.readline()
+    ids = []
+    for _ in range(2):
+        event = [resp.readline() for _ in range(4)]
+        assert event[0] == b"event: result\n"
+        ids.append(event[1].decode().strip().removeprefix("id: "))
+    assert ids == [stored_result(2).id, stored_result(3).id]  # what it missed, oldest first
+    alarm = Alarm(kind="spc_rule", message="x", triggered_ns=1, line="line1", station="st1",
+                  raised_ns=2)  # fmt: skip
+    hub.publish(alarm)
+    event = [resp.readline() for _ in range(3)]
+    assert event[0] == b"event: alarm\n"
+    assert Alarm.model_validate_json(event[1][len(b"data: ") :]) == alarm
+
+
+def test_report_of_a_failed_part_as_html_and_pdf(client, app_parts):
+    pypdf = pytest.importorskip("pypdf")
+    try:
+        import weasyprint  # noqa: F401
+    except (ImportError, OSError) as exc:
+        pytest.skip(
+            f"PDF reports need WeasyPrint and Pango ({exc}): pip install weasyprint; "
+            "apt-get install libpango-1.0-0 libpangoft2-1.0-0 fonts-dejavu-core"
+        )
+    _, store, archive, *_ = app_parts
+    for i in range(25):
+        store.put(stored_result(i, dev=0.01 * (i % 3)))
+    bad = stored_result(25, status="fail", dev=0.45)
+    bad = bad.model_copy(
+        update={"comparison": [bad.comparison[0].model_copy(update={"verdict": Verdict.FAIL})]}
+    )
+    store.put(bad)
+    xy = np.random.default_rng(0).uniform(-60, 60, (4000, 2))
+    archive.save(bad.id, np.c_[xy, np.zeros(len(xy))], np.where(xy[:, 0] > 0, 0.45, 0.0))
+    page = client.get(f"/v1/inspections/{bad.id}/report.html")
+    assert page.status_code == 200 and "data:image/png;base64," in page.text
+    assert "<script" not in page.text and "http" not in page.text.split("<body>")[1]
+    resp = client.get(f"/v1/inspections/{bad.id}/report.pdf")
+    assert resp.status_code == 200 and resp.headers["content-type"] == "application/pdf"
+    pdf = pypdf.PdfReader(io.BytesIO(resp.content))
+    assert 1 <= len(pdf.pages) <= 4
+    text = " ".join(p.extract_text() for p in pdf.pages)
+    assert "SN25" in text and "FAIL" in text and "failing: c" in text
+    assert "nelson1" in text  # the trend context: this part breaks the chart's limits
+    assert_error(client.get("/v1/inspections/nope/report.pdf"), 404, "unknown_inspection")

@@ -266,3 +266,31 @@ def test_size_budget_deletes_oldest_files(tmp_path, outcomes):
     left = sorted((tmp_path / "kept").glob("*.mcap"))
     assert sum(p.stat().st_size for p in left) <= budget
     assert left and left[-1] == rec.files[-1] and rec.files[0] not in left
+
+
+def test_alarms_are_recorded_and_the_recording_locates_a_result(tmp_path, outcomes):
+    from service.models import Alarm
+    from service.recordings import locate
+
+    rec = Recorder(tmp_path, "run", metadata=metadata())
+    (outcome, fs) = outcomes[0]
+    rec.record(outcome, fs)
+    alarm = Alarm(kind="spc_rule", message="centre beyond 3 sigma", triggered_ns=fs.triggered_ns,
+                  line=LINE, station=STATION, raised_ns=fs.triggered_ns + 5, feature="centre",
+                  rule="nelson1")  # fmt: skip
+    rec.record_alarm(alarm)
+    r = outcome.result
+    open_file = locate(tmp_path, r.id, r.triggered_ns)  # still being written: read from its start
+    assert open_file is not None and not open_file.finished and "/result" in open_file.topics
+    rec.close()
+    (path,) = tmp_path.glob("*.mcap")
+    with path.open("rb") as fh:
+        got = [(c.topic, m.log_time, m.data) for _, c, m in make_reader(fh).iter_messages(
+            topics=["/alarm"])]  # fmt: skip
+    assert [(t, ns) for t, ns, _ in got] == [("/alarm", alarm.raised_ns)]
+    assert Alarm.model_validate_json(got[0][2]) == alarm
+    found = locate(tmp_path, r.id, r.triggered_ns)  # finished: through its index
+    assert found is not None and found.finished and found.file == path.name
+    assert found.start_ns == found.end_ns == r.triggered_ns
+    assert "/cam0/image" in found.topics or "/result" in found.topics
+    assert locate(tmp_path, "no-such-id", r.triggered_ns) is None

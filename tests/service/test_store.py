@@ -17,6 +17,9 @@ import psycopg
 import pytest
 
 from service.models import (
+    Alarm,
+    Baseline,
+    ChartLimits,
     InspectionResult,
     PointResult,
     Status,
@@ -241,6 +244,26 @@ def test_filters_match_a_plain_python_filter(store, part, status, since):
     assert store.count(f) == len(want)
 
 
+@pytest.mark.parametrize(
+    ("serial", "station", "until"), [("SN4", None, None), (None, "st2", None), (None, "st2", 9),
+                                     ("SN3", "st2", 2), (None, None, 5)],
+)  # fmt: skip
+def test_serial_station_and_until_filters(store, serial, station, until):
+    all_ = [res(i).model_copy(update={"station": "st2" if i % 2 else "st1"}) for i in range(12)]
+    for r in all_:
+        store.put(r)
+    until_ns = None if until is None else T0 + until * 1_000_000_000
+    want = [
+        r.id
+        for r in sorted(all_, key=lambda r: (r.triggered_ns, r.id), reverse=True)
+        if (serial is None or r.serial == serial)
+        and (station is None or r.station == station)
+        and (until_ns is None or r.triggered_ns <= until_ns)
+    ]
+    f = Filters(serial=serial, station=station, until_ns=until_ns)
+    assert [r.id for r in store.iter_all(f, page=4)] == want
+
+
 def test_bad_cursor_and_limit(store):
     with pytest.raises(InvalidCursor):
         store.list(cursor="%%%")
@@ -250,25 +273,42 @@ def test_bad_cursor_and_limit(store):
         store.list(limit=0)
 
 
-def test_trend_statistics(store):
-    rng = np.random.default_rng(0)
-    devs = rng.normal(0.1, 0.05, size=30)
-    for i, d in enumerate(devs):
-        store.put(res(i, devs=(float(d), None)))
-    store.put(res(99, status="error", devs=(5.0, 5.0)))  # errors do not count
-    store.put(res(98, part="other", devs=(3.0, 3.0)))
-    tr = store.trend("demo-panel", window=20)
-    assert tr.parts == 20
-    p0, p1 = tr.points
-    last = devs[-20:]
-    assert p0.n == 20
-    assert p0.mean_mm == pytest.approx(last.mean())
-    assert p0.sigma_mm == pytest.approx(last.std(ddof=1))
-    assert p0.cp == pytest.approx(1.0 / (6 * last.std(ddof=1)))
-    assert p0.cpk == pytest.approx((0.5 - last.mean()) / (3 * last.std(ddof=1)))
-    assert p1.n == 0 and p1.mean_mm is None and p1.cp is None
-    empty = store.trend("nothing")
-    assert empty.parts == 0 and empty.points == []
+def test_measured_results_oldest_first(store):
+    for i in range(8):
+        store.put(res(i, status="fail" if i == 3 else "pass"))
+    store.put(res(99, status="error"))  # nothing measured: never on a chart
+    store.put(res(98, part="other"))
+    newest = store.measured("demo-panel", limit=5)
+    assert [r.seq for r in newest] == [3, 4, 5, 6, 7]
+    assert [r.seq for r in store.measured("demo-panel", limit=3, oldest=True)] == [0, 1, 2]
+    t2 = res(2).triggered_ns
+    assert [r.seq for r in store.measured("demo-panel", since_ns=t2, until_ns=t2)] == [2]
+    assert store.measured("nothing") == []
+
+
+def test_alarms_kept_listed_and_acknowledged(store):
+    a = Alarm(kind="spc_rule", message="drift", triggered_ns=5, line="l", station="s",
+              raised_ns=10, part="demo-panel", feature="p1", rule="nelson1")  # fmt: skip
+    b = Alarm(kind="seq_jump", message="jump", triggered_ns=6, line="l", station="s", raised_ns=20)
+    store.put_alarm(a)
+    store.put_alarm(b)
+    assert [x.id for x in store.alarms()] == [b.id, a.id]
+    store.put_alarm(a.model_copy(update={"acknowledged_by": "ann", "acknowledged_ns": 30}))
+    assert [x.id for x in store.alarms(open_only=True)] == [b.id]
+    assert store.alarm(a.id).acknowledged_by == "ann"
+    assert store.alarm("nope") is None
+
+
+def test_baselines_round_trip(store):
+    lim = ChartLimits(center=0, sigma=1, lcl=-3, ucl=3, spread_center=1.1, spread_lcl=0,
+                      spread_ucl=3.7, subgroup=1, n=20, frozen=True)  # fmt: skip
+    b = Baseline(part="demo-panel", since_ns=None, until_ns=5, frozen_ns=7, frozen_by="ann",
+                 results=20, limits={"p1": lim})  # fmt: skip
+    assert store.baseline("demo-panel") is None
+    store.put_baseline(b)
+    store.put_baseline(b.model_copy(update={"frozen_ns": 8}))
+    assert store.baseline("demo-panel").frozen_ns == 8
+    assert store.delete_baseline("demo-panel") and not store.delete_baseline("demo-panel")
 
 
 def test_concurrent_writers_and_readers(store):

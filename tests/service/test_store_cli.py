@@ -8,6 +8,7 @@ import pytest
 from test_store import res
 
 from service.cli import main
+from service.spc import SpcSettings, trend
 from service.store import ResultStore
 
 
@@ -26,7 +27,7 @@ def test_a_data_directory_is_copied_whole_and_a_second_run_copies_nothing_new(
             res(i, part="a" if i % 3 else "b", status=statuses[i % 5]) for i in range(1234)
         )
         want = list(src.iter_all())
-        want_trend = src.trend("a", window=100)
+        want_trend = trend(src, "a", 100, SpcSettings())
     url = pg_server.new_database()
 
     assert migrate(data, url) == 0
@@ -34,7 +35,7 @@ def test_a_data_directory_is_copied_whole_and_a_second_run_copies_nothing_new(
     assert "copied 1234 results" in out and "(1234 new; the database holds 1234)" in out
     with ResultStore(url) as dst:
         assert list(dst.iter_all()) == want
-        assert dst.trend("a", window=100) == want_trend
+        assert trend(dst, "a", 100, SpcSettings()) == want_trend
         assert dst.last_trigger("line1", "st1") == (1233, want[0].triggered_ns)
 
     assert migrate(data / "results.sqlite", url) == 0

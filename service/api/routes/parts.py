@@ -1,21 +1,22 @@
-"""Part types: list, show, create from a CAD upload (tree built as a job), delete; trends; jobs."""
+"""Part types: list, show, create from a CAD upload (tree built as a job), delete; jobs."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from fastapi import APIRouter, Query, Request, Response
+from fastapi import APIRouter, Depends, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from pydantic import ValidationError
 
-from ...models import ErrorBody, Job, Page, PartCreate, PartPublic, Trend
+from ...models import ErrorBody, Job, Page, PartCreate, PartPublic
 from ...names import NAME_MAX_LEN, NAME_PATTERN
 from ...parts import UPLOAD_SUFFIXES
 from ..deps import PartPath, ServicesDep
 from ..errors import ApiError
 from ..forms import file_field, json_part_schema, only_fields, read_multipart, text_field
+from ..params import known_parameters
 
-router = APIRouter(tags=["parts"])
+router = APIRouter(tags=["parts"], dependencies=[Depends(known_parameters)])
 
 
 _ERRORS: dict[int | str, dict[str, object]] = {
@@ -129,7 +130,10 @@ async def create_part(svc: ServicesDep, request: Request, response: Response) ->
             )
     finally:
         await form.close()
-    job = await run_in_threadpool(svc.parts.create, spec, data, filename)
+    job = await run_in_threadpool(
+        svc.parts.create, spec, data, filename,
+        max_point_offset_mm=svc.settings.http.max_point_offset_mm,
+    )  # fmt: skip
     response.headers["Location"] = f"/v1/jobs/{job.id}"
     return svc.parts.public(spec.name)
 
@@ -150,18 +154,3 @@ def get_job(svc: ServicesDep, job_id: str) -> Job:
         return svc.parts.job(job_id)
     except KeyError as exc:
         raise ApiError(404, "unknown_job", f"no job {job_id!r}") from exc
-
-
-@router.get(
-    "/v1/parts/{name}/trends",
-    response_model=Trend,
-    responses=_ERRORS,
-    summary="Mean, sigma, Cp and Cpk per comparison point over the last parts",
-)
-def trends(
-    svc: ServicesDep,
-    name: PartPath,
-    window: int | None = Query(None, ge=2, le=100_000, description="Parts (default: the config's)"),
-) -> Trend:
-    svc.parts.public(name)  # 404 for unknown parts
-    return svc.store.trend(name, window or svc.settings.http.trend_window)

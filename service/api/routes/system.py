@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Depends, Header
 from fastapi.responses import JSONResponse, PlainTextResponse, StreamingResponse
 
-from ...models import ErrorBody, Health, Status, software_version
+from ...models import MAX_ID_LEN, ErrorBody, Health, InspectionResult, Status, software_version
+from ...store import Filters
 from ..deps import PartQuery, Services, ServicesDep
 from ..metrics import CONTENT_TYPE
+from ..params import known_parameters
 
-router = APIRouter()
+router = APIRouter(dependencies=[Depends(known_parameters)])
 
 
 def _health(svc: Services) -> Health:
@@ -47,7 +49,8 @@ def metrics(svc: ServicesDep) -> PlainTextResponse:
 
 @router.get(
     "/v1/stream",
-    summary="Server-sent events: one `result` event per new result",
+    summary="Server-sent events: one `result` event per new result, one `alarm` per alarm; "
+    "resumes after `Last-Event-ID`",
     response_class=StreamingResponse,
     responses={
         200: {"content": {"text/event-stream": {}}},
@@ -58,8 +61,27 @@ async def stream(
     svc: ServicesDep,
     part: PartQuery = None,
     status: Status | None = None,
+    last_event_id: str | None = Header(
+        None,
+        max_length=MAX_ID_LEN,
+        description="The id of the last result received: the results stored after it "
+        "(at most 1000) come first",
+    ),
 ) -> StreamingResponse:
-    events = svc.hub.stream(part=part, status=status.value if status else None)
+    backlog = None
+    if last_event_id is not None:
+        last = svc.store.get(last_event_id)
+        if last is not None:
+            filters = Filters(part=part, status=status, since_ns=last.triggered_ns)
+
+            def backlog() -> list[InspectionResult]:
+                items, _ = svc.store.list(filters, limit=1000)
+                # Newest first from the store; the stream sends the oldest first. The
+                # last one received and those stored with it before it are left out.
+                after = [r for r in items if (r.triggered_ns, r.id) > (last.triggered_ns, last.id)]
+                return after[::-1]
+
+    events = svc.hub.stream(part=part, status=status.value if status else None, backlog=backlog)
     return StreamingResponse(
         events,
         media_type="text/event-stream",
