@@ -159,6 +159,9 @@ def page(browser, line):
 
 
 def expect(locator):
+    # A page follows the line's results as they come; on a loaded machine the
+    # browser's default of 5 s for each of them is too little.
+    playwright_api.expect.set_options(timeout=20_000)
     return playwright_api.expect(locator)
 
 
@@ -179,7 +182,7 @@ def test_board_shows_each_new_part_within_seconds(page, line):
     bus_.wait(lambda: len(bus_.results) > before, 60, "a new result")
     new = bus_.results[before]
     row = page.locator(f'#latest tr[data-serial="{new.serial}"]')
-    expect(row).to_be_visible(timeout=5_000)
+    expect(row).to_be_visible(timeout=10_000)
     expect(row).to_contain_text(new.status.value)
     assert page.locator("#yield").inner_text().endswith("%")
 
