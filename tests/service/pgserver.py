@@ -8,6 +8,7 @@ server is a child of the test process and stops when it ends, even killed.
 
 from __future__ import annotations
 
+import contextlib
 import glob
 import itertools
 import os
@@ -150,8 +151,9 @@ class PgServer:
             try:
                 psycopg.connect(self.url(), connect_timeout=5).close()
                 return True
-            except psycopg.OperationalError:
-                time.sleep(0.05)  # not listening yet
+            except psycopg.OperationalError:  # not listening yet, or it has stopped
+                with contextlib.suppress(subprocess.TimeoutExpired):
+                    self._proc.wait(0.05)
         if self._proc.poll() is None:
             self._proc.kill()
             self._proc.wait()

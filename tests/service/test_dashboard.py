@@ -15,7 +15,7 @@ from __future__ import annotations
 import csv
 import io
 import shutil
-import time
+import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from urllib.parse import urlsplit
@@ -57,25 +57,25 @@ class Bus:
     def __init__(self, session: zenoh.Session, keys: Keys) -> None:
         self.results: list[InspectionResult] = []
         self.alarms: list[Alarm] = []
+        self._arrived = threading.Condition()
         self._subs = [
-            session.declare_subscriber(keys.results(), zenoh.handlers.FifoChannel(10_000)),
-            session.declare_subscriber(keys.alarms(), zenoh.handlers.FifoChannel(10_000)),
+            session.declare_subscriber(keys.results(), self._on(self.results, InspectionResult)),
+            session.declare_subscriber(keys.alarms(), self._on(self.alarms, Alarm)),
         ]
 
-    def drain(self) -> None:
-        res, alarms = self._subs
-        while (s := res.handler.try_recv()) is not None:
-            self.results.append(InspectionResult.model_validate_json(s.payload.to_bytes()))
-        while (s := alarms.handler.try_recv()) is not None:
-            self.alarms.append(Alarm.model_validate_json(s.payload.to_bytes()))
+    def _on(self, into: list, model: type) -> Callable[[zenoh.Sample], None]:
+        def on_sample(sample: zenoh.Sample) -> None:
+            item = model.model_validate_json(sample.payload.to_bytes())
+            with self._arrived:
+                into.append(item)
+                self._arrived.notify_all()
+
+        return on_sample
 
     def wait(self, cond: Callable[[], object], timeout_s: float, what: str) -> None:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            self.drain()
-            if cond():
+        with self._arrived:
+            if self._arrived.wait_for(cond, timeout_s):
                 return
-            time.sleep(0.05)  # polling the channel's queue: the condition is what ends it
         pytest.fail(f"{what} did not happen within {timeout_s} s")
 
     def close(self) -> None:
@@ -177,7 +177,6 @@ def test_board_shows_each_new_part_within_seconds(page, line):
     page.goto(line["base"] + "/")
     expect(page.locator("#live")).to_have_text("live", timeout=20_000)
     bus_ = line["bus"]
-    bus_.drain()
     before = len(bus_.results)
     bus_.wait(lambda: len(bus_.results) > before, 60, "a new result")
     new = bus_.results[before]
