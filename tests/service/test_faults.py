@@ -18,9 +18,10 @@ import time
 from pathlib import Path
 
 import pytest
+import zenoh
 from linekit import LINE, STATION, client, free_port
 from mcap.reader import make_reader
-from test_line import cli, get_json, line_file, stop, wait_for_token
+from test_line import cli, get_json, line_file, stop
 
 from inspection.rig import Rig
 from service import bus
@@ -129,7 +130,24 @@ class Line:
         return int(path.read_text()) if path.exists() else 0
 
     def wait_ready(self, session, timeout_s: float = 300) -> None:
-        assert wait_for_token(session, KEYS.workers(), timeout_s), self._stderr("worker")
+        """Wait for the liveliness token of the worker running now. Its id holds its pid:
+        the token of a worker killed before, which the router may not have dropped yet,
+        does not count."""
+        pid = self.procs["worker"].pid
+        sub = session.liveliness().declare_subscriber(
+            KEYS.workers(), zenoh.handlers.FifoChannel(64), history=True
+        )
+        try:
+            deadline = time.monotonic() + timeout_s
+            pause = threading.Event()
+            while time.monotonic() < deadline:
+                while (sample := sub.handler.try_recv()) is not None:
+                    if sample.kind == zenoh.SampleKind.PUT and f"-{pid}-" in str(sample.key_expr):
+                        return
+                pause.wait(0.1)
+        finally:
+            sub.undeclare()
+        pytest.fail(f"the worker did not get ready: {self._stderr('worker')}")
 
     def wait_api(self, timeout_s: float = 300) -> None:
         """Ask the API's health until it is ready (a process of its own: nothing to wait on)."""
