@@ -95,6 +95,20 @@ def _bspline(a):  # pragma: no cover
 
 
 @njit(cache=True, nogil=True, fastmath=True, inline="always")
+def _gain_offset_step(g, o, s1, sw, sg, sww, sgg, sgw, st, stw, stg):  # pragma: no cover
+    """The Gauss-Newton step of a window fit in (disparity, gain, offset) from its
+    weighted sums (of 1, r, r', r^2, r'^2, r' r, t, t r, t r'), at gain ``g`` and offset
+    ``o``: residual e = t - g r - o, J = [-g r', r, 1]. Returns (ok, dd, dg, do)."""
+    a11 = g * g * sgg
+    a12 = -g * sgw
+    a13 = -g * sg
+    b1 = -g * (stg - g * sgw - o * sg)
+    b2 = stw - g * sww - o * sw
+    b3 = st - g * sw - o * s1
+    return _gauss_newton_step(a11, a12, a13, sww, sw, s1, b1, b2, b3)
+
+
+@njit(cache=True, nogil=True, fastmath=True, inline="always")
 def _ncc(s1, st, sw, stt, sww, stw):  # pragma: no cover
     """Normalised cross-correlation of a window's samples t and r from their weighted
     sums: of the weights, t, r, t^2, r^2 and t r."""
@@ -216,17 +230,7 @@ def refine_pixels(
             # Gauss-Newton for (Δ, g, o) with residual e = t - g r - o and
             # d(g r)/dΔ = -g dr/dx (the image moves left when d grows).
             # Normal matrix A = J^T J, J = [-g gv, rv, 1]; rhs b = J^T e.
-            a11 = g * g * sgg
-            a12 = -g * sgw
-            a13 = -g * sg
-            a22 = sww
-            a23 = sw
-            a33 = s1
-            se = st - g * sw - o * s1
-            b1 = -g * (stg - g * sgw - o * sg)
-            b2 = stw - g * sww - o * sw
-            b3 = se
-            ok, dd, dg, do = _gauss_newton_step(a11, a12, a13, a22, a23, a33, b1, b2, b3)
+            ok, dd, dg, do = _gain_offset_step(g, o, s1, sw, sg, sww, sgg, sgw, st, stw, stg)
             if not ok:
                 break
             d += dd
@@ -520,16 +524,7 @@ def refine_warped(
                 ok = False
                 break
             score = _ncc(s1, st, sw, stt, sww, stw)
-            a11 = g * g * sgg
-            a12 = -g * sgw
-            a13 = -g * sg
-            a22 = sww
-            a23 = sw
-            a33 = s1
-            b1 = -g * (stg - g * sgw - o * sg)
-            b2 = stw - g * sww - o * sw
-            b3 = st - g * sw - o * s1
-            ok, dd, dg, do = _gauss_newton_step(a11, a12, a13, a22, a23, a33, b1, b2, b3)
+            ok, dd, dg, do = _gain_offset_step(g, o, s1, sw, sg, sww, sgg, sgw, st, stw, stg)
             if not ok:
                 break
             d += dd
