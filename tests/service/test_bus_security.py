@@ -289,8 +289,19 @@ def test_access_control_lets_each_role_do_its_part(line_ca, acl_router):
         ]
         for t in threads:
             t.start()
-        replies = [r.ok.payload.to_bytes() for r in api.get(history, timeout=5.0) if r.ok]
-        tokens = [str(r.ok.key_expr) for r in api.liveliness().get(KEYS.workers(), timeout=5.0)]
+        # Declarations reach the API through the router a moment later: wait until the
+        # worker's queryable matches and its token is seen, then ask once.
+        querier = api.declare_querier(history, timeout=5.0)
+        assert wait_until(lambda: querier.matching_status.matching)
+        replies = [r.ok.payload.to_bytes() for r in querier.get() if r.ok]
+        querier.undeclare()
+
+        def tokens_now() -> list[str]:
+            replies = api.liveliness().get(KEYS.workers(), timeout=5.0)
+            return sorted(str(r.ok.key_expr) for r in replies if r.ok)
+
+        assert wait_until(lambda: KEYS.worker_token(STATION, "w1") in tokens_now())
+        tokens = tokens_now()
         for obj in (queryable, rogue_q, token, fake, pub):
             obj.undeclare()
         for t in threads:
