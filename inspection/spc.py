@@ -7,6 +7,14 @@ judged stable in. Limits use the *within* sigma (the short-term spread, from
 the average moving range or the average range over ``d2``), never the
 overall standard deviation, so that a drift widens nothing and stands out.
 
+A count of nonconformities per part (surface defects) is charted on a *c
+chart* (ISO 7870-3): counts of rare events follow Poisson, whose sigma is
+the root of its mean, ``c-bar +- 3 sqrt(c-bar)``; an individuals chart on
+them would put its upper limit below one and flag every part with a single
+defect. The zone rules assume a symmetric spread, which a count of rare
+events is not (nine defect-free parts in a row sit "below the centre line"
+most of the time), so a c chart is checked by the beyond-limits rule alone.
+
 Run rules follow ISO 7870-2 / Western Electric / Nelson. Each rule has a
 stable name; ISO 7870-2 recommends the 3-sigma rule alone for routine use
 (every further rule adds false alarms), which is :data:`DEFAULT_RULES`.
@@ -22,6 +30,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -68,6 +77,9 @@ RULE_SETS: dict[str, tuple[str, ...]] = {
 
 DEFAULT_RULES: tuple[str, ...] = RULE_SETS["iso7870"]
 
+C_CHART_RULES: tuple[str, ...] = ("nelson1",)
+"""The rules a c chart is checked by (see the module's note)."""
+
 MIN_CAPABILITY_N = 25
 """Fewest values that give a capability figure by default: below it the
 confidence interval of Cpk spans more than +-0.4 at Cpk = 1.33."""
@@ -87,6 +99,9 @@ def resolve_rules(names: Sequence[str]) -> tuple[str, ...]:
     return tuple(out)
 
 
+ChartKind = Literal["individuals", "xbar_r", "c"]
+
+
 @dataclass(frozen=True)
 class Limits:
     """Control limits of a chart, in the measured unit (mm for deviations).
@@ -99,23 +114,31 @@ class Limits:
         Within sigma of one value (individuals) or of one subgroup's mean.
     lcl, ucl : float
         ``center -+ 3 sigma``.
-    spread_center, spread_ucl, spread_lcl : float
-        The moving-range (or range) chart's centre and limits.
+    spread_center, spread_ucl, spread_lcl : float or None
+        The moving-range (or range) chart's centre and limits; None on a c chart.
     subgroup : int
-        1 for individuals, else the X-bar/R subgroup size.
+        1 for individuals (and c), else the X-bar/R subgroup size.
     n : int
-        Baseline values (individuals) or subgroups used.
+        Baseline values (individuals, c) or subgroups used.
+    kind : str
+        ``"individuals"``, ``"xbar_r"`` or ``"c"``.
     """
 
     center: float
     sigma: float
     lcl: float
     ucl: float
-    spread_center: float
-    spread_lcl: float
-    spread_ucl: float
+    spread_center: float | None
+    spread_lcl: float | None
+    spread_ucl: float | None
     subgroup: int
     n: int
+    kind: ChartKind = "individuals"
+
+    @property
+    def rules_apply(self) -> tuple[str, ...] | None:
+        """The rules this kind of chart admits (None: all of them)."""
+        return C_CHART_RULES if self.kind == "c" else None
 
 
 def within_sigma(x: npt.ArrayLike) -> float:
@@ -176,7 +199,37 @@ def xbar_r_limits(groups: npt.ArrayLike) -> Limits:
     return Limits(
         center=center, sigma=sigma, lcl=center - 3 * sigma, ucl=center + 3 * sigma,
         spread_center=r_bar, spread_lcl=D3[n] * r_bar, spread_ucl=D4[n] * r_bar, subgroup=n,
-        n=g.shape[0],
+        n=g.shape[0], kind="xbar_r",
+    )  # fmt: skip
+
+
+def c_limits(baseline: npt.ArrayLike) -> Limits:
+    """Limits of a c chart from baseline counts of nonconformities per part.
+
+    ``c-bar +- 3 sqrt(c-bar)``, the lower limit no less than zero.
+
+    Parameters
+    ----------
+    baseline : (n,) float, whole numbers >= 0, n >= :data:`MIN_BASELINE`
+
+    Raises
+    ------
+    InvalidInput
+        Counts that are negative or fractional, or a baseline without a single
+        nonconformity: its limits would be zero and every later one an alarm.
+    """
+    a = _values(baseline, at_least=MIN_BASELINE)
+    if (a < 0).any() or (a != np.round(a)).any():
+        raise InvalidInput("a c chart counts: its values must be whole numbers >= 0")
+    center = float(a.mean())
+    if center == 0:
+        raise InvalidInput(
+            f"none in the {len(a)} baseline parts: a count chart needs a baseline that has some"
+        )
+    sigma = math.sqrt(center)
+    return Limits(
+        center=center, sigma=sigma, lcl=max(0.0, center - 3 * sigma), ucl=center + 3 * sigma,
+        spread_center=None, spread_lcl=None, spread_ucl=None, subgroup=1, n=len(a), kind="c",
     )  # fmt: skip
 
 
@@ -201,10 +254,14 @@ def run_rules(
     limits : Limits
         ``center`` and ``sigma`` define the zones.
     rules : sequence of str
-        Names of :data:`RULES` (or of :data:`RULE_SETS`).
+        Names of :data:`RULES` (or of :data:`RULE_SETS`); of them, a chart
+        checks those its kind admits (:attr:`Limits.rules_apply`).
     """
     a = _values(x, at_least=0)
     names = resolve_rules(rules)
+    admitted = limits.rules_apply
+    if admitted is not None:
+        names = tuple(n for n in names if n in admitted)
     if limits.sigma <= 0:
         # A baseline without spread (every value alike) has no zones: only a
         # value off the centre line can be flagged, and it is by rule 1.

@@ -22,6 +22,7 @@ from typing import Annotated, Generic, Literal, TypeVar
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from inspection.deviations import Verdict
+from inspection.spc import ChartKind
 
 from .config import ComparisonPointSpec, Name, PartSpecBase
 from .names import ID_PATTERN, ID_SEPARATOR, NAME_MAX_LEN
@@ -407,11 +408,18 @@ class ChartLimits(_Model):
     sigma: float
     lcl: float
     ucl: float
-    spread_center: float = Field(description="Moving range (or range) chart's centre line.")
-    spread_lcl: float
-    spread_ucl: float
+    spread_center: float | None = Field(
+        description="Moving range (or range) chart's centre line; null on a c chart."
+    )
+    spread_lcl: float | None
+    spread_ucl: float | None
     subgroup: int = Field(ge=1, description="1: individuals and moving range; else X-bar/R.")
     n: int = Field(ge=0, description="Baseline values (or subgroups).")
+    kind: ChartKind = Field(
+        default="individuals",
+        description="individuals and moving range, X-bar and R, or c (a count per part: "
+        "Poisson limits, checked by the beyond-limits rule alone).",
+    )
     frozen: bool = Field(description="Frozen by a person; else the part's first results.")
     frozen_by: str | None = None
     frozen_ns: int | None = None

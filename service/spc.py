@@ -2,7 +2,7 @@
 
 A part's charted *features* are its comparison points (the deviation, mm),
 its fit's RMS (``fit_rms``, mm) and its count of surface defects
-(``defects``). Limits come from the part's frozen baseline when a person
+(``defects``, on a c chart). Limits come from the part's frozen baseline when a person
 froze one (``POST /v1/parts/{name}/baseline``), else from the part's first
 ``baseline_parts`` results: until there are that many, a chart has no limits
 and says so. The arithmetic is :mod:`inspection.spc`'s.
@@ -110,9 +110,20 @@ def tolerance(results: Sequence[InspectionResult], feature: str) -> tuple[float,
     return None
 
 
-def limits_from(values: np.ndarray, subgroup: int) -> spc.Limits:
-    """Limits from baseline values (NaN left out); raises InvalidInput when too few."""
+def chart_subgroup(feature: str, subgroup: int) -> int:
+    """The subgroup a feature is charted in: a count is charted per part."""
+    return 1 if feature == DEFECTS else subgroup
+
+
+def limits_from(values: np.ndarray, subgroup: int, feature: str = "") -> spc.Limits:
+    """Limits from baseline values (NaN left out); raises InvalidInput when too few.
+
+    The defect count gets a c chart; any other feature an individuals chart
+    (``subgroup`` 1) or an X-bar/R chart.
+    """
     finite = values[np.isfinite(values)]
+    if feature == DEFECTS:
+        return spc.c_limits(finite)
     if subgroup == 1:
         return spc.individuals_limits(finite)
     return spc.xbar_r_limits(spc.subgroups(finite, subgroup))
@@ -123,14 +134,14 @@ def _public_limits(lim: spc.Limits, *, frozen: bool, by: str | None = None,
     return ChartLimits(
         center=lim.center, sigma=lim.sigma, lcl=lim.lcl, ucl=lim.ucl,
         spread_center=lim.spread_center, spread_lcl=lim.spread_lcl, spread_ucl=lim.spread_ucl,
-        subgroup=lim.subgroup, n=lim.n, frozen=frozen, frozen_by=by, frozen_ns=at,
+        subgroup=lim.subgroup, n=lim.n, kind=lim.kind, frozen=frozen, frozen_by=by, frozen_ns=at,
     )  # fmt: skip
 
 
 def _inner_limits(c: ChartLimits) -> spc.Limits:
     return spc.Limits(
         center=c.center, sigma=c.sigma, lcl=c.lcl, ucl=c.ucl, spread_center=c.spread_center,
-        spread_lcl=c.spread_lcl, spread_ucl=c.spread_ucl, subgroup=c.subgroup, n=c.n,
+        spread_lcl=c.spread_lcl, spread_ucl=c.spread_ucl, subgroup=c.subgroup, n=c.n, kind=c.kind,
     )  # fmt: skip
 
 
@@ -156,6 +167,7 @@ def chart(
     subgroup : int
         The part spec's subgroup size (1: individuals).
     """
+    subgroup = chart_subgroup(feature, subgroup)
     limits: ChartLimits | None = None
     note = None
     if baseline is not None and feature in baseline.limits:
@@ -168,11 +180,11 @@ def chart(
             note = f"collecting a baseline: {have} of the {need} measured parts it needs"
         else:
             try:
-                limits = _public_limits(limits_from(base, subgroup), frozen=False)
+                limits = _public_limits(limits_from(base, subgroup, feature), frozen=False)
             except InvalidInput as exc:
                 note = f"no limits: {exc}"
     values = feature_values(results, feature)
-    points = _points(results, values, subgroup)
+    points = _points(results, values, subgroup, counts=feature == DEFECTS)
     if limits is not None and points:
         plotted = np.array([p.value for p in points], dtype=np.float64)
         for hit in spc.run_rules(plotted, _inner_limits(limits), settings.rules):
@@ -196,9 +208,9 @@ def chart(
 
 
 def _points(
-    results: Sequence[InspectionResult], values: np.ndarray, subgroup: int
+    results: Sequence[InspectionResult], values: np.ndarray, subgroup: int, *, counts: bool = False
 ) -> list[ChartPoint]:
-    """Plotted points: one per measured value (individuals) or per whole subgroup."""
+    """Plotted points: one per measured value (individuals, counts) or per whole subgroup."""
     keep = [i for i in range(len(results)) if np.isfinite(values[i])]
     out: list[ChartPoint] = []
     if subgroup == 1:
@@ -206,7 +218,7 @@ def _points(
         for i in keep:
             v = float(values[i])
             r = results[i]
-            spread = None if prev is None else abs(v - prev)
+            spread = None if prev is None or counts else abs(v - prev)
             out.append(ChartPoint(result_id=r.id, serial=r.serial, triggered_ns=r.triggered_ns,
                                   value=v, spread=spread))  # fmt: skip
             prev = v
@@ -304,7 +316,7 @@ def freeze_baseline(
     for feature in features(results):
         values = feature_values(results, feature)
         try:
-            lim = limits_from(values, subgroup)
+            lim = limits_from(values, chart_subgroup(feature, subgroup), feature)
         except InvalidInput:
             continue  # a point measured too rarely in the period: it keeps provisional limits
         limits[feature] = _public_limits(lim, frozen=True, by=by, at=now)

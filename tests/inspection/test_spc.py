@@ -8,6 +8,7 @@ from inspection.spc import (
     D2,
     DEFAULT_RULES,
     RULES,
+    c_limits,
     capability,
     individuals_limits,
     resolve_rules,
@@ -149,3 +150,26 @@ def test_a_baseline_without_spread_flags_any_other_value_by_the_first_rule():
     flat = individuals_limits([0.0, 0.0, 0.0])
     hits = run_rules([0.0, 0.0, 1.0], flat, ["nelson1", "nelson2"])
     assert [(h.rule, h.index) for h in hits] == [("nelson1", 2)]
+
+
+def test_c_chart_limits_by_hand_and_a_single_rare_defect_stays_inside():
+    counts = [0] * 18 + [1, 1]  # one defect in ten parts
+    lim = c_limits(counts)
+    assert lim.kind == "c" and lim.n == 20 and lim.spread_center is None
+    assert lim.center == pytest.approx(0.1) and lim.sigma == pytest.approx(0.1**0.5)
+    assert lim.ucl == pytest.approx(0.1 + 3 * 0.1**0.5) and lim.lcl == 0.0
+    # An individuals chart on the same counts puts its upper limit below one.
+    assert individuals_limits(counts).ucl < 1.0
+    later = [0, 1, 0, 0, 2, 0]
+    assert [(h.rule, h.index) for h in run_rules(later, lim)] == [("nelson1", 4)]
+    # The zone rules assume a symmetric spread: a long defect-free run is no signal.
+    assert run_rules([0] * 12, lim, ["nelson1", "nelson2", "we4", "nelson7"]) == []
+
+
+def test_c_chart_refuses_what_is_not_a_count_or_a_baseline_without_any():
+    with pytest.raises(InvalidInput, match="whole numbers"):
+        c_limits([0.0, 1.5, 2.0])
+    with pytest.raises(InvalidInput, match="whole numbers"):
+        c_limits([0.0, -1.0, 2.0])
+    with pytest.raises(InvalidInput, match="none in the 5 baseline parts"):
+        c_limits([0, 0, 0, 0, 0])

@@ -5,7 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.models import InspectionResult, PointResult, Status, make_result_id, software_version
+from service.models import (
+    InspectionResult,
+    PointResult,
+    Status,
+    SurfaceDefectResult,
+    make_result_id,
+    software_version,
+)
 from service.pipeline import Outcome
 from service.spc import SpcMonitor, SpcSettings, freeze_baseline, part_chart
 from service.store import ResultStore
@@ -13,9 +20,15 @@ from service.store import ResultStore
 T0 = 1_800_000_000_000_000_000
 
 
-def res(seq: int, dev: float, status: Status = Status.passed) -> InspectionResult:
+def dent(i: int) -> SurfaceDefectResult:
+    return SurfaceDefectResult(kind="dent", center_mm=[10.0 * i, 0.0, 0.0], area_mm2=80.0,
+                               peak_mm=-0.6, mean_mm=-0.4, points=50)  # fmt: skip
+
+
+def res(seq: int, dev: float, status: Status = Status.passed, dents: int = 0) -> InspectionResult:
     t = T0 + seq * 10**9
     return InspectionResult(
+        defects=[dent(i) for i in range(dents)],
         id=make_result_id("l", "s", seq, t), line="l", station="s", part="p", serial=f"S{seq}",
         seq=seq, triggered_ns=t, status=status, rms_mm=0.02, software_version=software_version(),
         comparison=[PointResult(name="c", deviation_mm=dev, lower_mm=-0.5, upper_mm=0.5,
@@ -87,3 +100,30 @@ def test_part_features_are_charted_with_their_units(store):
     defects = part_chart(store, "p", "defects", SpcSettings())
     assert rms.unit == "mm" and defects.unit == "count" and rms.capability is None
     assert len(rms.points) == len(defects.points) == 25
+
+
+def test_defect_counts_get_a_c_chart_where_one_dent_is_no_excursion(store):
+    # One dented part in ten through the baseline: c-bar 0.1, upper limit ~1.05.
+    monitor = SpcMonitor(store, SpcSettings(baseline_parts=20))
+    raised = []
+    monitor.alarms = [raised.append]
+    for i in range(40):
+        r = res(i, 0.0, dents={5: 1, 15: 1, 24: 1, 31: 3}.get(i, 0))
+        store.put(r)
+        monitor(Outcome(r), None)
+    ch = part_chart(store, "p", "defects", SpcSettings(baseline_parts=20))
+    assert ch.limits.kind == "c" and ch.limits.center == pytest.approx(0.1)
+    assert ch.limits.ucl == pytest.approx(0.1 + 3 * 0.1**0.5)
+    assert all(p.spread is None for p in ch.points)
+    assert [(a.feature, a.seq) for a in raised if a.feature == "defects"] == [("defects", 31)]
+    # Frozen, the count keeps its c chart.
+    frozen = freeze_baseline(store, "p", since_ns=None, until_ns=None, by="qe")
+    assert frozen.limits["defects"].kind == "c" and frozen.limits["c"].kind == "individuals"
+
+
+def test_a_defect_free_baseline_gives_no_count_limits_and_says_why(store):
+    for i in range(25):
+        store.put(res(i, 0.0, dents=1 if i == 22 else 0))
+    ch = part_chart(store, "p", "defects", SpcSettings(baseline_parts=20))
+    assert ch.limits is None and "none in the 20 baseline parts" in ch.limits_note
+    assert [p.value for p in ch.points][22] == 1.0 and all(not p.rules for p in ch.points)
