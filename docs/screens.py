@@ -53,9 +53,9 @@ def main() -> None:
     text = text.replace('parts_dir = "parts"', f'parts_dir = "{ROOT / "configs" / "parts"}"')
     text = text.replace("trigger_period_s = 2.0", "trigger_period_s = 3.0")
     text = text.replace('# drift_point = "centre" ', 'drift_point = "centre" ')
-    text = text.replace("drift_after_seq = 20 ", f"drift_after_seq = {BASELINE + 2} ")
+    text = text.replace("drift_after_seq = 120 ", f"drift_after_seq = {BASELINE + 2} ")
     text = text.replace("drift_mm_per_part = 0.02 ", "drift_mm_per_part = 0.03 ")
-    text = text.replace("baseline_parts = 20 ", f"baseline_parts = {BASELINE} ")
+    text = text.replace("baseline_parts = 100 ", f"baseline_parts = {BASELINE} ")
     config = ROOT / "configs" / ".screens-line.toml"  # beside the parts it names
     config.write_text(text)
     http_port, zenoh_port = _port(), _port()

@@ -8,12 +8,15 @@ the average moving range or the average range over ``d2``), never the
 overall standard deviation, so that a drift widens nothing and stands out.
 
 A count of nonconformities per part (surface defects) is charted on a *c
-chart* (ISO 7870-3): counts of rare events follow Poisson, whose sigma is
-the root of its mean, ``c-bar +- 3 sqrt(c-bar)``; an individuals chart on
-them would put its upper limit below one and flag every part with a single
-defect. The zone rules assume a symmetric spread, which a count of rare
-events is not (nine defect-free parts in a row sit "below the centre line"
-most of the time), so a c chart is checked by the beyond-limits rule alone.
+chart* (ISO 7870-3): counts of rare events follow Poisson. An individuals
+chart on them puts its upper limit below one and flags every part with a
+single defect; even the c chart's ``c-bar + 3 sqrt(c-bar)`` does at a small
+c-bar (0.72 at 0.05), so its limits are Poisson *probability limits*: the
+counts beyond which a stable process falls no more often than a normal one
+beyond 3 sigma (0.135 % a side). The zone rules assume a symmetric spread,
+which a count of rare events is not (nine defect-free parts in a row sit
+"below the centre line" most of the time), so a c chart is checked by the
+beyond-limits rule alone.
 
 Run rules follow ISO 7870-2 / Western Electric / Nelson. Each rule has a
 stable name; ISO 7870-2 recommends the 3-sigma rule alone for routine use
@@ -56,7 +59,7 @@ MIN_BASELINE = 2
 """Fewest baseline values (individuals) or subgroups that give a within sigma."""
 
 RULES: dict[str, str] = {
-    "nelson1": "one point beyond 3 sigma",
+    "nelson1": "one point beyond the control limits (3 sigma)",
     "nelson2": "nine points in a row on one side of the centre line",
     "nelson3": "six points in a row steadily increasing or decreasing",
     "nelson4": "fourteen points in a row alternating up and down",
@@ -76,6 +79,9 @@ RULE_SETS: dict[str, tuple[str, ...]] = {
 """Named sets of rules; a config may list rules or sets."""
 
 DEFAULT_RULES: tuple[str, ...] = RULE_SETS["iso7870"]
+
+TAIL = float(stats.norm.sf(3.0))
+"""Probability of a stable normal value beyond 3 sigma on one side (0.135 %)."""
 
 C_CHART_RULES: tuple[str, ...] = ("nelson1",)
 """The rules a c chart is checked by (see the module's note)."""
@@ -206,7 +212,10 @@ def xbar_r_limits(groups: npt.ArrayLike) -> Limits:
 def c_limits(baseline: npt.ArrayLike) -> Limits:
     """Limits of a c chart from baseline counts of nonconformities per part.
 
-    ``c-bar +- 3 sqrt(c-bar)``, the lower limit no less than zero.
+    The centre is c-bar, sigma ``sqrt(c-bar)``; ``ucl`` is the largest count
+    a Poisson process of mean c-bar exceeds with probability at most
+    :data:`TAIL`, ``lcl`` the smallest it falls below as rarely (0 when no
+    count can): a count above ``ucl`` or below ``lcl`` is beyond the limits.
 
     Parameters
     ----------
@@ -226,10 +235,11 @@ def c_limits(baseline: npt.ArrayLike) -> Limits:
         raise InvalidInput(
             f"none in the {len(a)} baseline parts: a count chart needs a baseline that has some"
         )
-    sigma = math.sqrt(center)
+    ucl = float(stats.poisson.ppf(1 - TAIL, center))
+    lcl = float(stats.poisson.ppf(TAIL, center))
     return Limits(
-        center=center, sigma=sigma, lcl=max(0.0, center - 3 * sigma), ucl=center + 3 * sigma,
-        spread_center=None, spread_lcl=None, spread_ucl=None, subgroup=1, n=len(a), kind="c",
+        center=center, sigma=math.sqrt(center), lcl=lcl, ucl=ucl, spread_center=None,
+        spread_lcl=None, spread_ucl=None, subgroup=1, n=len(a), kind="c",
     )  # fmt: skip
 
 
@@ -270,10 +280,13 @@ def run_rules(
         z[a < limits.center] = -np.inf
     else:
         z = (a - limits.center) / limits.sigma
+    # Beyond the limits themselves: the same as |z| > 3 where they are 3 sigma, and
+    # right for a c chart's probability limits too.
+    beyond = (a > limits.ucl) | (a < limits.lcl)
     hits = []
     for i in range(len(a)):
         for name in names:
-            if _holds(name, z, i):
+            if beyond[i] if name == "nelson1" else _holds(name, z, i):
                 hits.append(RuleHit(name, i, RULES[name]))
     return hits
 
@@ -282,8 +295,6 @@ def _holds(rule: str, z: npt.NDArray[np.float64], i: int) -> bool:
     def last(k: int) -> npt.NDArray[np.float64] | None:
         return z[i - k + 1 : i + 1] if i + 1 >= k else None
 
-    if rule == "nelson1":
-        return bool(abs(z[i]) > 3)
     if rule in ("nelson2", "we4"):
         w = last(9 if rule == "nelson2" else 8)
         return w is not None and bool((w > 0).all() or (w < 0).all())

@@ -817,11 +817,12 @@ class SpcSection(_Strict):
         "nelson); ISO 7870-2 suggests the 3-sigma rule alone (nelson1) for routine use.",
     )
     baseline_parts: int = Field(
-        default=20,
+        default=100,
         ge=2,
         le=10_000,
         description="Until a person freezes a baseline, limits come from a part's first "
-        "this many results.",
+        "this many results (fewer misjudge the within sigma, and a stable process alarms "
+        "more often than the rules promise).",
     )
     window: int = Field(default=100, ge=2, le=100_000, description="Parts on a chart.")
     min_capability_n: int = Field(

@@ -59,7 +59,7 @@ class SpcSettings:
     """The ``[spc]`` section as the charts take it."""
 
     rules: tuple[str, ...] = spc.DEFAULT_RULES
-    baseline_parts: int = 20
+    baseline_parts: int = 100
     window: int = 100
     min_capability_n: int = spc.MIN_CAPABILITY_N
     alarms: bool = True

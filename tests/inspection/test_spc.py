@@ -2,12 +2,14 @@
 
 import numpy as np
 import pytest
+from scipy import stats
 
 from inspection.errors import InvalidInput
 from inspection.spc import (
     D2,
     DEFAULT_RULES,
     RULES,
+    TAIL,
     c_limits,
     capability,
     individuals_limits,
@@ -152,18 +154,31 @@ def test_a_baseline_without_spread_flags_any_other_value_by_the_first_rule():
     assert [(h.rule, h.index) for h in hits] == [("nelson1", 2)]
 
 
-def test_c_chart_limits_by_hand_and_a_single_rare_defect_stays_inside():
+def test_c_chart_has_poisson_probability_limits_and_a_single_rare_defect_stays_inside():
     counts = [0] * 18 + [1, 1]  # one defect in ten parts
     lim = c_limits(counts)
     assert lim.kind == "c" and lim.n == 20 and lim.spread_center is None
     assert lim.center == pytest.approx(0.1) and lim.sigma == pytest.approx(0.1**0.5)
-    assert lim.ucl == pytest.approx(0.1 + 3 * 0.1**0.5) and lim.lcl == 0.0
+    # P(X > 2 | 0.1) = 1.5e-4 <= 0.135 % < P(X > 1 | 0.1) = 4.7e-3.
+    assert (lim.lcl, lim.ucl) == (0.0, 2.0)
     # An individuals chart on the same counts puts its upper limit below one.
     assert individuals_limits(counts).ucl < 1.0
-    later = [0, 1, 0, 0, 2, 0]
+    later = [0, 1, 0, 2, 3, 0]
     assert [(h.rule, h.index) for h in run_rules(later, lim)] == [("nelson1", 4)]
     # The zone rules assume a symmetric spread: a long defect-free run is no signal.
     assert run_rules([0] * 12, lim, ["nelson1", "nelson2", "we4", "nelson7"]) == []
+
+
+@pytest.mark.parametrize("c_bar", [0.05, 0.1, 0.5, 2.0, 16.0])
+def test_c_chart_limits_hold_the_normal_tail_probability(c_bar):
+    n = 40
+    lim = c_limits([c_bar * n] + [0.0] * (n - 1))
+    assert lim.center == pytest.approx(c_bar)
+    # ucl: the least count exceeded no more often than 3 sigma of a normal value is.
+    assert stats.poisson.sf(lim.ucl, c_bar) <= TAIL < stats.poisson.sf(lim.ucl - 1, c_bar)
+    below = stats.poisson.cdf(lim.lcl - 1, c_bar)
+    assert below <= TAIL and (lim.lcl == 0 or stats.poisson.cdf(lim.lcl, c_bar) > TAIL)
+    assert (lim.lcl > 0) == (c_bar == 16.0)
 
 
 def test_c_chart_refuses_what_is_not_a_count_or_a_baseline_without_any():

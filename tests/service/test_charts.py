@@ -103,17 +103,17 @@ def test_part_features_are_charted_with_their_units(store):
 
 
 def test_defect_counts_get_a_c_chart_where_one_dent_is_no_excursion(store):
-    # One dented part in ten through the baseline: c-bar 0.1, upper limit ~1.05.
+    # One dented part in ten through the baseline: c-bar 0.1, upper limit 2 dents.
     monitor = SpcMonitor(store, SpcSettings(baseline_parts=20))
     raised = []
     monitor.alarms = [raised.append]
     for i in range(40):
-        r = res(i, 0.0, dents={5: 1, 15: 1, 24: 1, 31: 3}.get(i, 0))
+        r = res(i, 0.0, dents={5: 1, 15: 1, 24: 1, 28: 2, 31: 3}.get(i, 0))
         store.put(r)
         monitor(Outcome(r), None)
     ch = part_chart(store, "p", "defects", SpcSettings(baseline_parts=20))
     assert ch.limits.kind == "c" and ch.limits.center == pytest.approx(0.1)
-    assert ch.limits.ucl == pytest.approx(0.1 + 3 * 0.1**0.5)
+    assert ch.limits.ucl == 2.0
     assert all(p.spread is None for p in ch.points)
     assert [(a.feature, a.seq) for a in raised if a.feature == "defects"] == [("defects", 31)]
     # Frozen, the count keeps its c chart.

@@ -95,9 +95,9 @@ def line(tmp_path_factory, trees) -> Iterator[dict]:
         ("guided_matching = true", "guided_matching = false"),
         ("defect_rate = 0.1 ", "defect_rate = 0.0 "),
         ('# drift_point = "centre" ', f'drift_point = "{DRIFT_POINT}" '),
-        ("drift_after_seq = 20 ", f"drift_after_seq = {BASELINE + 1} "),
+        ("drift_after_seq = 120 ", f"drift_after_seq = {BASELINE + 1} "),
         ("drift_mm_per_part = 0.02 ", "drift_mm_per_part = 0.08 "),
-        ("baseline_parts = 20 ", f"baseline_parts = {BASELINE} "),
+        ("baseline_parts = 100 ", f"baseline_parts = {BASELINE} "),
     ]:
         assert old in text, old
         text = text.replace(old, new, 1)
