@@ -3,7 +3,8 @@
 A :class:`Janitor` thread applies ``[retention]`` every ``period_s``: the
 oldest per-point deviation files go beyond ``deviations_max_mb`` or
 ``deviations_max_age_h``, the oldest result rows beyond ``results_max_mb``
-of result JSON or ``results_max_age_d``. (The recordings keep their own
+of result JSON or ``results_max_age_d``, and the acknowledged alarms raised
+before the oldest result kept. (The recordings keep their own
 budget, enforced by the recorder after every trigger.) A colour map whose
 deviations were deleted is drawn from the result alone.
 """

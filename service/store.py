@@ -452,10 +452,22 @@ class ResultStore:
 
         The budget counts the JSON's characters, the same on either database; the
         space freed is reused by new rows (SQLite's free pages, PostgreSQL's
-        vacuum), so the database stops growing.
+        vacuum), so the database stops growing. Acknowledged alarms raised before
+        the oldest result still kept go with the results; an open alarm stays
+        until someone acknowledges it.
         """
 
         def work(db: _Backend) -> int:
+            removed = _results(db)
+            if removed:
+                oldest = db.execute("SELECT MIN(triggered_ns) FROM results").fetchone()[0]
+                db.execute(
+                    "DELETE FROM alarms WHERE acknowledged = 1 AND raised_ns < ?",
+                    (time.time_ns() if oldest is None else int(oldest),),
+                )
+            return removed
+
+        def _results(db: _Backend) -> int:
             removed = 0
             if max_age_s is not None:
                 cutoff = time.time_ns() - int(max_age_s * 1e9)

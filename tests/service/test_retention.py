@@ -9,6 +9,7 @@ import numpy as np
 from test_store import T0, res
 
 from service.config import RetentionSection
+from service.models import Alarm
 from service.retention import Janitor
 from service.store import DeviationArchive, ResultStore
 
@@ -32,6 +33,32 @@ def test_rows_older_than_the_age_limit_go(store_target):
         store.put(res(2, t=now - 3600 * 10**9))
         assert store.enforce(max_bytes=None, max_age_s=86400) == 1
         assert [r.seq for r in store.iter_all()] == [2]
+
+
+def test_acknowledged_alarms_older_than_the_kept_results_go_with_them(store_target):
+    def alarm(at_seq: int, acked: bool) -> Alarm:
+        t = res(at_seq).triggered_ns
+        a = Alarm(kind="spc_rule", message=f"at {at_seq}", triggered_ns=t, line="l",
+                  station="s", raised_ns=t + 1)  # fmt: skip
+        return (
+            a.model_copy(update={"acknowledged_by": "ann", "acknowledged_ns": t + 2})
+            if acked
+            else a
+        )
+
+    with ResultStore(store_target) as store:
+        for seq in range(10):
+            store.put(res(seq))
+        alarms = [alarm(2, True), alarm(3, False), alarm(8, True), alarm(9, False)]
+        for a in alarms:
+            store.put_alarm(a)
+        assert store.enforce(max_bytes=None, max_age_s=None) == 0
+        assert len(store.alarms()) == 4  # nothing went: the alarms stay too
+        body = len(store.get(res(0).id).model_dump_json())
+        assert store.enforce(max_bytes=5 * body + body // 2, max_age_s=None) == 5
+        # Results 0-4 went: the acknowledged alarm of part 2 with them; the open one of
+        # part 3 waits for a person, and those of kept parts stay.
+        assert sorted(a.message for a in store.alarms()) == ["at 3", "at 8", "at 9"]
 
 
 def test_the_archive_keeps_within_its_budget_newest_first(tmp_path):
