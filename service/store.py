@@ -569,8 +569,9 @@ class ResultStore:
         *,
         limit: int = 50,
         cursor: str | None = None,
+        oldest_first: bool = False,
     ) -> tuple[list[InspectionResult], str | None]:
-        """One page of results, newest trigger first.
+        """One page of results, newest trigger first (or oldest first).
 
         Parameters
         ----------
@@ -578,7 +579,9 @@ class ResultStore:
         limit : int
             1..:data:`MAX_LIMIT` results.
         cursor : str, optional
-            The ``next`` of the previous page.
+            The ``next`` of the previous page (listed in the same order).
+        oldest_first : bool
+            Oldest trigger first: a reader catching up on what it missed.
 
         Returns
         -------
@@ -594,14 +597,15 @@ class ResultStore:
         if not 1 <= limit <= MAX_LIMIT:
             raise ValueError(f"limit must be within 1..{MAX_LIMIT}, got {limit}")
         where, params = _where(filters or Filters())
+        below, order = (">", "ASC") if oldest_first else ("<", "DESC")
         if cursor is not None:
             ns, id_ = decode_cursor(cursor)
             # Keyset pagination: stable while new rows arrive at the top.
             where += (
                 " AND " if where else "WHERE "
-            ) + "(triggered_ns < ? OR (triggered_ns = ? AND id < ?))"
+            ) + f"(triggered_ns {below} ? OR (triggered_ns = ? AND id {below} ?))"
             params += [ns, ns, id_]
-        sql = f"SELECT body FROM results {where} ORDER BY triggered_ns DESC, id DESC LIMIT ?"
+        sql = f"SELECT body FROM results {where} ORDER BY triggered_ns {order}, id {order} LIMIT ?"
         rows = self._run(lambda db: db.execute(sql, [*params, limit + 1]).fetchall())
         items = [InspectionResult.model_validate_json(r[0]) for r in rows[:limit]]
         nxt = encode_cursor(items[-1].triggered_ns, items[-1].id) if len(rows) > limit else None

@@ -12,7 +12,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import threading
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Callable, Iterator
 from dataclasses import dataclass, field
 
 from ..models import Alarm, InspectionResult
@@ -94,14 +94,14 @@ class ResultHub:
         part: str | None = None,
         status: str | None = None,
         keepalive_s: float = 15.0,
-        backlog: Callable[[], list[InspectionResult]] | None = None,
+        backlog: Callable[[], Iterator[list[InspectionResult]]] | None = None,
     ) -> AsyncIterator[str]:
         """Server-sent events: a ``ready`` event, then one ``result`` event per new result
         and one ``alarm`` event per alarm.
 
         ``backlog`` (called once subscribed, so nothing falls between) gives the
-        results a resuming client missed, oldest first: they are sent first, and
-        any of them also arriving live is sent once. A result event's ``id`` is
+        results a resuming client missed, oldest first, in pages: they are sent
+        first, and any of them also arriving live is sent once. A result event's ``id`` is
         the result's: a browser's EventSource sends the last one back as
         ``Last-Event-ID`` when it reconnects. A comment line is sent every
         ``keepalive_s`` without events so that proxies keep the connection
@@ -123,9 +123,11 @@ class ResultHub:
             yield "event: ready\ndata: {}\n\n"
             sent: set[str] = set()
             if backlog is not None:
-                for r in await asyncio.to_thread(backlog):
-                    sent.add(r.id)
-                    yield _result_event(r)
+                pages = backlog()
+                while (page := await asyncio.to_thread(next, pages, None)) is not None:
+                    for r in page:
+                        sent.add(r.id)
+                        yield _result_event(r)
             while True:
                 try:
                     item = await asyncio.wait_for(sub.queue.get(), keepalive_s)

@@ -913,11 +913,12 @@ def _spec_base(name: str) -> PartSpecBase:
 
 
 def test_stream_resumes_after_the_last_event_id_and_carries_alarms(server, app_parts):
+    from service.api.routes.system import BACKLOG_PAGE
     from service.models import Alarm
 
     store, hub = app_parts[1], app_parts[3]
-    for i in range(4):
-        store.put(stored_result(i))
+    missed = 2 * BACKLOG_PAGE + 50  # more than a page of the store: every one comes back
+    store.put_many([stored_result(i) for i in range(missed + 2)])
     conn = http.client.HTTPConnection("127.0.0.1", server.port, timeout=60)
     server.close_after.append(conn)
     conn.request("GET", "/v1/stream", headers={"Last-Event-ID": stored_result(1).id})
@@ -925,11 +926,12 @@ def test_stream_resumes_after_the_last_event_id_and_carries_alarms(server, app_p
     assert resp.readline() == b"event: ready\n"
     resp.readline(), resp.readline()
     ids = []
-    for _ in range(2):
+    for _ in range(missed):
         event = [resp.readline() for _ in range(4)]
         assert event[0] == b"event: result\n"
         ids.append(event[1].decode().strip().removeprefix("id: "))
-    assert ids == [stored_result(2).id, stored_result(3).id]  # what it missed, oldest first
+    # What it missed, oldest first.
+    assert ids == [stored_result(i).id for i in range(2, missed + 2)]
     alarm = Alarm(kind="spc_rule", message="x", triggered_ns=1, line="line1", station="st1",
                   raised_ns=2)  # fmt: skip
     hub.publish(alarm)

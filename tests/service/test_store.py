@@ -205,20 +205,21 @@ def test_a_new_store_opened_four_times_at_once_is_migrated_once(store_target):
         assert db.execute("SELECT version FROM schema_version").fetchall() == [(SCHEMA_VERSION,)]
 
 
-def test_pagination_visits_every_row_once_newest_first(store):
+@pytest.mark.parametrize("oldest_first", [False, True])
+def test_pagination_visits_every_row_once_in_either_order(store, oldest_first):
     for i in range(23):
         store.put(res(i, part="a" if i % 2 else "b", status="fail" if i % 3 == 0 else "pass"))
     # Two results at the same instant: the id breaks the tie.
     store.put(res(100, t=T0 + 5 * 1_000_000_000))
     seen, cursor = [], None
     while True:
-        items, cursor = store.list(limit=5, cursor=cursor)
+        items, cursor = store.list(limit=5, cursor=cursor, oldest_first=oldest_first)
         seen += items
         if cursor is None:
             break
     assert len(seen) == 24 == len({r.id for r in seen})
     keys = [(r.triggered_ns, r.id) for r in seen]
-    assert keys == sorted(keys, reverse=True)
+    assert keys == sorted(keys, reverse=not oldest_first)
 
 
 @pytest.mark.parametrize("part", [None, "a", "b", "c"])

@@ -2,16 +2,21 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 from fastapi import APIRouter, Depends, Header
 from fastapi.responses import JSONResponse, PlainTextResponse, StreamingResponse
 
 from ...models import MAX_ID_LEN, ErrorBody, Health, InspectionResult, Status, software_version
-from ...store import Filters
+from ...store import Filters, encode_cursor
 from ..deps import PartQuery, Services, ServicesDep
 from ..metrics import CONTENT_TYPE
 from ..params import known_parameters
 
 router = APIRouter(dependencies=[Depends(known_parameters)])
+
+BACKLOG_PAGE = 200
+"""Results a resuming stream reads from the store at a time."""
 
 
 def _health(svc: Services) -> Health:
@@ -64,8 +69,8 @@ async def stream(
     last_event_id: str | None = Header(
         None,
         max_length=MAX_ID_LEN,
-        description="The id of the last result received: the results stored after it "
-        "(at most 1000) come first",
+        description="The id of the last result received: every result stored after it "
+        "comes first, oldest first",
     ),
 ) -> StreamingResponse:
     backlog = None
@@ -74,12 +79,16 @@ async def stream(
         if last is not None:
             filters = Filters(part=part, status=status, since_ns=last.triggered_ns)
 
-            def backlog() -> list[InspectionResult]:
-                items, _ = svc.store.list(filters, limit=1000)
-                # Newest first from the store; the stream sends the oldest first. The
-                # last one received and those stored with it before it are left out.
-                after = [r for r in items if (r.triggered_ns, r.id) > (last.triggered_ns, last.id)]
-                return after[::-1]
+            def backlog() -> Iterator[list[InspectionResult]]:
+                # A page at a time, so that a client back after a long outage costs a page
+                # of memory. The last one received and those stored with it before it
+                # are left out.
+                cursor: str | None = encode_cursor(last.triggered_ns, last.id)
+                while cursor is not None:
+                    items, cursor = svc.store.list(
+                        filters, limit=BACKLOG_PAGE, cursor=cursor, oldest_first=True
+                    )
+                    yield items
 
     events = svc.hub.stream(part=part, status=status.value if status else None, backlog=backlog)
     return StreamingResponse(
