@@ -4,7 +4,7 @@ Every message of one trigger is logged at the trigger's time (see
 :mod:`service.recorder`), so a result is found by its ``triggered_ns``: a
 finished file answers through its index (summary statistics first, then the
 ``/result`` messages at that time); the file still being written is read
-from its start.
+from its start, unpacking only the chunks whose time range holds the trigger.
 """
 
 from __future__ import annotations
@@ -14,8 +14,9 @@ import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from mcap.reader import make_reader
-from mcap.records import Channel, Message
+from mcap.reader import breakup_chunk, make_reader
+from mcap.records import Channel, Chunk, Message
+from mcap.stream_reader import StreamReader
 
 from .recorder import is_finished, iter_records
 
@@ -80,6 +81,38 @@ def _indexed(path: Path, result_id: str, t: int) -> Located | None:
 
 
 def _streamed(path: Path, result_id: str, t: int) -> Located | None:
+    """Search the file being written: only the chunks whose time range holds ``t`` are
+    unpacked. A message on a channel that was declared in a skipped chunk sends the
+    search through every record instead."""
+    channels: dict[int, str] = {}
+    topics: set[str] = set()
+    hit = False
+    with path.open("rb") as fh:
+        reader = StreamReader(fh, skip_magic=False, emit_chunks=True)
+        try:
+            for rec in reader.records:
+                if isinstance(rec, Chunk):
+                    if not rec.message_start_time <= t <= rec.message_end_time:
+                        continue
+                    inner = breakup_chunk(rec)
+                else:
+                    inner = [rec]
+                for r in inner:
+                    if isinstance(r, Channel):
+                        channels[r.id] = r.topic
+                    elif isinstance(r, Message) and r.log_time == t:
+                        if r.channel_id not in channels:
+                            return _streamed_all(path, result_id, t)
+                        topic = channels[r.channel_id]
+                        topics.add(topic)
+                        if topic == "/result" and json.loads(r.data).get("id") == result_id:
+                            hit = True
+        except Exception as exc:  # a torn record at the end of the file being written
+            log.info("%s: stopped at a damaged record (%s)", path.name, exc)
+    return Located(path.name, t, t, sorted(topics), False) if hit else None
+
+
+def _streamed_all(path: Path, result_id: str, t: int) -> Located | None:
     channels: dict[int, str] = {}
     topics: set[str] = set()
     hit = False

@@ -294,3 +294,22 @@ def test_alarms_are_recorded_and_the_recording_locates_a_result(tmp_path, outcom
     assert found.start_ns == found.end_ns == r.triggered_ns
     assert "/cam0/image" in found.topics or "/result" in found.topics
     assert locate(tmp_path, "no-such-id", r.triggered_ns) is None
+
+
+def test_the_recording_being_written_is_searched_chunk_by_chunk(tmp_path, outcomes):
+    from service.recordings import locate
+
+    rec = Recorder(tmp_path, "run", metadata=metadata())
+    for outcome, fs in outcomes:
+        rec.record(outcome, fs)
+    # Each trigger finishes its chunk: a search unpacks only the one that holds it, and
+    # finds what the index of the finished file finds.
+    live = [locate(tmp_path, o.result.id, o.result.triggered_ns) for o, _ in outcomes]
+    rec.close()
+    done = [locate(tmp_path, o.result.id, o.result.triggered_ns) for o, _ in outcomes]
+    assert all(x is not None and not x.finished for x in live)
+    assert all(x is not None and x.finished for x in done)
+    assert [(x.file, x.start_ns, x.topics) for x in live] == [
+        (x.file, x.start_ns, x.topics) for x in done
+    ]
+    assert len({x.start_ns for x in live}) == len(outcomes) > 1
