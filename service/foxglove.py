@@ -38,12 +38,13 @@ from .models import InspectionResult, Status
 RIG_FRAME = "rig"
 PART_FRAME = "part_cad"
 
-# Verdict colours (r, g, b, a): what an operator reads at a glance.
-PASS_COLOUR = (0.15, 0.75, 0.25, 0.8)
-FAIL_COLOUR = (0.9, 0.1, 0.1, 0.9)
-UNMEASURED_COLOUR = (0.6, 0.6, 0.6, 0.8)
-DENT_COLOUR = (0.85, 0.0, 0.85, 0.7)
-BUMP_COLOUR = (1.0, 0.55, 0.0, 0.7)
+# Verdict colours (r, g, b, a): what an operator reads at a glance. Half transparent, so
+# the cloud's own deviation colours show through the support region.
+PASS_COLOUR = (0.15, 0.75, 0.25, 0.5)
+FAIL_COLOUR = (0.9, 0.1, 0.1, 0.6)
+UNMEASURED_COLOUR = (0.6, 0.6, 0.6, 0.5)
+DENT_COLOUR = (0.85, 0.0, 0.85, 0.5)
+BUMP_COLOUR = (1.0, 0.55, 0.0, 0.5)
 CAD_COLOUR = (0.7, 0.75, 0.8, 0.35)
 LABEL_COLOUR = (1.0, 1.0, 1.0, 1.0)
 LABEL_OFFSET_MM = 12.0
