@@ -12,6 +12,16 @@ load, CPU times much less.
    ingest's rendering), then each stage's wall and CPU time from the
    measurement's ``timings_ms`` and ``cpu_ms`` (the results on the bus carry
    the wall times only).
+   Then the disk cost per part, on ``BENCH_LINE_DISK_PARTS`` of those parts
+   measured again: for each recording choice (chunk compression none, lz4 or
+   zstd; images raw or lossless PNG) the line's recorder writes them, and the
+   table gives the bytes per part (median of the file's growth per trigger),
+   the recorder's CPU per part, the once-per-file records (the cameras, the
+   CAD), what replay spends reading a part back, whether the images come back
+   bit for bit, and the shift (8 h at 0.5 Hz); then the same for the
+   deviation archive (compressed npz, the line's; plain npz beside it) and
+   the result store (SQLite), and a sweep of OpenCV's PNG settings on one
+   frame set. ``BENCH_LINE_DISK_ONLY=1`` stops there.
 1. A worker fed by a recording at 2 Hz. A shift of ``BENCH_LINE_SETS``
    FrameSets (default 64) is recorded once by the line's own pieces (the
    simulated rig, the pipeline, the MCAP recorder) and kept under
@@ -44,11 +54,13 @@ BENCH_LINE_REPLAY_HZ (default 2), BENCH_LINE_HZ (the whole line's rate,
 default 1), BENCH_LINE_DURATION_S (default 300; 60 with BENCH_SMOKE=1),
 BENCH_LINE_CPU_PARTS (default 5; 0 skips the stage times),
 BENCH_LINE_RATES_HZ (comma-separated; default none), BENCH_LINE_WINDOW_S
-(default 45).
+(default 45), BENCH_LINE_DISK_PARTS (default 4; 2 with BENCH_SMOKE=1; 0 skips
+the disk cost), BENCH_LINE_DISK_ONLY=1 (stage times and disk cost only).
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -60,7 +72,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -286,8 +298,11 @@ def _recording_key(cfg, station, n: int) -> str:
     return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()[:16]
 
 
-def prepare(config: Path, n_sets: int, cpu_parts: int) -> tuple[Path, dict[str, list[float]]]:
-    """Stage times on ``cpu_parts`` parts, and the recorded shift (made once, then cached).
+def prepare(
+    config: Path, n_sets: int, cpu_parts: int, disk_parts: int = 0, *, record: bool = True
+) -> tuple[Path, dict[str, list[float]]]:
+    """Stage times on ``cpu_parts`` parts, the disk cost per part on ``disk_parts`` parts
+    (printed), and the recorded shift (made once, then cached; not with ``record=False``).
 
     Returns the recording's directory and, per stage, the wall and CPU ms.
     """
@@ -311,8 +326,10 @@ def prepare(config: Path, n_sets: int, cpu_parts: int) -> tuple[Path, dict[str, 
                 stages.setdefault(f"{stage} wall", []).append(ms)
             for stage, ms in m.cpu_ms.items():
                 stages.setdefault(f"{stage} CPU", []).append(ms)
+        if disk_parts:
+            print_disk_cost(disk_parts, *disk_cost(station, rig, disk_parts))
         recording = CACHE / f"shift-{_recording_key(cfg, station, n_sets)}"
-        if not (recording / "manifest.json").is_file():
+        if record and not (recording / "manifest.json").is_file():
             # The frames are what the replay publishes; the recorded results come from
             # one matching pass, which records the shift in a third of the time.
             one_pass = load_line_config(config, overrides={("station", "guided_matching"): False})
@@ -354,6 +371,227 @@ def record_shift(station, rig, n: int, out: Path) -> None:
     shutil.rmtree(out, ignore_errors=True)
     tmp.rename(out)
     print(f"  recorded in {time.perf_counter() - t0:.0f} s: {statuses}", flush=True)
+
+
+# --------------------------------------------------------------------------- 0b: disk cost
+
+SHIFT_PARTS = int(8 * 3600 * 0.5)
+"""Parts in a shift: 8 h at the line's 0.5 Hz."""
+DISK_WRITES = 12
+"""Writes per recording choice at least (the parts are written again into new files)."""
+
+
+@dataclass
+class DiskRow:
+    """What one way of keeping the parts costs, per part."""
+
+    what: str
+    bytes_per_part: float
+    cpu_ms: list[float]
+    per_file_bytes: float = 0.0
+    read_cpu_ms: float = float("nan")
+    lossless: bool | None = None
+
+
+def _measured(station, rig, n: int) -> list:
+    pipeline = station.pipeline()
+    out = []
+    for seq in range(100, 100 + n):
+        fs = rig.capture(seq, time.time_ns())
+        out.append((pipeline.run(fs), fs))
+    return out
+
+
+def disk_cost(station, rig, n: int) -> tuple[list[DiskRow], list[tuple[str, float, float]]]:
+    """Each recording choice, the deviation archive and the store, on ``n`` measured parts;
+    and the PNG settings swept on the first part's frames."""
+    from service.recorder import COMPRESSIONS, IMAGE_ENCODINGS, read_recording
+    from service.store import DeviationArchive, ResultStore
+
+    triggers = _measured(station, rig, n)
+    choices = [(c, i) for i in IMAGE_ENCODINGS for c in COMPRESSIONS]
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        # Every choice writes each trigger in turn, so a change of the machine's load falls
+        # on all of them alike; passes over the same triggers (new files) add CPU samples.
+        cpu: dict[tuple[str, str], list[float]] = {k: [] for k in choices}
+        sizes: dict[tuple[str, str], list[int]] = {}
+        files: dict[tuple[str, str], Path] = {}
+        for p in range(max(1, -(-DISK_WRITES // n))):
+            with contextlib.ExitStack() as stack:
+                recs = {
+                    (c, i): stack.enter_context(
+                        station_recorder(station, Path(tmp) / f"{c}-{i}-{p}", i, c)
+                    )
+                    for c, i in choices
+                }
+                if p == 0:
+                    files = {k: r.files[0] for k, r in recs.items()}
+                    sizes = {k: [f.stat().st_size] for k, f in files.items()}
+                for outcome, fs in triggers:
+                    for k, rec in recs.items():
+                        t = time.process_time()
+                        rec.record(outcome, fs)
+                        cpu[k].append((time.process_time() - t) * 1e3)
+                        if p == 0:
+                            sizes[k].append(files[k].stat().st_size)
+        for c, i in choices:
+            growth = np.diff(sizes[(c, i)])
+            t = time.process_time()
+            _, back = read_recording([files[(c, i)]])
+            read_ms = (time.process_time() - t) * 1e3 / n
+            same = all(
+                r.frameset is not None
+                and all(
+                    np.array_equal(a, b) for a, b in zip(r.frameset.images, fs.images, strict=True)
+                )
+                for r, (_, fs) in zip(back, triggers, strict=True)
+            )
+            per_part = float(np.median(growth[1:])) if n > 1 else float(growth[0])
+            rows.append(
+                DiskRow(
+                    f"MCAP {c:>4}, images {i}",
+                    per_part,
+                    cpu[(c, i)],
+                    float(growth[0]) - per_part,
+                    read_ms,
+                    same,
+                )  # fmt: skip
+            )
+        clouds = [_cloud_bytes(o) for o, _ in triggers]
+        frames = [sum(img.nbytes for img in fs.images) for _, fs in triggers]
+        rows.append(DiskRow("  of which the cloud, raw", float(np.median(clouds)), []))
+        rows.append(DiskRow("  of which the 4 images, raw", float(np.median(frames)), []))
+        for label, compressed in (("deviation archive (npz, compressed)", True),
+                                  ("  plain npz, for comparison", False)):  # fmt: skip
+            archive = DeviationArchive(Path(tmp) / f"archive-{compressed}")
+            save = archive.save if compressed else _plain_npz(archive)
+            sizes, cpu = [], []
+            for outcome, _ in triggers:
+                pts = outcome.points_cad()
+                c = time.process_time()
+                target = save(outcome.result.id, pts, outcome.distances)
+                cpu.append((time.process_time() - c) * 1e3)
+                sizes.append(target.stat().st_size)
+            rows.append(DiskRow(label, float(np.median(sizes)), cpu))
+        db = Path(tmp) / "results.sqlite"
+        store = ResultStore(db)
+        try:
+            before, cpu = _sqlite_bytes(db), []
+            for outcome, _ in triggers:
+                c = time.process_time()
+                store.put(outcome.result)
+                cpu.append((time.process_time() - c) * 1e3)
+            rows.append(DiskRow("result store (SQLite)", (_sqlite_bytes(db) - before) / n, cpu))
+        finally:
+            store.close()
+    return rows, png_sweep(triggers[0][1].images)
+
+
+def _cloud_bytes(outcome) -> int:
+    """The recorded cloud message of one part (x, y, z, deviation as float32)."""
+    from service import foxglove
+
+    if outcome.points is None:
+        return 0
+    return len(foxglove.cloud(outcome.points, outcome.distances, 0).SerializeToString())
+
+
+def _plain_npz(archive):
+    def save(id_: str, points: np.ndarray, distances: np.ndarray) -> Path:
+        target = archive.path(id_)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        keep = np.linspace(0, len(points) - 1, archive.max_points).round().astype(np.int64)
+        np.savez(target, points=points[keep].astype(np.float32),
+                 distances=distances[keep].astype(np.float32))  # fmt: skip
+        return target
+
+    return save
+
+
+def _sqlite_bytes(db: Path) -> int:
+    """The database with its write-ahead log."""
+    return sum(p.stat().st_size for p in db.parent.glob(db.name + "*"))
+
+
+@contextlib.contextmanager
+def station_recorder(station, directory: Path, images: str, compression: str) -> Iterator:
+    """The station's own recorder (calibrations, CAD, markers) with one recording choice."""
+    from service.line import Station
+
+    storage = station.cfg.storage.model_copy(
+        update={"mcap_image_encoding": images, "mcap_compression": compression}
+    )
+    cfg = station.cfg.model_copy(update={"storage": storage})
+    rec = Station(cfg, station.stages, station.parts).recorder(directory)
+    try:
+        yield rec
+    finally:
+        rec.close()
+
+
+def png_sweep(frames: list[np.ndarray]) -> list[tuple[str, float, float]]:
+    """OpenCV's PNG settings (and lossless WebP) on one frame set: ratio to raw, ms a frame."""
+    import cv2
+
+    P, S = cv2.IMWRITE_PNG_COMPRESSION, cv2.IMWRITE_PNG_STRATEGY
+    choices = [
+        ("png level 1", [P, 1]),
+        ("png level 3", [P, 3]),
+        ("png level 6", [P, 6]),
+        ("png level 9", [P, 9]),
+        ("png level 1, huffman only", [P, 1, S, cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY]),
+        ("png level 1, rle", [P, 1, S, cv2.IMWRITE_PNG_STRATEGY_RLE]),
+        ("webp lossless", [cv2.IMWRITE_WEBP_QUALITY, 101]),
+    ]
+    raw = sum(f.nbytes for f in frames)
+    out = []
+    for name, params in choices:
+        ext = ".webp" if "webp" in name else ".png"
+        size, ms = 0, []
+        for f in frames:
+            c = time.process_time()
+            ok, buf = cv2.imencode(ext, f, params)
+            ms.append((time.process_time() - c) * 1e3)
+            assert ok
+            size += len(buf)
+        out.append((name, size / raw, float(np.median(ms))))
+    return out
+
+
+def print_disk_cost(n: int, rows: list[DiskRow], sweep: list[tuple[str, float, float]]) -> None:
+    writes = len(rows[0].cpu_ms) if rows else 0
+    print(
+        f"\n0b. disk cost per part: {n} parts measured, written {writes} times by each "
+        "recording choice in turn"
+    )
+    print(f"  {'':36} {'MB/part':>8} {'CPU ms':>7} {'GB/shift':>9} {'per file':>9} "
+          f"{'read ms':>8} {'bytes':>6} {'CPU':>7}  lossless")  # fmt: skip
+    peer = rows[0]  # MCAP none, images raw: what the line wrote before the choice existed
+    peer_cpu = float(np.median(peer.cpu_ms))
+    for r in rows:
+        mcap = r.lossless is not None
+        lossless = "" if not mcap else ("yes" if r.lossless else "NO")
+        per_file = f"{r.per_file_bytes / 1e6:7.2f}MB" if mcap else ""
+        read = f"{r.read_cpu_ms:8.0f}" if mcap else ""
+        cpu = f"{np.median(r.cpu_ms):7.1f}" if r.cpu_ms else ""
+        vs = (
+            f"{r.bytes_per_part / peer.bytes_per_part:6.3f} {np.median(r.cpu_ms) - peer_cpu:+7.1f}"
+            if mcap
+            else ""
+        )
+        print(
+            f"  {r.what:36} {r.bytes_per_part / 1e6:8.3f} {cpu:>7} "
+            f"{r.bytes_per_part * SHIFT_PARTS / 1e9:9.1f} {per_file:>9} {read:>8} {vs:>14}  "
+            f"{lossless}",
+            flush=True,
+        )
+    print("  (CPU: median ms per part, this process; bytes, CPU: ratio and ms against the")
+    print("  first row, measured alike; read: replay's CPU reading a part back)")
+    print(f"  (a shift: {SHIFT_PARTS} parts, 8 h at 0.5 Hz)")
+    print("  lossless image encodings on one frame set:   size/raw   CPU ms a frame")
+    for name, ratio, ms in sweep:
+        print(f"  {name:44} {ratio:8.3f} {ms:8.1f}", flush=True)
 
 
 # --------------------------------------------------------------------------- 1: worker at 2 Hz
@@ -557,6 +795,8 @@ def main() -> int:
     cpu_parts = int(os.environ.get("BENCH_LINE_CPU_PARTS", "3" if smoke else "5"))
     rates = [float(r) for r in os.environ.get("BENCH_LINE_RATES_HZ", "").split(",") if r.strip()]
     window = float(os.environ.get("BENCH_LINE_WINDOW_S", "45"))
+    disk_parts = int(os.environ.get("BENCH_LINE_DISK_PARTS", "2" if smoke else "4"))
+    disk_only = os.environ.get("BENCH_LINE_DISK_ONLY") == "1"
     print(f"load average before: {_load()}  ({os.cpu_count()} cores)", flush=True)
     CACHE.mkdir(parents=True, exist_ok=True)
     ok = True
@@ -564,8 +804,10 @@ def main() -> int:
         config = line_config(Path(tmp), CACHE / "trees")
 
         print(f"\n0. stage times, {cpu_parts} parts measured one at a time in this process")
-        recording, stages = prepare(config, n_sets, cpu_parts)
+        recording, stages = prepare(config, n_sets, cpu_parts, disk_parts, record=not disk_only)
         print_stages(stages)
+        if disk_only:
+            return 0
 
         print(
             f"\n1. worker fed by a recording at {replay_hz:g} Hz: router, worker and "

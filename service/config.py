@@ -24,7 +24,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from enum import StrEnum
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 from pydantic import (
     BaseModel,
@@ -558,6 +558,10 @@ class ZenohSection(_Strict):
         return self
 
 
+McapCompression = Literal["none", "lz4", "zstd"]
+McapImageEncoding = Literal["raw", "png"]
+
+
 class StorageSection(_Strict):
     """Where the line keeps what it produces.
 
@@ -586,6 +590,16 @@ class StorageSection(_Strict):
         le=100_000,
         description="A recording is finished after this long too, so at most this much "
         "of it is in a file the indexed reader cannot read yet.",
+    )
+    mcap_compression: McapCompression = Field(
+        default="zstd",
+        description="Chunk compression of the recordings: none, lz4 or zstd "
+        "(bytes and CPU per part of each: make bench BENCH=line).",
+    )
+    mcap_image_encoding: McapImageEncoding = Field(
+        default="raw",
+        description="Images in the recordings: raw (foxglove.RawImage) or png (lossless "
+        "foxglove.CompressedImage).",
     )
     trees_dir: str = Field(default="trees", description="Tree cache, relative to data_dir.")
     deviations_dir: str = Field(

@@ -49,7 +49,7 @@ from .models import Alarm, software_version
 from .parts import LoadedPart, PartRegistry, load_part_cad
 from .pipeline import Outcome, Pipeline, Stages, flash_stages
 from .protocol import FrameSet, Keys
-from .recorder import Recorder, Retention
+from .recorder import PartScene, Recorder, Retention
 from .retention import Janitor
 from .spc import SpcMonitor, SpcSettings
 from .store import DeviationArchive, ResultStore
@@ -228,9 +228,15 @@ class Station:
             run_id,
             metadata=self.metadata(),
             calibrations=self.stages.calibrations(),
+            parts={
+                n: PartScene(p.cad.vertices, p.cad.faces, p.model.comparison_points)
+                for n, p in self.parts.items()
+            },
             rotate_bytes=int(st.mcap_rotate_mb * 1e6),
             rotate_s=st.mcap_rotate_min * 60.0,
             retention=Retention.from_config(self.cfg.retention),
+            image_encoding=st.mcap_image_encoding,
+            compression=st.mcap_compression,
         )
 
 

@@ -65,7 +65,7 @@ class Stages:
         The simulator matching ``measure`` (used by the ingest).
     calibrations : callable() -> list of dict
         One per camera, for the recorder (``name``, ``width``, ``height``,
-        ``K``, ``D``, ``R``, ``P``).
+        ``K``, ``D``, ``T_camera_rig``: see :class:`~service.recorder.Recorder`).
     guided : bool
         Whether ``measure`` matches the frames a second time, guided by the CAD.
     calibration_toml : str or None
@@ -165,7 +165,8 @@ def flash_stages(
     def calibrations() -> list[dict[str, Any]]:
         out = []
         for cam in calibrated.cameras:
-            P = np.asarray(cam.K) @ np.hstack([np.asarray(cam.R), np.asarray(cam.t)[:, None]])
+            T_camera_rig = np.eye(4)
+            T_camera_rig[:3, :3], T_camera_rig[:3, 3] = cam.R, np.ravel(cam.t)
             out.append(
                 {
                     "name": cam.name,
@@ -173,8 +174,7 @@ def flash_stages(
                     "height": cam.height,
                     "K": np.asarray(cam.K).ravel().tolist(),
                     "D": np.asarray(cam.dist).ravel().tolist(),
-                    "R": np.asarray(cam.R).ravel().tolist(),
-                    "P": P.ravel().tolist(),
+                    "T_camera_rig": T_camera_rig.ravel().tolist(),
                 }
             )
         return out

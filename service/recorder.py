@@ -4,20 +4,39 @@ One recorder per run writes ``<dir>/<run_id>-<index>.mcap``, starting a new
 file when the current one passes ``rotate_bytes``. Channels (Foxglove's
 well-known schemas, as protobuf; results as JSON with their JSON Schema):
 
-=============================  ==============================  ===========================
-topic                          schema                          what
-=============================  ==============================  ===========================
-``/<camera>/image``            foxglove.RawImage (mono8) or    one per camera and trigger
-                               foxglove.CompressedImage (png)
-``/<camera>/calibration``      foxglove.CameraCalibration      once per file
-``/frameset``                  JSON (FrameSet header)          line, station, part, serial,
-                                                               seq, triggered_ns, truth
-``/cloud``                     foxglove.PointCloud             x, y, z (rig frame, mm) and
-                                                               ``deviation`` (mm, float32)
-``/part/pose``                 foxglove.FrameTransform         T_rig_cad (parent ``rig``)
-``/result``                    JSON (InspectionResult)         every result, always
-``/alarm``                     JSON (Alarm)                    every alarm, when raised
-=============================  ==============================  ===========================
+=========================  ==============================  ================================
+topic                      schema                          what
+=========================  ==============================  ================================
+``/<camera>/image``        foxglove.RawImage (mono8) or    one per camera and trigger
+                           foxglove.CompressedImage (png)  (frame ``<camera>``)
+``/<camera>/calibration``  foxglove.CameraCalibration      once per file: intrinsics in the
+                                                           camera's frame (R = I, P = K[I|0])
+``/<camera>/transform``    foxglove.FrameTransform         once per file: ``rig`` to
+                                                           ``<camera>`` (static)
+``/frameset``              JSON (FrameSet header)          line, station, part, serial,
+                                                           seq, triggered_ns, truth
+``/cloud``                 foxglove.PointCloud             x, y, z (rig frame, mm) and
+                                                           ``deviation`` (mm, float32)
+``/part/pose``             foxglove.FrameTransform         T_rig_cad (``rig`` to ``part_cad``)
+``/part/cad``              foxglove.SceneUpdate            the CAD in ``part_cad``, once per
+                                                           part type per file
+``/part/markers``          foxglove.SceneUpdate            comparison points and defects,
+                                                           labelled, coloured by verdict
+``/result``                JSON (InspectionResult)         every result, always
+``/log``                   foxglove.Log                    every result as one line
+``/alarm``                 JSON (Alarm)                    every alarm, when raised
+=========================  ==============================  ================================
+
+The frames and messages are those of :mod:`service.foxglove`; docs/foxglove.md
+describes the layout that opens a recording. The per-file records (the
+cameras' transforms and calibrations, a part type's CAD) are written with
+the first trigger that needs them, at its time, so they precede everything
+that refers to them in log time.
+
+Disk cost: chunk compression (``none``, ``lz4``, ``zstd``) and the image
+encoding (``raw``, or lossless ``png``) are configured
+(``storage.mcap_compression``, ``storage.mcap_image_encoding``); what each
+costs on the line's frames is measured by ``make bench BENCH=line``.
 
 All timestamps are ns since the Unix epoch; every message of one trigger has
 the trigger's time as ``log_time``. Config, rig calibration and CAD hashes go
@@ -52,19 +71,17 @@ from typing import IO, Any
 
 import cv2
 import numpy as np
-from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
-from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
-from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
-from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
-from google.protobuf.timestamp_pb2 import Timestamp
 from mcap.records import Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 from mcap_protobuf.schema import build_file_descriptor_set
 
+from inspection.deviations import ComparisonPoint
+
+from . import foxglove
 from .config import RetentionSection
 from .models import Alarm, InspectionResult, Status
 from .pipeline import Outcome
@@ -72,9 +89,34 @@ from .protocol import FrameSet
 
 log = logging.getLogger(__name__)
 
-RIG_FRAME = "rig"
-PART_FRAME = "part_cad"
 PROFILE = "inspection"
+COMPRESSIONS = {
+    "none": CompressionType.NONE,
+    "lz4": CompressionType.LZ4,
+    "zstd": CompressionType.ZSTD,
+}
+IMAGE_ENCODINGS = ("raw", "png")
+PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_STRATEGY,
+              cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY]  # fmt: skip
+"""Camera noise defeats deflate's string matching: PNG's row filters with Huffman coding
+alone give a smaller file than the default strategy, and sooner (the line bench sweeps
+OpenCV's PNG settings)."""
+
+
+@dataclass(frozen=True)
+class PartScene:
+    """What the recording shows of a part type: its CAD and its comparison points.
+
+    Attributes
+    ----------
+    vertices : (V, 3) float64, mm, CAD frame
+    faces : (F, 3) int64
+    points : tuple of ComparisonPoint
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    points: tuple[ComparisonPoint, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -124,28 +166,6 @@ class Retention:
         return result.seq % self.every_nth == 0
 
 
-def _ts(ns: int) -> Timestamp:
-    return Timestamp(seconds=ns // 1_000_000_000, nanos=ns % 1_000_000_000)
-
-
-def _quaternion(R: np.ndarray) -> tuple[float, float, float, float]:
-    """(x, y, z, w) of a rotation matrix (Shepperd's method, stable for every angle)."""
-    m = R
-    tr = m[0, 0] + m[1, 1] + m[2, 2]
-    if tr > 0:
-        s = np.sqrt(tr + 1.0) * 2
-        return ((m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, s / 4)
-    i = int(np.argmax([m[0, 0], m[1, 1], m[2, 2]]))
-    j, k = (i + 1) % 3, (i + 2) % 3
-    s = np.sqrt(1.0 + m[i, i] - m[j, j] - m[k, k]) * 2
-    q = [0.0, 0.0, 0.0, 0.0]
-    q[i] = s / 4
-    q[j] = (m[j, i] + m[i, j]) / s
-    q[k] = (m[k, i] + m[i, k]) / s
-    q[3] = (m[k, j] - m[j, k]) / s
-    return q[0], q[1], q[2], q[3]
-
-
 def result_json_schema() -> str:
     """The JSON Schema of :class:`InspectionResult`, as recorded with the ``/result`` channel."""
     return json.dumps(InspectionResult.model_json_schema())
@@ -175,7 +195,12 @@ FRAMESET_SCHEMA = {
 class _File:
     """One open MCAP file with its registered schemas and channels."""
 
-    def __init__(self, path: Path, metadata: Mapping[str, Mapping[str, str]]) -> None:
+    def __init__(
+        self,
+        path: Path,
+        metadata: Mapping[str, Mapping[str, str]],
+        compression: CompressionType = CompressionType.NONE,
+    ) -> None:
         self.path = path
         self.stream: IO[bytes] = path.open("wb")
         # Held while the file is open: a recorder starting meanwhile (another
@@ -185,13 +210,14 @@ class _File:
         self.writer = McapWriter(
             self.stream,
             chunk_size=4 * 1024 * 1024,
-            # Uncompressed: camera noise does not compress, and lz4/zstd would
-            # cost 30-60 % of the write speed (dependency notes).
-            compression=CompressionType.NONE,
+            compression=compression,
         )
         self.writer.start(profile=PROFILE, library="inspection-recorder")
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
+        self.has_rig = False
+        self.cads: set[str] = set()
+        """Part types whose CAD this file holds."""
         for name, data in metadata.items():
             self.writer.add_metadata(name, dict(data))
         self.writer.flush()
@@ -251,8 +277,14 @@ class Recorder:
     metadata : mapping of name to {key: value}
         Written into every file (config and its hash, rig calibration, CAD hashes).
     calibrations : list of dict, optional
-        One per camera: ``name``, ``width``, ``height``, ``K`` (9), ``D``, ``R``
-        (9), ``P`` (12), ``distortion_model``; written once per file.
+        One per camera: ``name``, ``width``, ``height``, ``K`` (9, rows first),
+        ``D`` (OpenCV's k1 k2 p1 p2 k3), ``T_camera_rig`` (16, rows first: rig
+        points into the camera frame), optionally ``distortion_model``
+        (default ``plumb_bob``). Each camera's transform and calibration are
+        written once per file.
+    parts : mapping of part name to PartScene, optional
+        The CAD and comparison points of each part type: the CAD is written
+        once per part type per file, the markers with every measured part.
     rotate_bytes : int
         A file is finished when it passes this size (at most half the
         retention's budget, so the budget holds with the open file in it).
@@ -261,6 +293,8 @@ class Recorder:
     retention : Retention
     image_encoding : {"raw", "png"}
         ``raw`` writes foxglove.RawImage, ``png`` a lossless CompressedImage.
+    compression : {"none", "lz4", "zstd"}
+        Chunk compression of the files (and of the files :func:`recover` repairs).
     """
 
     def __init__(
@@ -270,18 +304,27 @@ class Recorder:
         *,
         metadata: Mapping[str, Mapping[str, str]] | None = None,
         calibrations: list[dict[str, Any]] | None = None,
+        parts: Mapping[str, PartScene] | None = None,
         rotate_bytes: int = 512 * 1024 * 1024,
         rotate_s: float | None = None,
         retention: Retention | None = None,
         image_encoding: str = "raw",
+        compression: str = "zstd",
     ) -> None:
-        if image_encoding not in ("raw", "png"):
-            raise ValueError("image_encoding must be raw or png")
+        if image_encoding not in IMAGE_ENCODINGS:
+            raise ValueError(f"image_encoding must be raw or png, got {image_encoding!r}")
+        if compression not in COMPRESSIONS:
+            raise ValueError(f"compression must be none, lz4 or zstd, got {compression!r}")
         self.directory = Path(directory)
         self.directory.mkdir(parents=True, exist_ok=True)
         self.run_id = run_id
         self.metadata = {k: dict(v) for k, v in (metadata or {}).items()}
         self.calibrations = calibrations or []
+        for cal in self.calibrations:
+            if np.asarray(cal["T_camera_rig"], dtype=np.float64).shape != (16,):
+                raise ValueError(f"{cal['name']}: T_camera_rig must hold 16 numbers")
+        self.parts = dict(parts or {})
+        self.compression = compression
         self.retention = retention or Retention()
         budget = self.retention.max_total_bytes
         self.rotate_bytes = rotate_bytes if budget is None else min(rotate_bytes, budget // 2)
@@ -295,7 +338,7 @@ class Recorder:
         self.files: list[Path] = []
         self.recorded = 0
         self.frames_recorded = 0
-        self.recovered = recover_unfinished(self.directory)
+        self.recovered = recover_unfinished(self.directory, compression)
         self._open_next()
 
     # ------------------------------------------------------------------ files
@@ -303,12 +346,8 @@ class Recorder:
     def _open_next(self) -> None:
         path = self.directory / f"{self.run_id}-{self._index:04d}.mcap"
         self._index += 1
-        self._file = _File(path, self.metadata)
+        self._file = _File(path, self.metadata, COMPRESSIONS[self.compression])
         self.files.append(path)
-        now = time.time_ns()
-        for cal in self.calibrations:
-            self._file.proto(f"/{cal['name']}/calibration", _calibration(cal, now), now)
-        self._file.flush()
         self.enforce_budget()
         log.info("recording to %s", path)
 
@@ -349,6 +388,8 @@ class Recorder:
             assert self._file is not None, "recorder is closed"
             f = self._file
             t = result.triggered_ns
+            if not f.has_rig:
+                self._write_rig(f, t)
             keep = fs is not None and self.retention.keeps_frames(result)
             if keep:
                 assert fs is not None
@@ -373,13 +414,29 @@ class Recorder:
                 for cam, img in zip(fs.cameras, fs.images, strict=True):
                     f.proto(f"/{cam}/image", self._image(cam, img, t), t)
                 if outcome.points is not None and len(outcome.points):
-                    f.proto("/cloud", _cloud(outcome.points, outcome.distances, t), t)
+                    f.proto("/cloud", foxglove.cloud(outcome.points, outcome.distances, t), t)
                 self.frames_recorded += 1
-            if outcome.transform is not None and np.isfinite(outcome.transform).all():
-                f.proto("/part/pose", _pose(np.linalg.inv(outcome.transform), t), t)
+            placed = outcome.transform is not None and np.isfinite(outcome.transform).all()
+            if placed:
+                assert outcome.transform is not None
+                f.proto("/part/pose", foxglove.part_pose(np.linalg.inv(outcome.transform), t), t)
+            scene = self.parts.get(result.part)
+            if scene is not None:
+                if result.part not in f.cads:
+                    cad = foxglove.cad_scene(result.part, scene.vertices, scene.faces, t)
+                    f.proto("/part/cad", cad, t)
+                    f.cads.add(result.part)
+                # Unplaced (an error): the update only deletes the last part's markers.
+                shown = (
+                    result
+                    if placed
+                    else result.model_copy(update={"comparison": [], "defects": []})
+                )
+                f.proto("/part/markers", foxglove.markers(shown, scene.points, t), t)
             f.json(
                 "/result", "InspectionResult", self._schema, result.model_dump_json().encode(), t
             )
+            f.proto("/log", foxglove.result_log(result, t), t)
             # Finish the chunk now: a killed process loses at most the trigger
             # being written, never the ones before it.
             f.flush()
@@ -394,6 +451,13 @@ class Recorder:
 
     __call__ = record
 
+    def _write_rig(self, f: _File, t: int) -> None:
+        """Each camera's static transform from the rig and its calibration, at ``t``."""
+        for cal in self.calibrations:
+            f.proto(f"/{cal['name']}/transform", foxglove.camera_transform(cal, t), t)
+            f.proto(f"/{cal['name']}/calibration", foxglove.camera_calibration(cal, t), t)
+        f.has_rig = True
+
     def record_alarm(self, alarm: Alarm) -> None:
         """Write one alarm, at the time it was raised; flushes before returning."""
         with self._lock:
@@ -405,11 +469,15 @@ class Recorder:
 
     def _image(self, cam: str, img: np.ndarray, t: int) -> Any:
         if self.image_encoding == "png":
-            ok, buf = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, 1])
-            return CompressedImage(timestamp=_ts(t), frame_id=cam, format="png", data=buf.tobytes())
+            ok, buf = cv2.imencode(".png", img, PNG_PARAMS)
+            if not ok:
+                raise ValueError(f"{cam}: the image cannot be encoded as PNG")
+            return CompressedImage(
+                timestamp=foxglove.timestamp(t), frame_id=cam, format="png", data=buf.tobytes()
+            )
         h, w = img.shape
         return RawImage(
-            timestamp=_ts(t),
+            timestamp=foxglove.timestamp(t),
             frame_id=cam,
             width=w,
             height=h,
@@ -425,46 +493,6 @@ class Recorder:
                 self._file.close()
                 self._file = None
         self.enforce_budget()
-
-
-def _calibration(cal: Mapping[str, Any], t: int) -> CameraCalibration:
-    return CameraCalibration(
-        timestamp=_ts(t),
-        frame_id=cal["name"],
-        width=int(cal["width"]),
-        height=int(cal["height"]),
-        distortion_model=cal.get("distortion_model", "plumb_bob"),
-        D=[float(x) for x in cal.get("D", [0, 0, 0, 0, 0])],
-        K=[float(x) for x in cal["K"]],
-        R=[float(x) for x in cal.get("R", [1, 0, 0, 0, 1, 0, 0, 0, 1])],
-        P=[float(x) for x in cal["P"]],
-    )
-
-
-def _cloud(points: np.ndarray, distances: np.ndarray | None, t: int) -> PointCloud:
-    n = len(points)
-    rec = np.empty(n, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("deviation", "<f4")])
-    rec["x"], rec["y"], rec["z"] = points[:, 0], points[:, 1], points[:, 2]
-    rec["deviation"] = distances if distances is not None and len(distances) == n else np.nan
-    f32 = PackedElementField.FLOAT32
-    return PointCloud(
-        timestamp=_ts(t),
-        frame_id=RIG_FRAME,
-        point_stride=16,
-        fields=[
-            PackedElementField(name=name, offset=4 * i, type=f32)
-            for i, name in enumerate(("x", "y", "z", "deviation"))
-        ],
-        data=rec.tobytes(),
-    )
-
-
-def _pose(T_rig_cad: np.ndarray, t: int) -> FrameTransform:
-    x, y, z, w = _quaternion(T_rig_cad[:3, :3])
-    msg = FrameTransform(timestamp=_ts(t), parent_frame_id=RIG_FRAME, child_frame_id=PART_FRAME)
-    msg.translation.x, msg.translation.y, msg.translation.z = (float(v) for v in T_rig_cad[:3, 3])
-    msg.rotation.x, msg.rotation.y, msg.rotation.z, msg.rotation.w = x, y, z, w
-    return msg
 
 
 # --------------------------------------------------------------------------- reading
@@ -490,11 +518,14 @@ class Recovered:
     metadata: int
 
 
-def recover(path: str | Path, out: str | Path | None = None) -> Recovered:
+def recover(
+    path: str | Path, out: str | Path | None = None, compression: str = "zstd"
+) -> Recovered:
     """Rewrite an unfinished MCAP file (a killed recorder) into a complete one.
 
     Every message of every completed chunk is kept; the torn tail is dropped.
     ``out`` defaults to ``<path stem>.recovered.mcap``; the original is left alone.
+    ``compression`` (none, lz4, zstd) is that of the rewritten file's chunks.
     """
     src = Path(path)
     dst = Path(out) if out is not None else src.with_suffix(".recovered.mcap")
@@ -502,7 +533,7 @@ def recover(path: str | Path, out: str | Path | None = None) -> Recovered:
     channels: dict[int, Channel] = {}
     n_msgs = n_meta = 0
     with dst.open("wb") as fh:
-        w = McapWriter(fh, compression=CompressionType.NONE)
+        w = McapWriter(fh, compression=COMPRESSIONS[compression])
         w.start(profile=PROFILE, library="inspection-recover")
         schema_map: dict[int, int] = {}
         channel_map: dict[int, int] = {}
@@ -553,9 +584,10 @@ def is_finished(path: str | Path) -> bool:
         return False
 
 
-def recover_unfinished(directory: str | Path) -> list[Recovered]:
+def recover_unfinished(directory: str | Path, compression: str = "zstd") -> list[Recovered]:
     """Rewrite, in place, every unfinished MCAP file in ``directory`` that no live recorder
-    holds: what a killed recorder left becomes a complete, indexed file of the same name."""
+    holds: what a killed recorder left becomes a complete, indexed file of the same name
+    (its chunks compressed with ``compression``)."""
     out = []
     for path in sorted(Path(directory).glob("*.mcap")):
         if is_finished(path):
@@ -567,7 +599,7 @@ def recover_unfinished(directory: str | Path) -> list[Recovered]:
                 except BlockingIOError:
                     continue  # being written by a live recorder
                 tmp = path.with_suffix(".recovering")
-                r = recover(path, tmp)
+                r = recover(path, tmp, compression)
                 tmp.replace(path)
         except OSError as exc:
             log.error("%s: not recovered: %s", path, exc)

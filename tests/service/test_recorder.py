@@ -48,7 +48,7 @@ CALS = [
         "width": 400,
         "height": 250,
         "K": [1, 0, 200, 0, 1, 125, 0, 0, 1],
-        "P": [1, 0, 200, 0, 0, 1, 125, 0, 0, 0, 1, 0],
+        "T_camera_rig": np.eye(4).ravel().tolist(),
     }
 ]
 
@@ -104,13 +104,32 @@ def test_round_trip_with_foxglove_schemas(tmp_path, outcomes):
     ]
 
 
-def test_png_images_are_lossless(tmp_path, outcomes):
-    rec = Recorder(tmp_path, "png", image_encoding="png")
+@pytest.mark.parametrize("compression", ["none", "lz4", "zstd"])
+@pytest.mark.parametrize("images", ["raw", "png"])
+def test_every_recording_choice_reads_back_bit_for_bit(tmp_path, outcomes, images, compression):
+    rec = Recorder(tmp_path, "choice", image_encoding=images, compression=compression)
     rec.record(*outcomes[0])
     rec.close()
+    (path,) = rec.files
+    with path.open("rb") as fh:
+        reader = make_reader(fh)
+        chunks = {c.compression for c in reader.get_summary().chunk_indexes}
+        schemas = {s.name for s in reader.get_summary().schemas.values()}
+    assert chunks == {"" if compression == "none" else compression}
+    assert ("foxglove.CompressedImage" if images == "png" else "foxglove.RawImage") in schemas
     _, trig = read_recording(rec.files)
     for a, b in zip(trig[0].frameset.images, outcomes[0][1].images, strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+def test_unknown_recording_choices_are_refused(tmp_path):
+    with pytest.raises(ValueError, match="compression must be"):
+        Recorder(tmp_path, "bad", compression="gzip")
+    with pytest.raises(ValueError, match="image_encoding must be"):
+        Recorder(tmp_path, "bad", image_encoding="jpeg")
+    bad = [{**CALS[0], "T_camera_rig": [1, 0, 0]}]
+    with pytest.raises(ValueError, match="T_camera_rig must hold 16"):
+        Recorder(tmp_path, "bad", calibrations=bad)
 
 
 class _TruthBeforeTheList:
