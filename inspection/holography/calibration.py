@@ -391,7 +391,7 @@ def _fit_residual(
     res = minimize(cost, np.array(best[1:]), jac=True, method="BFGS")
     a, b, c = (float(v) for v in res.x)
     s = np.sum(gamma * np.exp(-1j * (a * x + b * y + c * r2)))
-    return PhaseResidual(a=a, b=b, c=c, d=float(np.angle(s)), coherence=abs(s) / total)
+    return PhaseResidual(a=a, b=b, c=c, d=float(np.angle(s)), coherence=float(abs(s)) / total)
 
 
 def _numbers(c: HoloCalibration) -> tuple[Any, ...]:

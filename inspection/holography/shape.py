@@ -15,7 +15,8 @@
    weights, so dents do not pull it), the prediction redone, until the update
    stops moving; then the CAD is rendered again at the fitted pose.
 4. **Orders**: regions that 2 pi jumps separate from the main field deviate
-   by more than a quarter of the synthetic wavelength: flagged, not measured
+   by more than a quarter of the synthetic wavelength: flagged, not measured,
+   nor is their rim, a speckle wide
    (:func:`~inspection.holography.unwrap.orders`).
 5. **Deviations** along the CAD normal, ``(z - z_cad) n_z`` (exact on each
    planar facet), where measured.
@@ -30,7 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
-from scipy.ndimage import gaussian_filter
+from scipy.ndimage import binary_dilation, gaussian_filter
 
 from ..arrays import Transform
 from ..errors import InvalidInput
@@ -60,7 +61,7 @@ class ShapeParams:
     """Regions smaller than this many speckle areas are noise, not deviations."""
     pose_iterations: int = 6
     pose_tolerance_um: float = 0.05
-    tukey_mm: float = 0.05
+    tukey_mm: float = 0.02
     """Tukey's constant of the pose fit: deviations beyond it do not pull the pose."""
 
     def __post_init__(self) -> None:
@@ -165,6 +166,7 @@ def measure_hologram(
     depth = depth_map(head, mesh, T)
     x, y = head.grid()
     band = max(1, int(round(params.edge_band_speckles * speckle_px)))
+    min_region = max(4, int(params.min_region_speckles * np.pi / 4.0 * speckle_px**2))
     edges = depth.edges(params.edge_jump_mm, band)
     plane = np.zeros(3)  # dz, slope_x, slope_y of the prediction's correction
     converged = params.pose_iterations == 0
@@ -173,11 +175,15 @@ def measure_hologram(
         predicted = depth.height_mm + plane[0] + plane[1] * x + plane[2] * y
         residual, coherence = _residual(gamma, norm, predicted, scale, sigma)
         usable = ~edges & (coherence >= params.min_coherence)
-        step = _fit_plane(residual[usable] * scale, x[usable], y[usable], params.tukey_mm)
+        # Only the pixels of order 0 tell the pose: inside a region beyond the
+        # limit the wrapped residual looks small and would pull it.
+        o = orders(residual, usable, min_region_px=min_region)
+        fit = o.known & (o.order == 0)
+        step = _fit_plane(residual[fit] * scale, x[fit], y[fit], params.tukey_mm)
         plane += step
         if (
-            np.max(np.abs(step[0:1])) * 1e3 < params.pose_tolerance_um
-            and np.max(np.abs(step[1:]) * head.field_mm * 1e3) < params.pose_tolerance_um
+            abs(step[0]) * 1e3 < params.pose_tolerance_um
+            and np.max(np.abs(step[1:])) * head.field_mm * 1e3 < params.pose_tolerance_um
         ):
             converged = True
             break
@@ -189,10 +195,12 @@ def measure_hologram(
     timings["unwrap_ms"] = (t2 - t1) * 1e3
 
     # 4. Orders: what lies beyond a quarter of the synthetic wavelength.
-    min_region = max(4, int(params.min_region_speckles * np.pi / 4.0 * speckle_px**2))
     o = orders(residual, usable, min_region_px=min_region)
-    measured = o.known & (o.order == 0)
     flagged = o.known & (o.order != 0)
+    # A speckle straddling a region's rim mixes both orders: the rim, a speckle
+    # wide, is not measured either.
+    rim = binary_dilation(flagged, iterations=band) if flagged.any() else flagged
+    measured = o.known & (o.order == 0) & ~rim
     regions = _regions(o, flagged, residual, scale, head.pitch_mm, x, y)
 
     # 5. Deviations along the normal.
