@@ -38,12 +38,16 @@ class ReferenceWave:
 
     Its phase is ``k (tilt_x x + tilt_y y + (x^2 + y^2) / (2 radius))``: a
     plane wave tilted by ``tilt_*_mrad``, curved with the radius ``radius_mm``
-    (positive: diverging; ``inf``: plane).
+    (positive: diverging; ``inf``: plane); the astigmatism is a phase over the
+    18 mm field's half width, not scaled by the wavenumber.
     """
 
     tilt_x_mrad: float
     tilt_y_mrad: float
     radius_mm: float = math.inf
+    astigmatism_rad: float = 0.0
+    """Phase of ``(x^2 - y^2) / (field / 2)^2`` on top: an aberration the calibration's
+    model (tilt and curvature) does not hold, for the simulator to inject."""
 
     @property
     def curvature_per_m(self) -> float:
@@ -58,6 +62,9 @@ class ReferenceWave:
         out = k * 1e-3 * (self.tilt_x_mrad * x + self.tilt_y_mrad * y)
         if not math.isinf(self.radius_mm):
             out = out + k * (x * x + y * y) / (2.0 * self.radius_mm)
+        if self.astigmatism_rad:
+            half = 9.0  # mm: the aberration is stated over the small-field head's half width
+            out = out + self.astigmatism_rad * (x * x - y * y) / half**2
         return out
 
 
