@@ -317,3 +317,34 @@ def test_measuring_refuses_an_image_of_another_head(calib, part):
         measure_hologram(calib, np.full((N, N), np.nan), part, np.eye(4))
     with pytest.raises(InvalidInput):
         measure_hologram(calib, np.zeros((N, N), np.uint16), part, np.eye(3))
+
+
+def test_orders_find_a_region_cut_off_by_a_closed_wrap_contour():
+    from inspection.holography import orders, wrap
+
+    yy, xx = np.mgrid[0:80, 0:80].astype(np.float64)
+    # A smooth bump 1.6 pi high: its top, above pi, wraps to order +1.
+    true = 1.6 * np.pi * np.exp(-((xx - 40) ** 2 + (yy - 40) ** 2) / 15.0**2)
+    valid = np.ones(true.shape, dtype=bool)
+    valid[:, 70:72] = False  # a masked CAD edge splits off a second segment
+    o = orders(wrap(true), valid, min_region_px=10)
+    above = true > np.pi + 0.05
+    below = (true < np.pi - 0.05) & valid
+    assert np.all(o.order[above] == 1)
+    assert np.all(o.order[below] == 0)
+    assert o.known[valid].all() and not o.known[~valid].any()
+    # Undo the order: the bump comes back exactly.
+    assert np.allclose((wrap(true) + 2 * np.pi * o.order)[valid], true[valid])
+
+
+def test_measuring_is_deterministic_and_leaves_its_inputs_alone(calib, part, shallow):
+    image, _, shape = shallow
+    before = image.copy()
+    vertices = part.vertices.copy()
+    T = np.eye(4)
+    again = measure_hologram(calib, image, part, T)
+    assert np.array_equal(image, before) and np.array_equal(part.vertices, vertices)
+    assert np.array_equal(T, np.eye(4))
+    assert np.array_equal(again.height_mm, shape.height_mm, equal_nan=True)
+    assert np.array_equal(again.T_head_part, shape.T_head_part)
+    assert again.calibration_id == calib.id
