@@ -56,7 +56,7 @@ def main() -> int:
         calibrate_head,
         dent_map,
         describe,
-        measure_hologram,
+        measure_shape,
         simulate_hologram,
         stepped_plate,
     )
@@ -137,14 +137,12 @@ def main() -> int:
     c_peer = []
     slope = {"flat": [], "facet": []}  # type: dict[str, list[float]]
     x, y = head.grid()
-    measure_hologram(calib, simulate_hologram(head, part, T_true, seed=0)[0], part, np.eye(4))
+    measure_shape(calib, simulate_hologram(head, part, T_true, seed=0)[0], part, np.eye(4))
     for seed in SEEDS:
         image, truth = simulate_hologram(
             head, part, T_true, deviation_mm=dent_map(head, shallow), references=injected, seed=seed
         )
-        shape, wall, cpu = _timed(
-            lambda image=image: measure_hologram(calib, image, part, np.eye(4))
-        )
+        shape, wall, cpu = _timed(lambda image=image: measure_shape(calib, image, part, np.eye(4)))
         t_ours.append(wall)
         c_ours.append(cpu)
         m = shape.measured
@@ -238,7 +236,7 @@ def main() -> int:
                 noise=variant,
                 seed=seed,
             )
-            shape = measure_hologram(vcal, image, part, np.eye(4))
+            shape = measure_shape(vcal, image, part, np.eye(4))
             m = shape.measured
             err = (shape.height_mm - truth.height_mm)[m]
             peer = math.nan
@@ -277,7 +275,7 @@ def main() -> int:
         references=injected,
         seed=21,
     )
-    shape = measure_hologram(calib, image, part, np.eye(4))
+    shape = measure_shape(calib, image, part, np.eye(4))
     beyond = np.abs(truth.deviation_mm) > shape.limit_mm + 0.05
     e = (shape.height_mm - truth.height_mm)[shape.measured]
     print(
@@ -303,7 +301,7 @@ def main() -> int:
     print(f"\ntime per hologram ({PIXELS}x{PIXELS} px; median of {len(SEEDS)})")
     print(f"{'':<36} {'wall ms':>8} {'CPU ms':>8}")
     print(
-        f"{'measure_hologram (whole method)':<36} {1e3 * statistics.median(t_ours):>8.0f} "
+        f"{'measure_shape (whole method)':<36} {1e3 * statistics.median(t_ours):>8.0f} "
         f"{1e3 * statistics.median(c_ours):>8.0f}"
     )
     if t_peer:

@@ -24,7 +24,7 @@ from .depth import DepthMap, depth_map
 from .head import HoloHead, HoloNoise, ReferenceWave, describe
 from .parts import Dent, dent_map, stepped_plate
 from .propagate import propagate
-from .shape import FlaggedRegion, HoloShape, ShapeParams, measure_hologram
+from .shape import FlaggedRegion, HoloShape, ShapeParams, measure_shape
 from .simulate import HoloTruth, simulate_hologram
 from .spectrum import Lobe, find_lobes, lobe_field, spectrum
 from .unwrap import Orders, orders, wrap
@@ -52,7 +52,7 @@ __all__ = [
     "describe",
     "find_lobes",
     "lobe_field",
-    "measure_hologram",
+    "measure_shape",
     "orders",
     "propagate",
     "simulate_hologram",

@@ -1,6 +1,6 @@
 """The shape of a part from one hologram, against its CAD.
 
-``measure_hologram`` reads like the method:
+``measure_shape`` reads like the method:
 
 1. **Phase difference**: both lobes cut and corrected by the calibration,
    ``O1 O2*`` (phase ``4 pi z / L``).
@@ -128,7 +128,7 @@ class HoloShape:
     timings_ms: dict[str, float] = field(default_factory=dict)
 
 
-def measure_hologram(
+def measure_shape(
     calib: HoloCalibration,
     image: npt.ArrayLike,
     mesh: object,

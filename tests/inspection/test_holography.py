@@ -22,7 +22,7 @@ from inspection.holography import (
     describe,
     find_lobes,
     lobe_field,
-    measure_hologram,
+    measure_shape,
     propagate,
     simulate_hologram,
     spectrum,
@@ -77,7 +77,7 @@ def shallow(head, injected, part, calib):
     image, truth = simulate_hologram(
         head, part, T_TRUE, deviation_mm=dent_map(head, SHALLOW), references=injected, seed=5
     )
-    return image, truth, measure_hologram(calib, image, part, np.eye(4))
+    return image, truth, measure_shape(calib, image, part, np.eye(4))
 
 
 @pytest.fixture(scope="module")
@@ -90,7 +90,7 @@ def deep(head, injected, part, calib):
         references=injected,
         seed=6,
     )
-    return image, truth, measure_hologram(calib, image, part, np.eye(4))
+    return image, truth, measure_shape(calib, image, part, np.eye(4))
 
 
 # -- head and simulator ------------------------------------------------------------
@@ -312,11 +312,11 @@ def test_the_spatial_unwrapper_fails_across_the_step_where_the_cad_does_not(shal
 
 def test_measuring_refuses_an_image_of_another_head(calib, part):
     with pytest.raises(InvalidInput):
-        measure_hologram(calib, np.zeros((N + 2, N + 2), np.uint16), part, np.eye(4))
+        measure_shape(calib, np.zeros((N + 2, N + 2), np.uint16), part, np.eye(4))
     with pytest.raises(InvalidInput):
-        measure_hologram(calib, np.full((N, N), np.nan), part, np.eye(4))
+        measure_shape(calib, np.full((N, N), np.nan), part, np.eye(4))
     with pytest.raises(InvalidInput):
-        measure_hologram(calib, np.zeros((N, N), np.uint16), part, np.eye(3))
+        measure_shape(calib, np.zeros((N, N), np.uint16), part, np.eye(3))
 
 
 def test_orders_find_a_region_cut_off_by_a_closed_wrap_contour():
@@ -342,7 +342,7 @@ def test_measuring_is_deterministic_and_leaves_its_inputs_alone(calib, part, sha
     before = image.copy()
     vertices = part.vertices.copy()
     T = np.eye(4)
-    again = measure_hologram(calib, image, part, T)
+    again = measure_shape(calib, image, part, T)
     assert np.array_equal(image, before) and np.array_equal(part.vertices, vertices)
     assert np.array_equal(T, np.eye(4))
     assert np.array_equal(again.height_mm, shape.height_mm, equal_nan=True)
