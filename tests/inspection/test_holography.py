@@ -348,3 +348,60 @@ def test_measuring_is_deterministic_and_leaves_its_inputs_alone(calib, part, sha
     assert np.array_equal(again.height_mm, shape.height_mm, equal_nan=True)
     assert np.array_equal(again.T_head_part, shape.T_head_part)
     assert again.calibration_id == calib.id
+
+
+# -- the measuring sequence's branch ------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def plate_part(part):
+    from inspection.cad import CadModel
+    from inspection.deviations import ComparisonPoint
+    from inspection.measure import PartModel
+
+    points = [
+        # On the pad, at the 150 um dent: out of a +-0.1 mm tolerance.
+        ComparisonPoint("pad", (5.0, -4.0, 0.8), (0.0, 0.0, 1.0), -0.1, 0.1, 1.0),
+        # On the plate, away from every dent.
+        ComparisonPoint("plate", (-5.0, -1.0, 0.0), (0.0, 0.0, 1.0), -0.1, 0.1, 1.0),
+    ]
+    cad = CadModel.from_mesh(part, name="stepped-plate")
+    return PartModel.build(cad, points, spacing_mm=0.25, band_mm=2.0, alignment=False)
+
+
+def test_the_sequence_measures_a_hologram_to_a_verdict(plate_part, calib, shallow):
+    from inspection.deviations import Verdict
+    from inspection.measure import measure_hologram
+
+    image, truth, _ = shallow
+    m = measure_hologram(plate_part, calib, image, np.eye(4))
+    assert m.frame == "data" and m.passes[0].name == "hologram"
+    assert m.quality is not None and m.quality.converged
+    by_name = {c.name: c for c in m.deviations.comparison}
+    assert by_name["pad"].verdict is Verdict.FAIL
+    assert -0.16 < by_name["pad"].deviation_mm < -0.1
+    assert by_name["plate"].verdict is Verdict.PASS
+    assert abs(by_name["plate"].deviation_mm) < 0.01
+    assert m.verdict is Verdict.FAIL and "pad" in m.reason
+    # The fit keeps the plate's height where the phase put it: T_cad_head maps the
+    # measured points onto the CAD, and the CAD's top face onto the true one.
+    top = np.array([[x, y, 0.0] for x in (-8.0, -4.0) for y in (-8.0, 8.0)])
+    true = top @ T_TRUE[:3, :3].T + T_TRUE[:3, 3]
+    T_head_cad = np.linalg.inv(m.transform)
+    fitted = top @ T_head_cad[:3, :3].T + T_head_cad[:3, 3]
+    assert np.max(np.abs(fitted[:, 2] - true[:, 2])) < 0.01
+
+
+def test_a_region_beyond_the_range_fails_the_part_and_is_named(plate_part, calib, deep):
+    from dataclasses import replace as copy
+
+    from inspection.deviations import Verdict
+    from inspection.measure import measure_hologram
+
+    image, _, _ = deep
+    only_plate = copy(plate_part, comparison_points=plate_part.comparison_points[1:])
+    m = measure_hologram(only_plate, calib, image, np.eye(4))
+    assert [c.verdict for c in m.deviations.comparison] == [Verdict.PASS]
+    assert m.verdict is Verdict.FAIL
+    assert "beyond the holographic range (+-0.275 mm)" in m.reason
+    assert "(5.9, 4.9) mm" in m.reason or "(6.0, 5.0) mm" in m.reason
