@@ -5,14 +5,19 @@ makes it traceable. It travels on ``<prefix>/<line>/<station>/frames`` as::
 
     offset  size  field
     0       4     magic b"INSF"
-    4       2     version (uint16, little-endian), currently 1
+    4       2     version (uint16, little-endian): 1, or 2 for what version 1
+                  cannot say (16-bit pixels, a sensor other than the flash rig)
     6       2     flags (uint16, little-endian), 0; readers ignore unknown bits
     8       4     header length H in bytes (uint32, little-endian)
     12      H     header: UTF-8 JSON object (see docs/protocol.md)
     12+H    ...   image payloads, concatenated in header order
 
 The header lists every image with its size, pixel format and encoding (raw
-``mono8`` rows, or a PNG file), and the byte ``length`` of its payload. The
+``mono8`` or little-endian ``mono16`` rows, or a PNG file), and the byte
+``length`` of its payload; version 2 also names the ``sensor``. A FrameSet
+that version 1 can carry is written as version 1, so that readers of version
+1 keep reading the flash rig's frames, and refuse (by its version) what they
+could not read right. The
 format is specified in ``docs/protocol.md`` precisely enough for a reader in
 any language; this module is the reference implementation.
 
@@ -33,20 +38,25 @@ from typing import Any
 import cv2
 import numpy as np
 
-from inspection.arrays import Image
 from inspection.defects import Defect, Dent
 
 from .names import NAME_MAX_LEN, NAME_RULE, is_valid_name
 
 MAGIC = b"INSF"
-VERSION = 1
+VERSION = 2
+"""The newest version this module writes and reads; it reads every one of VERSIONS."""
+VERSIONS = (1, 2)
 PREAMBLE = struct.Struct("<4sHHI")
 """Magic, version, flags, header length: 12 bytes, little-endian."""
 
 DEFAULT_PREFIX = "insp/v1"
 ENCODINGS = ("raw", "png")
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-PIXEL_FORMATS = ("mono8",)
+PIXEL_FORMATS = ("mono8", "mono16")
+"""mono16 (version 2): two bytes per pixel, little-endian, as holographic cameras give."""
+SENSORS = ("flash", "holography")
+"""What took the images: the four-camera flash rig, or a holographic head (version 2)."""
+_DTYPES: dict[str, np.dtype[Any]] = {"mono8": np.dtype(np.uint8), "mono16": np.dtype("<u2")}
 
 # Generous upper bounds: a hostile or corrupt header must not make us allocate
 # gigabytes before we notice.
@@ -272,12 +282,14 @@ class FrameSet:
         Trigger time, ns since the Unix epoch, from the ingest host's clock.
     calibration_id : str
         Identifies the rig calibration the frames are meant to be measured with.
-    images : list of (H, W) uint8
-        One image per camera, in the rig's camera order.
+    images : list of (H, W) uint8 or uint16
+        One image per camera, in the rig's camera order (uint16: mono16).
     cameras : list of str
         Camera names, one per image.
     truth : Truth or None
         Pose and injected defects of a simulated part.
+    sensor : str
+        One of :data:`SENSORS`.
     """
 
     line: str
@@ -287,9 +299,10 @@ class FrameSet:
     seq: int
     triggered_ns: int
     calibration_id: str
-    images: list[Image]
+    images: list[np.ndarray]
     cameras: list[str] = field(default_factory=list)
     truth: Truth | None = None
+    sensor: str = "flash"
 
     def __post_init__(self) -> None:
         validate_name(self.line, "line")
@@ -305,9 +318,15 @@ class FrameSet:
             raise ProtocolError(
                 f"a FrameSet carries 1..{MAX_IMAGES} images, got {len(self.images)}"
             )
+        if self.sensor not in SENSORS:
+            raise ProtocolError(f"sensor must be one of {SENSORS}, got {self.sensor!r}")
         for i, img in enumerate(self.images):
-            if not isinstance(img, np.ndarray) or img.dtype != np.uint8 or img.ndim != 2:
-                raise ProtocolError(f"image {i} must be a (H, W) uint8 array")
+            if (
+                not isinstance(img, np.ndarray)
+                or img.dtype not in (np.uint8, np.uint16)
+                or img.ndim != 2
+            ):
+                raise ProtocolError(f"image {i} must be a (H, W) uint8 or uint16 array")
             if not (0 < img.shape[0] <= MAX_SIDE_PX and 0 < img.shape[1] <= MAX_SIDE_PX):
                 raise ProtocolError(f"image {i} has an unsupported size {img.shape}")
         if not self.cameras:
@@ -318,9 +337,19 @@ class FrameSet:
             validate_name(name, "camera")
 
 
+def _pixel_format(img: np.ndarray) -> str:
+    return "mono16" if img.dtype == np.uint16 else "mono8"
+
+
+def wire_version(fs: FrameSet) -> int:
+    """The oldest version that carries ``fs``: 1 for the flash rig's mono8 frames."""
+    plain = fs.sensor == "flash" and all(img.dtype == np.uint8 for img in fs.images)
+    return 1 if plain else 2
+
+
 def _encode_image(img: np.ndarray, encoding: str) -> bytes:
     if encoding == "raw":
-        return np.ascontiguousarray(img).tobytes()
+        return np.ascontiguousarray(img, dtype=_DTYPES[_pixel_format(img)]).tobytes()
     # Level 1: the images are noisy, higher levels cost time and save little.
     ok, buf = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, 1])
     if not ok:  # pragma: no cover - OpenCV fails only on unsupported arrays
@@ -357,7 +386,7 @@ def encode_frameset(fs: FrameSet, *, encoding: str = "raw") -> bytes:
                 "camera": cam,
                 "width": int(img.shape[1]),
                 "height": int(img.shape[0]),
-                "pixel_format": "mono8",
+                "pixel_format": _pixel_format(img),
                 "encoding": encoding,
                 "length": len(p),
             }
@@ -365,8 +394,11 @@ def encode_frameset(fs: FrameSet, *, encoding: str = "raw") -> bytes:
         ],
         "truth": None if fs.truth is None else fs.truth.to_json(),
     }
+    version = wire_version(fs)
+    if version >= 2:
+        header["sensor"] = fs.sensor
     head = json.dumps(header, separators=(",", ":"), allow_nan=False).encode("utf-8")
-    return b"".join([PREAMBLE.pack(MAGIC, VERSION, 0, len(head)), head, *payloads])
+    return b"".join([PREAMBLE.pack(MAGIC, version, 0, len(head)), head, *payloads])
 
 
 def read_header(data: bytes | bytearray | memoryview) -> tuple[dict[str, Any], int]:
@@ -388,8 +420,11 @@ def read_header(data: bytes | bytearray | memoryview) -> tuple[dict[str, Any], i
     magic, version, _flags, hlen = PREAMBLE.unpack_from(buf, 0)
     if magic != MAGIC:
         raise ProtocolError(f"not a FrameSet: magic {bytes(magic)!r}, expected {MAGIC!r}")
-    if version != VERSION:
-        raise ProtocolError(f"unsupported FrameSet version {version} (this reader knows {VERSION})")
+    if version not in VERSIONS:
+        raise ProtocolError(
+            f"unsupported FrameSet version {version} (this reader knows "
+            f"{', '.join(map(str, VERSIONS))})"
+        )
     if hlen > MAX_HEADER_BYTES or PREAMBLE.size + hlen > len(buf):
         raise ProtocolError(f"truncated FrameSet: header of {hlen} bytes does not fit")
     try:
@@ -403,14 +438,24 @@ def read_header(data: bytes | bytearray | memoryview) -> tuple[dict[str, Any], i
     return header, PREAMBLE.size + hlen
 
 
-def _decode_image(payload: memoryview, meta: dict[str, Any], i: int) -> np.ndarray:
+def frameset_version(data: bytes | bytearray | memoryview) -> int:
+    """The version in a FrameSet's preamble (checked by :func:`read_header`)."""
+    buf = memoryview(data)
+    if len(buf) < PREAMBLE.size:
+        raise ProtocolError(f"truncated FrameSet: {len(buf)} bytes, the preamble alone is 12")
+    return int(PREAMBLE.unpack_from(buf, 0)[1])
+
+
+def _decode_image(payload: memoryview, meta: dict[str, Any], i: int, version: int) -> np.ndarray:
     w, h = meta["width"], meta["height"]
-    if meta["pixel_format"] not in PIXEL_FORMATS:
-        raise ProtocolError(f"image {i}: unsupported pixel_format {meta['pixel_format']!r}")
+    fmt = meta["pixel_format"]
+    if fmt not in PIXEL_FORMATS or (fmt == "mono16" and version < 2):
+        raise ProtocolError(f"image {i}: unsupported pixel_format {fmt!r} in version {version}")
+    dtype = _DTYPES[fmt]
     if meta["encoding"] == "raw":
-        if len(payload) != w * h:
-            raise ProtocolError(f"image {i}: {len(payload)} bytes for a {w}x{h} mono8 image")
-        return np.frombuffer(payload, dtype=np.uint8).reshape(h, w).copy()
+        if len(payload) != w * h * dtype.itemsize:
+            raise ProtocolError(f"image {i}: {len(payload)} bytes for a {w}x{h} {fmt} image")
+        return np.frombuffer(payload, dtype=dtype).reshape(h, w).astype(dtype.newbyteorder("="))
     if meta["encoding"] == "png":
         # The PNG's own size comes first, before anything is decoded: a small
         # payload can expand to gigabytes.
@@ -422,9 +467,9 @@ def _decode_image(payload: memoryview, meta: dict[str, Any], i: int) -> np.ndarr
         img = cv2.imdecode(np.frombuffer(payload, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
         if img is None:
             raise ProtocolError(f"image {i}: PNG payload cannot be decoded")
-        if img.dtype != np.uint8 or img.ndim != 2 or img.shape != (h, w):
+        if img.dtype != dtype or img.ndim != 2 or img.shape != (h, w):
             raise ProtocolError(
-                f"image {i}: PNG is {img.dtype} {img.shape}, header says {h}x{w} mono8"
+                f"image {i}: PNG is {img.dtype} {img.shape}, header says {h}x{w} {fmt}"
             )
         return img
     raise ProtocolError(f"image {i}: unknown encoding {meta['encoding']!r}")
@@ -449,9 +494,12 @@ def decode_frameset(
     ------
     ProtocolError
         Wrong magic or version, truncated data, a header that does not match
-        the payload or the cameras, invalid names, undecodable images.
+        the payload or the cameras, invalid names, undecodable images, a
+        version 1 FrameSet with mono16 images, a version 2 one without its
+        ``sensor``.
     """
     header, offset = read_header(data)
+    version = frameset_version(data)
     buf = memoryview(data)
     try:
         metas = header["images"]
@@ -473,12 +521,13 @@ def decode_frameset(
             end = offset + meta["length"]
             if end > len(buf):
                 raise ProtocolError(f"truncated FrameSet: image {i} ends past the data")
-            images.append(_decode_image(buf[offset:end], meta, i))
+            images.append(_decode_image(buf[offset:end], meta, i, version))
             names.append(meta.get("camera", f"cam{i}"))
             offset = end
         if offset != len(buf):
             raise ProtocolError(f"{len(buf) - offset} trailing bytes after the last image")
         truth = header.get("truth")
+        sensor = header["sensor"] if version >= 2 else "flash"
         return FrameSet(
             line=header["line"],
             station=header["station"],
@@ -490,6 +539,7 @@ def decode_frameset(
             images=images,
             cameras=names,
             truth=None if truth is None else Truth.from_json(truth),
+            sensor=sensor,
         )
     except KeyError as exc:
         raise ProtocolError(f"FrameSet header lacks the field {exc.args[0]!r}") from exc

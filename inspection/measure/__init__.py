@@ -1,7 +1,8 @@
 """The measuring sequence from a trigger's frames, or a cloud, to the part's verdict.
 
 ``sequence`` reads top to bottom like the algorithm (:func:`measure_frames`,
-:func:`measure_cloud`); ``params`` holds its settings, ``part`` what a part
+:func:`measure_cloud`), ``hologram`` is its branch for the holographic head
+(:func:`measure_hologram`); ``params`` holds its settings, ``part`` what a part
 is measured against, ``result`` what comes back, ``judging`` how a fit and
 its points are judged.
 """
@@ -9,6 +10,7 @@ its points are judged.
 from __future__ import annotations
 
 from ..registration import RegisterParams
+from .hologram import measure_hologram
 from .judging import fit_quality, pose_sigma_mm
 from .params import LINE_REGISTER, Frame, MeasureParams
 from .part import PartModel
@@ -36,6 +38,7 @@ __all__ = [
     "fit_quality",
     "measure_cloud",
     "measure_frames",
+    "measure_hologram",
     "pose_sigma_mm",
     "subsample",
     "validate_cloud",

@@ -154,7 +154,7 @@ def corruptions():
         "empty": b"",
         "short": good[:7],
         "magic": b"XXXX" + good[4:],
-        "version": good[:4] + b"\x02\x00" + good[6:],
+        "version": good[:4] + b"\x03\x00" + good[6:],
         "header_too_long": good[:8] + (10**6).to_bytes(4, "little") + good[12:],
         "header_not_json": good[:12] + b"{" * hlen + good[12 + hlen :],
         "header_is_list": struct.pack("<4sHHI", b"INSF", 1, 0, 2) + b"[]",
