@@ -32,6 +32,7 @@ COMPOSE = DOCKER / "compose.yaml"
 DOCKERFILE = DOCKER / "Dockerfile"
 OURS = {"worker", "api", "ingest"}
 ROUTER = "zenoh"
+MONITORING = {"prometheus", "grafana"}
 
 
 @pytest.fixture(scope="module")
@@ -75,7 +76,11 @@ def host_port(published: str) -> tuple[str, int, int]:
 
 
 def test_the_services_are_the_router_and_our_three_processes(compose):
-    assert set(compose["services"]) == OURS | {ROUTER}
+    assert set(compose["services"]) == OURS | {ROUTER} | MONITORING
+    # A plain `up` starts the line alone; monitoring is asked for.
+    profiles = {name: svc.get("profiles", []) for name, svc in compose["services"].items()}
+    assert {name for name, p in profiles.items() if p} == MONITORING
+    assert all(profiles[name] == ["monitoring"] for name in MONITORING)
     router = compose["services"][ROUTER]
     assert router["image"].startswith("eclipse/zenoh:")
     assert "--no-multicast-scouting" in router["command"]
@@ -122,6 +127,58 @@ def test_each_command_is_a_valid_invocation_of_our_cli(compose, dockerfile, name
         assert inside == {cfg.station.metrics_port} and cfg.http.host == "0.0.0.0"
     if name == "ingest":
         assert inside == set()
+
+
+def configs_of(compose: dict, dockerfile: list[str], monkeypatch) -> dict:
+    """The line config each process of ours runs with, by service."""
+    from service.commands.line import _config
+
+    monkeypatch.chdir(REPO)
+    cfgs = {}
+    for name in OURS:
+        svc = compose["services"][name]
+        with monkeypatch.context() as env:
+            for key, value in {**image_env(dockerfile), **svc.get("environment", {})}.items():
+                env.setenv(key, str(value))
+            cfgs[name] = _config(parse(svc["command"]), mode="client")
+    return cfgs
+
+
+def test_prometheus_scrapes_the_workers_port_and_the_apis_metrics(compose, dockerfile, monkeypatch):
+    cfgs = configs_of(compose, dockerfile, monkeypatch)
+    prometheus = compose["services"]["prometheus"]
+    [mount] = [v for v in prometheus["volumes"] if v.endswith(":/etc/prometheus/prometheus.yml:ro")]
+    scrape = yaml.safe_load((COMPOSE.parent / mount.split(":")[0]).read_text())
+    targets = {
+        (job.get("metrics_path", "/metrics"), target)
+        for job in scrape["scrape_configs"]
+        for group in job["static_configs"]
+        for target in group["targets"]
+    }
+    assert targets == {
+        ("/metrics", f"worker:{cfgs['worker'].station.metrics_port}"),
+        ("/metrics", f"api:{cfgs['api'].http.port}"),
+    }
+
+
+def test_grafana_is_given_the_dashboard_and_that_prometheus(compose):
+    grafana = compose["services"]["grafana"]
+    mounts = dict(v.rsplit(":", 1)[0].split(":", 1) for v in grafana["volumes"])
+    for source in mounts:
+        assert (COMPOSE.parent / source).exists(), source
+    [(board, at)] = [(s, t) for s, t in mounts.items() if s.endswith(".json")]
+    assert (COMPOSE.parent / board).resolve() == REPO / "docs" / "grafana-dashboard.json"
+    provisioning = COMPOSE.parent / next(s for s, t in mounts.items() if t.endswith("provisioning"))
+    [provider] = yaml.safe_load((provisioning / "dashboards" / "inspection.yaml").read_text())[
+        "providers"
+    ]
+    assert Path(at).parent == Path(provider["options"]["path"])
+    [source] = yaml.safe_load((provisioning / "datasources" / "prometheus.yaml").read_text())[
+        "datasources"
+    ]
+    assert source["type"] == "prometheus" and source["isDefault"] is True
+    port = host_port(compose["services"]["prometheus"]["ports"][0])[2]
+    assert source["url"] == f"http://prometheus:{port}"
 
 
 def test_the_ingest_waits_for_a_healthy_worker(compose):
