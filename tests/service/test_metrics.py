@@ -4,8 +4,9 @@ One ``inspection run`` for the module (small images, one matching pass) measures
 a few parts; its REST API's ``/metrics`` then carries the worker's series beside
 the API's own, parsed with ``prometheus_client``'s own text parser. The Grafana
 dashboard in docs/ is checked against that scrape: every series an expression
-names is one the line exports, with the labels the expression uses. (The worker
-on its own, on its metrics port: tests/service/test_line.py.)
+names is one the line exports, with the labels the expression uses. Missed
+triggers and the queue are counted on a worker of quick stages. (The worker on
+its own, on its metrics port: tests/service/test_line.py.)
 """
 
 from __future__ import annotations
