@@ -6,26 +6,36 @@ serves it on ``/metrics``; a process without an HTTP server (a worker on its
 own) serves it on a port of its own (:meth:`Metrics.serve`). Names follow
 Prometheus conventions: base units (seconds), ``_total`` for counters.
 
-What a worker exposes (:func:`worker_collector`, read at each scrape, and
-the histograms it observes as it answers):
+What a worker exposes (:func:`worker_collector` and :func:`executor_collector`,
+read at each scrape, and the histograms it observes as it answers), every
+series labelled with the worker's ``line`` and ``station``:
 
-==========================================  ===========================================
-``inspection_worker_results_total``         results answered, by ``status``
-``inspection_worker_missed_total``          missed triggers, by ``cause`` (``queue_full``,
-                                            ``never_arrived``)
-``inspection_worker_alarms_total``          alarms raised, by ``kind``
-``inspection_worker_duplicates_total``      triggers delivered again, answered once
-``inspection_worker_queue_depth``           FrameSets waiting (gauge), and ``_capacity``
-``inspection_stage_seconds``                time of each measuring stage, by ``stage``
-``inspection_latency_seconds``              trigger to answered result
-``inspection_executor_workers``             who measures (gauge): Dask workers, or 1
-                                            in-process; ``_threads``, ``_slots`` and
-                                            ``_in_flight`` beside it
-``inspection_executor_job_seconds``         time of each measurement where it ran, by
-                                            ``worker`` (a Dask worker's address, or
-                                            ``in-process``)
-``inspection_executor_dispatch_seconds``    a measurement's round trip less its own time
-==========================================  ===========================================
+==============================================  =======================================
+``inspection_worker_results_total``             results answered, by ``status``
+``inspection_worker_missed_total``              missed triggers, by ``cause``
+                                                (``queue_full``, ``never_arrived``)
+``inspection_worker_alarms_total``              alarms raised, by ``kind``
+``inspection_worker_duplicates_total``          triggers delivered again, answered once
+``inspection_worker_lost_total``                measurements the executor never returned
+``inspection_worker_queue_depth``               FrameSets waiting (gauge), and ``_capacity``
+``inspection_stage_seconds``                    time of each measuring stage, by ``stage``
+``inspection_latency_seconds``                  trigger to answered result
+``inspection_executor_info``                    1, with the executor's ``kind``
+``inspection_executor_workers``                 who measures (gauge): Dask workers, or 1
+                                                in-process; ``_threads``, ``_slots`` and
+                                                ``_in_flight`` beside it
+``inspection_executor_cluster_threads``         each Dask worker's threads, by
+                                                ``dask_worker`` (its address)
+``inspection_executor_cluster_executing``       jobs each Dask worker runs now
+``inspection_executor_job_seconds``             time of each measurement where it ran, by
+                                                ``worker`` (a Dask worker's address, or
+                                                ``in-process``); its ``_count`` is the jobs
+``inspection_executor_dispatch_seconds``        a measurement's round trip less its own time
+==============================================  =======================================
+
+The API process adds its own (``inspection_results_stored``,
+``inspection_ready``, ``http_requests_total``, ...); a line in one process
+serves both on the API's ``/metrics``. docs/grafana-dashboard.json charts them.
 """
 
 from __future__ import annotations
@@ -145,55 +155,108 @@ class Metrics:
         return server
 
 
-def worker_collector(stats: Any, depth: Callable[[], int], capacity: int) -> Callable[[], Any]:
+STATION_LABELS = ("line", "station")
+"""The labels of every series of a station's worker: one Prometheus can tell stations apart."""
+
+
+def worker_collector(
+    stats: Any, depth: Callable[[], int], capacity: int, *, line: str, station: str
+) -> Callable[[], Any]:
     """The metric families of a worker's :class:`~service.worker.WorkerStats`."""
+    own = [line, station]
+
+    def counts(name: str, help_: str, label: str, by: dict[str, int]) -> CounterMetricFamily:
+        family = CounterMetricFamily(name, help_, labels=[*STATION_LABELS, label])
+        for key, n in sorted(by.items()):
+            family.add_metric([*own, key], n)
+        return family
+
+    def one(family: CounterMetricFamily | GaugeMetricFamily, value: float) -> Metric:
+        family.add_metric(own, value)
+        return family
 
     def collect() -> Iterator[Metric]:
-        results = CounterMetricFamily(
-            "inspection_worker_results", "Results answered by the worker.", labels=["status"]
+        yield counts(
+            "inspection_worker_results", "Results answered by the worker.", "status",
+            stats.by_status,
+        )  # fmt: skip
+        yield counts(
+            "inspection_worker_missed", "Triggers answered missed, by cause.", "cause",
+            stats.missed_by_cause,
+        )  # fmt: skip
+        yield counts(
+            "inspection_worker_alarms", "Alarms raised, by kind.", "kind", stats.alarms_by_kind
         )
-        for status, n in sorted(stats.by_status.items()):
-            results.add_metric([status], n)
-        yield results
-        missed = CounterMetricFamily(
-            "inspection_worker_missed", "Triggers answered missed, by cause.", labels=["cause"]
+        yield one(
+            CounterMetricFamily(
+                "inspection_worker_duplicates", "Triggers delivered again and answered once.",
+                labels=STATION_LABELS,
+            ),
+            stats.duplicates,
+        )  # fmt: skip
+        yield one(
+            CounterMetricFamily(
+                "inspection_worker_lost",
+                "Measurements the executor never returned (answered as errors).",
+                labels=STATION_LABELS,
+            ),
+            stats.lost,
         )
-        for cause, n in sorted(stats.missed_by_cause.items()):
-            missed.add_metric([cause], n)
-        yield missed
-        alarms = CounterMetricFamily(
-            "inspection_worker_alarms", "Alarms raised, by kind.", labels=["kind"]
-        )
-        for kind, n in sorted(stats.alarms_by_kind.items()):
-            alarms.add_metric([kind], n)
-        yield alarms
-        yield CounterMetricFamily(
-            "inspection_worker_duplicates",
-            "Triggers delivered again and answered once.",
-            value=stats.duplicates,
-        )
-        yield GaugeMetricFamily(
-            "inspection_worker_queue_depth", "FrameSets waiting for the worker.", value=depth()
-        )
-        yield GaugeMetricFamily(
-            "inspection_worker_queue_capacity", "FrameSets that may wait.", value=capacity
-        )
+        yield one(
+            GaugeMetricFamily(
+                "inspection_worker_queue_depth", "FrameSets waiting for the worker.",
+                labels=STATION_LABELS,
+            ),
+            depth(),
+        )  # fmt: skip
+        yield one(
+            GaugeMetricFamily(
+                "inspection_worker_queue_capacity", "FrameSets that may wait.",
+                labels=STATION_LABELS,
+            ),
+            capacity,
+        )  # fmt: skip
 
     return collect
 
 
-def executor_collector(status: Callable[[], dict[str, Any]]) -> Callable[[], Any]:
+def executor_collector(
+    status: Callable[[], dict[str, Any]], *, line: str, station: str
+) -> Callable[[], Any]:
     """The gauges of a worker's executor (``status``: its
-    :meth:`~service.worker.Worker.executor_status`)."""
+    :meth:`~service.worker.Worker.executor_status`); a Dask cluster's workers one by one."""
+    own = [line, station]
 
     def collect() -> Iterator[Metric]:
         st = status()
+        info = GaugeMetricFamily(
+            "inspection_executor_info", "What measures: 1, labelled with the executor's kind.",
+            labels=[*STATION_LABELS, "kind"],
+        )  # fmt: skip
+        info.add_metric([*own, str(st.get("kind", "unknown"))], 1)
+        yield info
         for key, help_ in (
             ("workers", "Who measures: Dask workers (1 in-process)."),
             ("threads", "Measurements the executor's workers run at once."),
             ("slots", "Measurements the worker keeps in flight at most."),
             ("in_flight", "Measurements handed out and not yet answered."),
         ):
-            yield GaugeMetricFamily(f"inspection_executor_{key}", help_, value=st.get(key, 0))
+            g = GaugeMetricFamily(f"inspection_executor_{key}", help_, labels=STATION_LABELS)
+            g.add_metric(own, st.get(key, 0))
+            yield g
+        # Always yielded, empty in-process: the series' names do not depend on the executor.
+        labels = [*STATION_LABELS, "dask_worker"]
+        threads = GaugeMetricFamily(
+            "inspection_executor_cluster_threads", "Threads of each Dask worker.", labels=labels
+        )
+        executing = GaugeMetricFamily(
+            "inspection_executor_cluster_executing", "Jobs each Dask worker runs now.",
+            labels=labels,
+        )  # fmt: skip
+        for address, w in sorted(st.get("cluster", {}).items()):
+            threads.add_metric([*own, address], w.get("threads", 0))
+            executing.add_metric([*own, address], w.get("executing", 0))
+        yield threads
+        yield executing
 
     return collect

@@ -683,13 +683,13 @@ class Worker:
         if self.metrics is not None:
             self.metrics.observe(
                 "inspection_executor_job_seconds", "Time of a measurement, by who made it.",
-                m.seconds, worker=m.where,
+                m.seconds, worker=m.where, line=self.line, station=self.station,
             )  # fmt: skip
             self.metrics.observe(
                 "inspection_executor_dispatch_seconds",
                 "Round trip of a measurement less its own time: sending, queueing, returning.",
-                max(0.0, m.round_trip_s - m.seconds),
-            )
+                max(0.0, m.round_trip_s - m.seconds), line=self.line, station=self.station,
+            )  # fmt: skip
 
     def _owed(self, seq: int, replayed: bool) -> bool:
         """Whether a journal entry is owed its result from before a stop, below the count.
@@ -775,6 +775,11 @@ class Worker:
             )  # fmt: skip
         elif r.status is Status.error:
             self.stats.errors += 1
+        # Observed before the sinks, as the counts are: whoever sees a result has its
+        # times in the histograms too, and the recording after the publication is not
+        # part of the trigger-to-result latency.
+        if self.metrics is not None and r.status is not Status.missed:
+            self._observe(r)
         for sink in self.sinks:
             try:
                 sink(outcome, fs)
@@ -783,20 +788,22 @@ class Worker:
         self._recent[r.id] = None
         if len(self._recent) > RECENT_IDS:
             self._recent.popitem(last=False)
-        if self.metrics is not None and r.status not in (Status.missed,):
-            self._observe(r)
 
     def _observe(self, r: InspectionResult) -> None:
         assert self.metrics is not None
+        # The worker's own line and station, not the result's: a FrameSet of a foreign
+        # station (answered with an error) must not make series of its own.
+        line, station = self.line, self.station
         for stage, ms in r.timings_ms.items():
             self.metrics.observe(
-                "inspection_stage_seconds", "Time of a measuring stage.", ms / 1e3, stage=stage
-            )
+                "inspection_stage_seconds", "Time of a measuring stage.", ms / 1e3,
+                stage=stage, line=line, station=station,
+            )  # fmt: skip
         latency_s = (time.time_ns() - r.triggered_ns) / 1e9
         if 0 <= latency_s < 3600:  # a trigger clock far off says nothing of the latency
             self.metrics.observe(
                 "inspection_latency_seconds", "Trigger to answered result.", latency_s,
-                buckets=LATENCY_BUCKETS_S,
+                buckets=LATENCY_BUCKETS_S, line=line, station=station,
             )  # fmt: skip
 
     def executor_status(self) -> dict[str, Any]:
@@ -918,10 +925,11 @@ class ZenohWorker:
             executor=executor,
         )
         if metrics is not None:
+            own = {"line": keys.line, "station": station}
             metrics.collector(
-                worker_collector(self.worker.stats, self.source.depth, self.source.capacity)
+                worker_collector(self.worker.stats, self.source.depth, self.source.capacity, **own)
             )
-            metrics.collector(executor_collector(self.worker.executor_status))
+            metrics.collector(executor_collector(self.worker.executor_status, **own))
         self._state = "ready"
         self.token = session.liveliness().declare_token(keys.worker_token(station, self.id))
         self.heartbeat = bus.Heartbeat(

@@ -136,13 +136,20 @@ def test_a_part_the_workers_lack_travels_with_its_first_job(small, reference, cl
 
 def test_a_worker_on_dask_answers_every_trigger_once(tmp_path, small, reference, cluster):
     """The worker dispatches to the cluster: one result per FrameSet, each journal entry
-    removed once answered, the cluster's workers and their job times in its status."""
+    removed once answered, the cluster's workers and their job times in its status and in
+    its metrics."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    from service.metrics import Metrics, executor_collector
+
     _, _, sets = small
     q = JobQueue(8)
     journal = Journal(tmp_path / "journal")
     got = Collect()
+    metrics = Metrics()
     w = Worker(cluster.pipeline, q, [got], line=LINE, station=STATION, missed_part=PART,
-               journal=journal, executor=cluster)  # fmt: skip
+               journal=journal, executor=cluster, metrics=metrics)  # fmt: skip
+    metrics.collector(executor_collector(w.executor_status, line=LINE, station=STATION))
     for fs in sets:
         payload = encode_frameset(fs)
         q.put(Job(payload, 0, journal.add(payload, fs.triggered_ns)))
@@ -160,6 +167,17 @@ def test_a_worker_on_dask_answers_every_trigger_once(tmp_path, small, reference,
     assert status["kind"] == "dask" and status["in_flight"] == 0
     assert sum(j["jobs"] for j in status["jobs"].values()) == 4
     assert set(status["jobs"]) <= set(status["cluster"])
+    families = {f.name: f for f in text_string_to_metric_families(metrics.render().decode())}
+    own = {"line": LINE, "station": STATION}
+    [info] = families["inspection_executor_info"].samples
+    assert info.labels == {**own, "kind": "dask"} and info.value == 1
+    threads = {s.labels["dask_worker"]: s.value
+               for s in families["inspection_executor_cluster_threads"].samples}  # fmt: skip
+    assert set(threads) == set(status["cluster"]) and all(n >= 1 for n in threads.values())
+    jobs = {s.labels["worker"]: s.value
+            for s in families["inspection_executor_job_seconds"].samples
+            if s.name.endswith("_count")}  # fmt: skip
+    assert sum(jobs.values()) == 4 and set(jobs) <= set(threads)
 
 
 def test_every_measurement_is_logged_on_the_cluster(cluster):
@@ -335,17 +353,19 @@ def test_the_metrics_show_who_measured_and_what_is_in_flight(quick_part, quick_s
     gate = Gated(p, slots=3)
     metrics = Metrics()
     w = Worker(p, JobQueue(4), [], line=LINE, station=STATION, executor=gate, metrics=metrics)
-    metrics.collector(executor_collector(w.executor_status))
+    metrics.collector(executor_collector(w.executor_status, line=LINE, station=STATION))
     for fs in quick_sets[:3]:
         w.handle(job(fs))
     gate.finish(0)
     gate.finish(1)
     assert w.drain(0.0) is False  # seq 2 is still being measured
     text = metrics.render().decode()
-    assert "inspection_executor_in_flight 1.0" in text
-    assert "inspection_executor_slots 3.0" in text and "inspection_executor_workers 2.0" in text
-    assert 'inspection_executor_job_seconds_count{worker="gate-0"} 1.0' in text
-    assert 'inspection_executor_job_seconds_count{worker="gate-1"} 1.0' in text
-    assert "inspection_executor_dispatch_seconds_count 2.0" in text
+    own = f'line="{LINE}",station="{STATION}"'
+    assert f"inspection_executor_in_flight{{{own}}} 1.0" in text
+    assert f"inspection_executor_slots{{{own}}} 3.0" in text
+    assert f"inspection_executor_workers{{{own}}} 2.0" in text
+    assert f'inspection_executor_job_seconds_count{{{own},worker="gate-0"}} 1.0' in text
+    assert f'inspection_executor_job_seconds_count{{{own},worker="gate-1"}} 1.0' in text
+    assert f"inspection_executor_dispatch_seconds_count{{{own}}} 2.0" in text
     gate.finish(2)
     assert w.drain(30)

@@ -222,6 +222,13 @@ def test_line_as_separate_processes(tmp_path, trees):
         assert answered == 3  # the three triggers; the warm-up is not counted
         assert families["inspection_stage_seconds"].type == "histogram"
         assert families["inspection_worker_queue_capacity"].samples[0].value == 4
+        own = {"line": LINE, "station": STATION}
+        latency = {s.name: s for s in families["inspection_latency_seconds"].samples
+                   if s.labels == own}  # fmt: skip
+        assert latency["inspection_latency_seconds_count"].value == 3
+        assert latency["inspection_latency_seconds_sum"].value > 0
+        [info] = families["inspection_executor_info"].samples
+        assert info.labels == {**own, "kind": "in-process"}
         for p in (worker, api):
             assert stop(p) == 0, p.stderr.read()[-2000:]
     finally:
