@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import http.server
+import json
 import re
 import shlex
 import subprocess
@@ -293,3 +294,14 @@ def test_docker_compose_accepts_the_file():
         timeout=60,
     )
     assert done.returncode == 0, done.stderr
+
+
+def test_the_file_is_valid_against_the_compose_specification(compose):
+    """Where no compose plugin runs, the Compose Specification's own JSON Schema
+    (tests/data/compose-spec.json, from compose-spec/compose-spec, Apache-2.0) checks it."""
+    jsonschema = pytest.importorskip("jsonschema", reason="pip install jsonschema")
+    schema = json.loads((REPO / "tests" / "data" / "compose-spec.json").read_text())
+    validator = jsonschema.Draft7Validator(schema)
+    assert [e.message for e in validator.iter_errors(compose)] == []
+    broken = {**compose, "services": {**compose["services"], "api": {"imgae": "x"}}}
+    assert any("imgae" in e.message for e in validator.iter_errors(broken))
