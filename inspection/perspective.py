@@ -159,6 +159,7 @@ class PerspectiveMap:
         *,
         corner: tuple[int, int] = (0, 0),
         max_motion_mm: float = DEFAULT_MAX_MOTION_MM,
+        faces: npt.ArrayLike | None = None,
     ) -> PerspectiveMap:
         """Draw the CAD at ``T_rig_cad`` through the given pixel rays.
 
@@ -177,6 +178,11 @@ class PerspectiveMap:
             The rectangle's first pixel in the view (bookkeeping for callers).
         max_motion_mm : float
             The validity range (see the module notes).
+        faces : (H W,) int, optional
+            The facet each pixel sees, drawn by a rasteriser (:func:`pinhole_faces`):
+            each pixel's point is then found from it by the query's plane
+            intersection and walk, and ray cast only where that fails. None:
+            every pixel is ray cast.
         """
         T = validate_transform(T_rig_cad, name="T_rig_cad")
         h, w = int(shape[0]), int(shape[1])
@@ -191,7 +197,10 @@ class PerspectiveMap:
         d = d / np.linalg.norm(d, axis=1, keepdims=True)
         T_cad_rig = np.linalg.inv(T)
         R, t = T_cad_rig[:3, :3], T_cad_rig[:3, 3]
-        face, p_cad = caster.cast(o @ R.T + t, d @ R.T)
+        if faces is None:
+            face, p_cad = caster.cast(o @ R.T + t, d @ R.T)
+        else:
+            face, p_cad = _from_faces(caster, T, o, d, np.asarray(faces, dtype=np.int64))
         R_rc = T[:3, :3]
         points = p_cad @ R_rc.T + T[:3, 3]
         seen = face >= 0
@@ -395,6 +404,83 @@ def _leaves_by(tri, f, q0, q1, q2):  # pragma: no cover - compiled
     return 2
 
 
+def _from_faces(
+    caster: RayCaster, T_rig_cad: Transform, o: Points, d: Points, hint: npt.NDArray[np.int64]
+) -> tuple[npt.NDArray[np.int64], Points]:
+    """Each ray's facet and point (CAD frame) from a rasteriser's facets: the plane met and
+    walked on as in a query without motion, ray cast where that fails."""
+    n = len(o)
+    if hint.shape != (n,) or (hint >= len(caster.faces)).any():
+        raise InvalidInput(f"faces must be ({n},) facet indices of the mesh (-1: none)")
+    out = np.full((n, 3), np.nan)
+    face = np.full(n, -1, np.int64)
+    todo = np.ones(n, np.bool_)
+    T_cad = np.ascontiguousarray(np.linalg.inv(T_rig_cad))
+    _query_planes(
+        np.arange(n, dtype=np.int64), o, d, hint, np.zeros(n, np.bool_), T_cad,
+        np.eye(4), caster.triangles, caster.normals, caster.offsets, caster.neighbours,
+        out, face, todo,
+    )  # fmt: skip
+    todo &= hint >= 0  # a facet drawn there, yet the ray leaves it: cast it exactly
+    if todo.any():
+        R, t = T_cad[:3, :3], T_cad[:3, 3]
+        face[todo], out[todo] = caster.cast(o[todo] @ R.T + t, d[todo] @ R.T)
+    return face, out
+
+
+def pinhole_faces(
+    caster: RayCaster,
+    T_rig_cad: npt.ArrayLike,
+    facets: npt.ArrayLike,
+    R_view_rig: npt.NDArray[np.float64],
+    centre: npt.NDArray[np.float64],
+    f_px: float,
+    principal: tuple[float, float],
+    corner: tuple[int, int],
+    shape: tuple[int, int],
+) -> npt.NDArray[np.int64]:
+    """The facet (of ``facets``) nearest to a pinhole view at each pixel of a rectangle, by
+    the simulator's z-buffer: the ``faces`` hint of :meth:`PerspectiveMap.build`.
+
+    Parameters
+    ----------
+    caster : RayCaster
+    T_rig_cad : (4, 4)
+        The pose the CAD is drawn at.
+    facets : (K,) int
+        The facets drawn (e.g. those near a point); others are never seen.
+    R_view_rig, centre, f_px, principal
+        The pinhole: rotation rig -> view (rows x, y, optical axis), its
+        centre (rig frame, mm), focal length and principal point (px).
+    corner, shape
+        The rectangle's first pixel (x0, y0) and (H, W).
+
+    Returns
+    -------
+    (H W,) int64
+        Facet indices of the mesh, row by row; -1 where none is drawn.
+    """
+    from ._raster import rasterize
+
+    T = validate_transform(T_rig_cad, name="T_rig_cad")
+    ids = np.asarray(facets, dtype=np.int64)
+    used, local = np.unique(caster.faces[ids], return_inverse=True)
+    v = caster.vertices[used] @ T[:3, :3].T + T[:3, 3]
+    q = (v - centre) @ np.asarray(R_view_rig).T
+    z = q[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sx = f_px * q[:, 0] / z + principal[0] - corner[0]
+        sy = f_px * q[:, 1] / z + principal[1] - corner[1]
+    h, w = shape
+    zbuf = np.full((h, w), np.inf, np.float32)
+    fbuf = np.full((h, w), -1, np.int32)
+    rasterize(sx, sy, z, local.reshape(-1, 3).astype(np.int64), zbuf, fbuf)
+    out = np.full(h * w, -1, np.int64)
+    drawn = fbuf.ravel() >= 0
+    out[drawn] = ids[fbuf.ravel()[drawn]]
+    return out
+
+
 def face_neighbours(faces: Faces) -> npt.NDArray[np.int64]:
     """(F, 3) int64: the facet across the edge opposite each vertex of each facet (-1: an
     open or non-manifold edge)."""
@@ -491,5 +577,7 @@ __all__ = [
     "PerspectiveMap",
     "RayCaster",
     "camera_rays",
+    "face_neighbours",
+    "pinhole_faces",
     "rectified_rays",
 ]

@@ -1,0 +1,109 @@
+"""Local photogrammetry at the comparison points: deviations of a dented panel, and the reasons
+a point cannot be measured."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from inspection.cadpoints import LocalModel, LocalParams, measure_points
+from inspection.defects import Dent, press
+from inspection.deviations import ComparisonPoint
+from inspection.errors import InvalidInput
+from inspection.panel import PanelSpec, sheet_metal_panel
+from inspection.rig import Rig, belt_pose
+from inspection.simulate import simulate
+
+DENT_MM = 0.5
+POSE = (30.0, -20.0, 20.0)
+
+
+@pytest.fixture(scope="module")
+def scene():  # type: ignore[no-untyped-def]
+    cad = sheet_metal_panel(PanelSpec().scaled(240.0, 160.0))
+    mesh = cad.to_trimesh()
+
+    def top(x: float, y: float, name: str, radius: float = 10.0) -> ComparisonPoint:
+        loc, _, tri = mesh.ray.intersects_location([[x, y, 500.0]], [[0.0, 0.0, -1.0]])
+        k = int(np.argmax(loc[:, 2]))
+        return ComparisonPoint(name, tuple(loc[k]), tuple(mesh.face_normals[tri[k]]), -0.2, 0.2,
+                               radius)  # fmt: skip
+
+    dent = top(0.0, 5.0, "dent")
+    flat = top(40.0, -25.0, "flat")
+    small = top(40.0, -25.0, "flat_4mm", 4.0)
+    # Beneath the panel, facing the belt: no camera sees it.
+    under = ComparisonPoint("under", (0.0, 0.0, 0.0), (0.0, 0.0, -1.0), -0.2, 0.2, 10.0)
+    dented = press(mesh, [Dent(dent.position, (0.0, 0.0, 1.0), DENT_MM, 30.0, 16.0)])
+    T_rig_part = belt_pose(*POSE)
+    frames = simulate(Rig.nominal(), dented, T_rig_part, seed=3)
+    model = LocalModel.build(cad, [dent, flat, small, under], Rig.default())
+    return model, frames, np.linalg.inv(T_rig_part)
+
+
+@pytest.fixture(scope="module")
+def measured(scene):  # type: ignore[no-untyped-def]
+    model, frames, T_cad_rig = scene
+    return {m.name: m for m in measure_points(model, frames, T_cad_rig)}
+
+
+def test_a_dent_and_the_flat_surface_are_measured(measured) -> None:  # type: ignore[no-untyped-def]
+    dent, flat = measured["dent"], measured["flat"]
+    assert dent.measurable and flat.measurable
+    assert dent.deviation_mm == pytest.approx(-DENT_MM, abs=0.04)
+    assert flat.deviation_mm == pytest.approx(0.0, abs=0.04)
+    for m in (dent, flat):
+        assert 0.0 < m.sigma_mm < 0.1
+        assert m.support >= 100
+        assert sum(k.reason is None for k in m.pairs) >= 2  # at least two pairs agree
+        assert len(m.points) == m.support == len(m.deviations)
+
+
+def test_a_smaller_support_pools_fewer_windows(measured) -> None:  # type: ignore[no-untyped-def]
+    small, flat = measured["flat_4mm"], measured["flat"]
+    assert small.measurable
+    assert small.support < flat.support / 3
+    assert small.deviation_mm == pytest.approx(0.0, abs=0.08)
+    assert small.sigma_mm > flat.sigma_mm
+
+
+def test_a_point_no_camera_sees_is_not_measurable_with_the_reason(measured) -> None:  # type: ignore[no-untyped-def]
+    under = measured["under"]
+    assert not under.measurable
+    assert math.isnan(under.deviation_mm) and under.support == 0
+    assert under.reason is not None and "no camera pair sees it well" in under.reason
+    assert all(k.reason is not None for k in under.pairs)
+
+
+def test_the_deviation_is_measured_from_the_pose(scene) -> None:  # type: ignore[no-untyped-def]
+    # The CAD placed 0.4 mm lower than the part: the surface is 0.4 mm above it.
+    model, frames, T_cad_rig = scene
+    lower = np.eye(4)
+    lower[2, 3] = 0.4
+    m = measure_points(model, frames, lower @ T_cad_rig)[1]
+    assert m.measurable
+    assert m.deviation_mm == pytest.approx(0.4, abs=0.06)
+
+
+def test_a_part_outside_the_views_is_not_measurable(scene) -> None:  # type: ignore[no-untyped-def]
+    model, frames, _ = scene
+    far = np.linalg.inv(belt_pose(2000.0, 0.0, 0.0))
+    m = measure_points(model, frames, far)[0]
+    assert not m.measurable
+    assert m.reason is not None
+
+
+def test_bad_input_is_refused(scene) -> None:  # type: ignore[no-untyped-def]
+    model, frames, T = scene
+    with pytest.raises(InvalidInput):
+        measure_points(model, [f.astype(np.float32) for f in frames], T)
+    with pytest.raises(InvalidInput):
+        measure_points(model, frames[:2], T)
+    with pytest.raises(InvalidInput):
+        measure_points(model, frames, np.zeros((4, 4)))
+    with pytest.raises(InvalidInput):
+        LocalParams(window=8)
+    with pytest.raises(InvalidInput):
+        LocalParams(max_view_deg=95.0)
