@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 from numba import njit
+from scipy.spatial import cKDTree
 
 from .arrays import Faces, Points, Transform, mesh_arrays
 from .errors import InvalidInput
@@ -79,8 +80,19 @@ class RayCaster:
         self.offsets = np.einsum("ij,ij->i", self.normals, tri[:, 0])
         self.triangles: npt.NDArray[np.float64] = np.ascontiguousarray(tri)
         self.neighbours = face_neighbours(f)
+        centres = tri.mean(axis=1)
+        self._reach = float(np.linalg.norm(tri - centres[:, None], axis=2).max()) if len(f) else 0.0
+        self._centres = cKDTree(centres)
         self._mesh = trimesh.Trimesh(v, f, process=False)
         self._intersector = self._mesh.ray
+
+    def near(self, point: npt.ArrayLike, radius_mm: float) -> npt.NDArray[np.int64]:
+        """(K,) int64, sorted: the facets with a point within ``radius_mm`` of ``point``
+        (and a few more: those whose centre lies within the radius and the largest
+        facet's reach)."""
+        idx = self._centres.query_ball_point(np.asarray(point, dtype=np.float64),
+                                             radius_mm + self._reach)  # fmt: skip
+        return np.sort(np.asarray(idx, dtype=np.int64))
 
     def cast(self, origins: Points, directions: Points) -> tuple[npt.NDArray[np.int64], Points]:
         """First hits of rays (mesh frame): facet (M,) int64, -1 for a miss, and point (M, 3),

@@ -145,16 +145,23 @@ class LocalModel:
 
     @classmethod
     def build(
-        cls, cad: object, points: Sequence[ComparisonPoint], rig: Rig | Reconstructor
+        cls,
+        cad: object,
+        points: Sequence[ComparisonPoint],
+        rig: Rig | Reconstructor,
+        *,
+        ring_pairs: bool = True,
+        caster: RayCaster | None = None,
     ) -> LocalModel:
         """The model of ``cad`` (CadModel or trimesh.Trimesh, CAD frame) with its comparison
-        ``points``, seen by ``rig`` (a Reconstructor's rectified pairs are reused, and the
-        rig's ring pairs added when it has none of them)."""
+        ``points``, seen by ``rig`` (a Reconstructor's rectified pairs are reused), through
+        the rig's stereo pairs and, with ``ring_pairs``, its ring pairs; ``caster``: the
+        CAD's ray casting when already built (it is the costly part)."""
         pts = tuple(points)
         if not all(isinstance(p, ComparisonPoint) for p in pts):
             raise InvalidInput("points must be ComparisonPoint")
         if isinstance(rig, Reconstructor):
-            pairs = list(rig.pairs + rig.guide_pairs)
+            pairs = list(rig.pairs + (rig.guide_pairs if ring_pairs else ()))
             lo, hi, the_rig = rig.volume_lo, rig.volume_hi, rig.rig
         elif isinstance(rig, Rig):
             the_rig = rig
@@ -163,19 +170,12 @@ class LocalModel:
         else:
             raise InvalidInput(f"rig must be a Rig or a Reconstructor, got {type(rig).__name__}")
         have = {frozenset((p.left, p.right)) for p in pairs}
-        for a, b in the_rig.stereo_pairs + the_rig.ring_pairs:
+        for a, b in the_rig.stereo_pairs + (the_rig.ring_pairs if ring_pairs else ()):
             if frozenset((a, b)) not in have:
                 pairs.append(rectified_pair(the_rig, a, b, lo, hi))
-        caster = RayCaster(cad)
-        centroid = caster.triangles.mean(axis=1)
-        reach = np.linalg.norm(caster.triangles - centroid[:, None], axis=2).max(axis=1)
-        facets = tuple(
-            np.flatnonzero(
-                np.linalg.norm(centroid - np.asarray(cp.position), axis=1)
-                <= cp.radius_mm + PATCH_MARGIN_MM + reach
-            )
-            for cp in pts
-        )
+        if caster is None:
+            caster = RayCaster(cad)
+        facets = tuple(caster.near(cp.position, cp.radius_mm + PATCH_MARGIN_MM) for cp in pts)
         centres = np.array([[*c.centre, 1.0] for c in the_rig.cameras])
         return cls(caster, pts, tuple(pairs), facets, centres)
 

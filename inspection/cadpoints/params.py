@@ -40,6 +40,9 @@ class LocalParams:
         The rig calibration's disparity error (1 sigma, px), for the uncertainty.
     max_motion_mm : float
         The perspective maps' validity range.
+    max_sigma_fraction : float
+        A point whose own uncertainty (3 sigma) exceeds this fraction of its
+        tolerance band is not measurable.
     """
 
     window: int = 9
@@ -54,6 +57,7 @@ class LocalParams:
     occlusion_mm: float = 1.0
     calibration_px: float = 0.02
     max_motion_mm: float = DEFAULT_MAX_MOTION_MM
+    max_sigma_fraction: float = 0.25
 
     def __post_init__(self) -> None:
         for name in ("window", "norm_window"):
@@ -70,7 +74,9 @@ class LocalParams:
             raise InvalidInput(
                 f"LocalParams.max_view_deg must lie in (0, 90), got {self.max_view_deg}"
             )
-        for name in ("converged_px", "max_shift_px", "occlusion_mm", "max_motion_mm"):
+        for name in (
+            "converged_px", "max_shift_px", "occlusion_mm", "max_motion_mm", "max_sigma_fraction"
+        ):  # fmt: skip
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise InvalidInput(f"LocalParams.{name} must be finite and > 0, got {v!r}")

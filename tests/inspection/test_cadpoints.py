@@ -10,11 +10,14 @@ import pytest
 
 from inspection.cadpoints import LocalModel, LocalParams, measure_points
 from inspection.defects import Dent, press
-from inspection.deviations import ComparisonPoint
+from inspection.deviations import ComparisonPoint, Verdict
 from inspection.errors import InvalidInput
+from inspection.measure import MeasureParams, PartModel, measure_cloud, measure_frames
 from inspection.panel import PanelSpec, sheet_metal_panel
+from inspection.reconstruct import Reconstructor
 from inspection.rig import Rig, belt_pose
 from inspection.simulate import simulate
+from inspection.surface import SurfaceParams
 
 DENT_MM = 0.5
 POSE = (30.0, -20.0, 20.0)
@@ -40,12 +43,12 @@ def scene():  # type: ignore[no-untyped-def]
     T_rig_part = belt_pose(*POSE)
     frames = simulate(Rig.nominal(), dented, T_rig_part, seed=3)
     model = LocalModel.build(cad, [dent, flat, small, under], Rig.default())
-    return model, frames, np.linalg.inv(T_rig_part)
+    return model, frames, np.linalg.inv(T_rig_part), cad
 
 
 @pytest.fixture(scope="module")
 def measured(scene):  # type: ignore[no-untyped-def]
-    model, frames, T_cad_rig = scene
+    model, frames, T_cad_rig, _ = scene
     return {m.name: m for m in measure_points(model, frames, T_cad_rig)}
 
 
@@ -79,7 +82,7 @@ def test_a_point_no_camera_sees_is_not_measurable_with_the_reason(measured) -> N
 
 def test_the_deviation_is_measured_from_the_pose(scene) -> None:  # type: ignore[no-untyped-def]
     # The CAD placed 0.4 mm lower than the part: the surface is 0.4 mm above it.
-    model, frames, T_cad_rig = scene
+    model, frames, T_cad_rig, _ = scene
     lower = np.eye(4)
     lower[2, 3] = 0.4
     m = measure_points(model, frames, lower @ T_cad_rig)[1]
@@ -88,7 +91,7 @@ def test_the_deviation_is_measured_from_the_pose(scene) -> None:  # type: ignore
 
 
 def test_a_part_outside_the_views_is_not_measurable(scene) -> None:  # type: ignore[no-untyped-def]
-    model, frames, _ = scene
+    model, frames, _, _ = scene
     far = np.linalg.inv(belt_pose(2000.0, 0.0, 0.0))
     m = measure_points(model, frames, far)[0]
     assert not m.measurable
@@ -96,7 +99,7 @@ def test_a_part_outside_the_views_is_not_measurable(scene) -> None:  # type: ign
 
 
 def test_bad_input_is_refused(scene) -> None:  # type: ignore[no-untyped-def]
-    model, frames, T = scene
+    model, frames, T, _ = scene
     with pytest.raises(InvalidInput):
         measure_points(model, [f.astype(np.float32) for f in frames], T)
     with pytest.raises(InvalidInput):
@@ -107,3 +110,38 @@ def test_bad_input_is_refused(scene) -> None:  # type: ignore[no-untyped-def]
         LocalParams(window=8)
     with pytest.raises(InvalidInput):
         LocalParams(max_view_deg=95.0)
+
+
+# --------------------------------------------------------------------------- the path
+
+
+@pytest.fixture(scope="module")
+def on_points(scene):  # type: ignore[no-untyped-def]
+    model, frames, _, cad = scene
+    # The dent out of a +-0.2 mm tolerance, the flat surface within it.
+    part = PartModel.build(cad, model.points[:2])
+    params = MeasureParams(path="comparison_points", surface=SurfaceParams(fails_part=False))
+    with Reconstructor.build(Rig.default()) as rec:
+        return measure_frames(part, rec, frames, params)
+
+
+def test_the_comparison_point_path_measures_through_the_sequence(on_points) -> None:  # type: ignore[no-untyped-def]
+    m = on_points
+    assert m.path == "comparison_points"
+    assert m.verdict is Verdict.FAIL and m.reason is not None and "dent" in m.reason
+    dent, flat = m.deviations.comparison
+    assert dent.verdict is Verdict.FAIL and flat.verdict is Verdict.PASS
+    assert dent.deviation_mm == pytest.approx(-DENT_MM, abs=0.05)
+    assert flat.deviation_mm == pytest.approx(0.0, abs=0.05)
+    assert m.deviations.defects is None  # the surface between the points was not checked
+    assert [p.name for p in m.local] == ["dent", "flat"]
+    assert {"reconstruct", "align", "points", "total"} <= set(m.timings_ms)
+    assert m.transform is not None and m.registration is not None
+
+
+def test_the_path_is_refused_where_it_cannot_judge() -> None:
+    with pytest.raises(InvalidInput, match="surface"):
+        MeasureParams(path="comparison_points")  # defects fail parts by default
+    p = MeasureParams(path="comparison_points", surface=SurfaceParams(fails_part=False))
+    with pytest.raises(InvalidInput, match="frames"):
+        measure_cloud(None, np.zeros((20, 3)), p)  # type: ignore[arg-type]
