@@ -15,11 +15,13 @@ Per part and path, on the same frames:
 - **local at the cloud's pose**: local photogrammetry at the ten points
   (``inspection.cadpoints.measure_points``) with the cloud path's final pose:
   the local measurement alone;
-- **coarse + local**: the comparison-point path on its own: a coarse pose from
-  a sparse first pass (every ``BENCH_CP_COARSE_STRIDE``-th column, default 6,
-  no warped passes, no guided pass) and the global search, then local
-  photogrammetry at that pose;
+- **comparison-point path**: the same sequence with
+  ``MeasureParams(path="comparison_points")``: a sparse first pass and the
+  global search place the part, then local photogrammetry at that pose;
 - **local at the true pose**: what the local matching errs by itself.
+
+Beside them, each path's pose against the truth: rotation (deg) and the
+displacement of the part's origin (mm).
 
 The truth at a comparison point is the same robust average of signed
 distances over the support, taken over a dense sample of the dented surface
@@ -40,7 +42,6 @@ Run: ``python -m bench.bench_cadpoints`` (or ``make bench BENCH=cadpoints``).
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import os
 import statistics
@@ -59,6 +60,7 @@ TIME_GOAL_MS = 20.0
 RMS_GOAL_MM = 0.02
 RADII_MM = (10.0, 4.0)
 AT_FIT = "local at the cloud's pose"
+PATH = "comparison-point path"
 DEPTHS = (0.3, 0.5, 1.0)
 # Ten sites on each part's top (part frame, mm); the first three are dented.
 PANEL_SITES = [
@@ -129,6 +131,12 @@ def _stats(errors: np.ndarray) -> str:
     return f"median {np.median(e):.4f} max {e.max():.4f} RMS {rms:.4f} mm{tail}"
 
 
+def pose_error(dT: np.ndarray) -> tuple[float, float]:
+    """Rotation (deg) and the displacement of the origin (mm) of ``T_fit @ T_true``."""
+    cos = (np.trace(dT[:3, :3]) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))), float(np.linalg.norm(dT[:3, 3]))
+
+
 def _p(values: list[float], q: float) -> float:
     return float(np.percentile(values, q))
 
@@ -139,13 +147,14 @@ def _timed(fn: Callable[..., Any], *args: Any, **kwargs: Any) -> tuple[Any, floa
     return out, (time.perf_counter() - w) * 1e3, (time.process_time() - c) * 1e3
 
 
-def bench_part(name, cad, sites, seeds, rig_true, rec, coarse_rec) -> dict[str, Any]:  # type: ignore[no-untyped-def]
+def bench_part(name, cad, sites, seeds, rig_true, rec) -> dict[str, Any]:  # type: ignore[no-untyped-def]
     from inspection.cadpoints import LocalModel, measure_points
     from inspection.defects import Dent, press
     from inspection.deviations import deviations
     from inspection.measure import MeasureParams, PartModel, measure_frames
     from inspection.rig import belt_pose
     from inspection.simulate import simulate
+    from inspection.surface import SurfaceParams
     from inspection.transforms import apply
 
     mesh = cad.to_trimesh()
@@ -157,7 +166,8 @@ def bench_part(name, cad, sites, seeds, rig_true, rec, coarse_rec) -> dict[str, 
     truth = {r: truths(part, dented, pts[r]) for r in RADII_MM}
     local = {r: LocalModel.build(cad, pts[r], rec) for r in RADII_MM}
     line = MeasureParams()
-    coarse = dataclasses.replace(line, guided=False)
+    on_points = MeasureParams(path="comparison_points", surface=SurfaceParams(fails_part=False))
+    poses: dict[str, list[tuple[float, float]]] = {}
     times: dict[str, list[float]] = {}
     cpu: dict[str, list[float]] = {}
     errs: dict[tuple[str, float], list[np.ndarray]] = {}
@@ -194,24 +204,26 @@ def bench_part(name, cad, sites, seeds, rig_true, rec, coarse_rec) -> dict[str, 
             for r in RADII_MM:
                 local_errors(AT_FIT, r, m.transform, frames)
                 local_errors("local at the true pose", r, np.linalg.inv(T_rig_part), frames)
-            # The comparison-point path on its own: a coarse pose, then the points.
-            mc, w_c, c_c = _timed(measure_frames, part, coarse_rec, frames, coarse)
-            if mc.transform is None:
-                print(f"  seed {seed} ({x:+.0f}, {y:+.0f}, {deg:+.0f}): coarse pose: {mc.reason}")
+            # The comparison-point path through the sequence, on the same frames.
+            mc, w_c, c_c = _timed(measure_frames, part, rec, frames, on_points)
+            lap(PATH, w_c, c_c)
+            if mc.transform is None or mc.deviations is None:
+                print(f"  seed {seed} ({x:+.0f}, {y:+.0f}, {deg:+.0f}): {PATH}: {mc.reason}")
                 continue
-            _, w_l, c_l = _timed(measure_points, local[10.0], frames, mc.transform)
-            lap("coarse + local", w_c + w_l, c_c + c_l)
-            lap("  of which the coarse pose", w_c, c_c)
-            for r in RADII_MM:
-                local_errors("coarse + local", r, mc.transform, frames)
+            errs.setdefault((PATH, 10.0), []).append(
+                np.array([cp.deviation_mm for cp in mc.deviations.comparison]) - truth[10.0]
+            )
+            local_errors(PATH, 4.0, mc.transform, frames)
+            for key, T_fit in (("cloud", m.transform), (PATH, mc.transform)):
+                poses.setdefault(key, []).append(pose_error(T_fit @ T_rig_part))
             worst = {k: float(np.nanmax(np.abs(errs[(k, 10.0)][-1])))
-                     for k in ("cloud", AT_FIT, "coarse + local")}  # fmt: skip
-            print(f"  seed {seed} ({x:+.0f}, {y:+.0f}, {deg:+.0f}): wall ms: cloud "
-                  f"{times['cloud'][-1]:5.0f}, local {times[AT_FIT][-1]:5.1f}, coarse + local "
-                  f"{w_c + w_l:5.0f}; worst error at 10 mm: cloud {worst['cloud']:.3f}, local "
-                  f"{worst[AT_FIT]:.3f}, coarse + local {worst['coarse + local']:.3f} mm",
+                     for k in ("cloud", AT_FIT, PATH)}  # fmt: skip
+            print(f"  seed {seed} ({x:+.0f}, {y:+.0f}, {deg:+.0f}): CPU ms: cloud "
+                  f"{cpu['cloud'][-1]:5.0f}, local {cpu[AT_FIT][-1]:5.1f}, path "
+                  f"{cpu[PATH][-1]:5.0f}; worst error at 10 mm: cloud {worst['cloud']:.3f}, "
+                  f"local {worst[AT_FIT]:.3f}, path {worst[PATH]:.3f} mm",
                   flush=True)  # fmt: skip
-    return {"times": times, "cpu": cpu, "errors": errs}
+    return {"times": times, "cpu": cpu, "errors": errs, "poses": poses}
 
 
 def report(name: str, out: dict[str, Any]) -> bool:
@@ -228,21 +240,26 @@ def report(name: str, out: dict[str, Any]) -> bool:
     ok = True
     for r in RADII_MM:
         cloud = np.concatenate(errs[("cloud", r)])
-        for key in ("cloud", AT_FIT, "coarse + local", "local at the true pose"):
+        for key in ("cloud", AT_FIT, PATH, "local at the true pose"):
             if (key, r) not in errs:
                 continue
             e = np.concatenate(errs[(key, r)])
             print(f"  {r:4.0f} mm support, {key:26s} {_stats(e)}")
-            if key == "coarse + local":
+            if key == PATH:
                 ae, ac = np.abs(e[np.isfinite(e)]), np.abs(cloud[np.isfinite(cloud)])
                 ok = (
                     ok
                     and ae.max() <= ac.max()
                     and np.sqrt(np.mean(ae**2)) <= np.sqrt(np.mean(ac**2))
                 )
-    if "coarse + local" in cpu:
-        ratio = base / statistics.median(cpu["coarse + local"])
-        print(f"{name}: the comparison-point path on its own is {ratio:.1f}x faster (CPU p50; "
+    for key, pe in out["poses"].items():
+        a = np.array(pe)
+        print(f"{name}: pose of the {key}: rotation median {np.median(a[:, 0]):.4f} max "
+              f"{a[:, 0].max():.4f} deg, origin median {np.median(a[:, 1]):.3f} max "
+              f"{a[:, 1].max():.3f} mm")  # fmt: skip
+    if PATH in cpu:
+        ratio = base / statistics.median(cpu[PATH])
+        print(f"{name}: the comparison-point path is {ratio:.1f}x faster (CPU p50; "
               f"goal {SPEED_GOAL:.0f}x), no less accurate at both supports: {ok}")  # fmt: skip
         ok = ok and ratio >= SPEED_GOAL
     return ok
@@ -309,14 +326,12 @@ def bench_maps() -> None:
 
 def main() -> int:
     from inspection.panel import PanelSpec, sheet_metal_panel
-    from inspection.reconstruct import Reconstructor, ReconstructParams
+    from inspection.reconstruct import Reconstructor
     from inspection.rig import Rig
 
     seeds = [int(s) for s in os.environ.get("BENCH_CP_SEEDS", "11,12").split(",") if s]
-    stride = int(os.environ.get("BENCH_CP_COARSE_STRIDE", "6"))
     rig_true = Rig.nominal()
     rec = Reconstructor.build(Rig.default())
-    coarse_rec = Reconstructor.build(Rig.default(), ReconstructParams(stride=stride, warp_passes=0))
     bench_maps()
     ok = True
     parts = (
@@ -325,7 +340,7 @@ def main() -> int:
     )
     results = []
     for name, cad, sites in parts:
-        results.append((name, bench_part(name, cad, sites, seeds, rig_true, rec, coarse_rec)))
+        results.append((name, bench_part(name, cad, sites, seeds, rig_true, rec)))
     for name, out in results:
         ok = report(name, out) and ok
     print(f"\nevery goal met: {ok}")

@@ -206,34 +206,8 @@ class PerspectiveMap:
             raise InvalidInput("pixel rays must be finite")
         if not (math.isfinite(max_motion_mm) and max_motion_mm > 0):
             raise InvalidInput(f"max_motion_mm must be finite and > 0, got {max_motion_mm!r}")
-        d = d / np.linalg.norm(d, axis=1, keepdims=True)
-        T_cad_rig = np.linalg.inv(T)
-        R, t = T_cad_rig[:3, :3], T_cad_rig[:3, 3]
-        if faces is None:
-            face, p_cad = caster.cast(o @ R.T + t, d @ R.T)
-        else:
-            face, p_cad = _from_faces(caster, T, o, d, np.asarray(faces, dtype=np.int64))
-        R_rc = T[:3, :3]
-        points = p_cad @ R_rc.T + T[:3, 3]
-        seen = face >= 0
-        normals = np.full((h * w, 3), np.nan)
-        normals[seen] = caster.normals[face[seen]] @ R_rc.T
-        offsets = np.full(h * w, np.nan)
-        offsets[seen] = np.einsum("ij,ij->i", normals[seen], points[seen])
-        # The view's angular pixel pitch and the nearest depth set the margin a
-        # motion of max_motion_mm can shift a depth step by, in pixels.
-        pitch = _pixel_pitch(d, h, w)
-        depth = np.where(seen, np.einsum("ij,ij->i", points - o, d), np.nan)
-        near = float(np.nanmin(depth)) if seen.any() else 1.0
-        margin = int(math.ceil(max_motion_mm / (pitch * near))) + 1
-        step = _depth_steps(
-            points.reshape(h, w, 3), seen.reshape(h, w), depth.reshape(h, w) * pitch
-        )
-        step = _dilate(step, margin).ravel()
-        return cls(
-            (int(corner[0]), int(corner[1])), (h, w), o, d, face, points, normals, offsets,
-            step, T, float(max_motion_mm), margin, caster,
-        )  # fmt: skip
+        d = d / _norms(d)[:, None]
+        return draw_map(caster, T, o, d, (h, w), corner, float(max_motion_mm), faces)
 
     @property
     def size(self) -> int:
@@ -298,6 +272,59 @@ class PerspectiveMap:
             face[todo] = f
             out[todo] = p @ Ti[:3, :3].T + Ti[:3, 3]
         return out, face, int(todo.sum())
+
+
+def draw_map(
+    caster: RayCaster,
+    T: Transform,
+    o: Points,
+    d: Points,
+    shape: tuple[int, int],
+    corner: tuple[int, int],
+    max_motion_mm: float,
+    faces: npt.ArrayLike | None,
+) -> PerspectiveMap:
+    """:meth:`PerspectiveMap.build` for callers inside the package, trusted: ``T`` a rigid
+    transform, ``o`` and ``d`` (H W, 3) C-contiguous float64 with unit directions."""
+    h, w = shape
+    T_cad_rig = _rigid_inverse(T)
+    R, t = T_cad_rig[:3, :3], T_cad_rig[:3, 3]
+    if faces is None:
+        face, p_cad = caster.cast(o @ R.T + t, d @ R.T)
+    else:
+        face, p_cad = _from_faces(caster, T, o, d, np.asarray(faces, dtype=np.int64))
+    R_rc = T[:3, :3]
+    points = p_cad @ R_rc.T + T[:3, 3]
+    seen = face >= 0
+    normals = np.full((h * w, 3), np.nan)
+    normals[seen] = caster.normals[face[seen]] @ R_rc.T
+    offsets = np.full(h * w, np.nan)
+    offsets[seen] = np.einsum("ij,ij->i", normals[seen], points[seen])
+    # The view's angular pixel pitch and the nearest depth set the margin a
+    # motion of max_motion_mm can shift a depth step by, in pixels.
+    pitch = _pixel_pitch(d, h, w)
+    depth = np.where(seen, np.einsum("ij,ij->i", points - o, d), np.nan)
+    near = float(depth[seen].min()) if seen.any() else 1.0
+    margin = int(math.ceil(max_motion_mm / (pitch * near))) + 1
+    step = _depth_steps(points.reshape(h, w, 3), seen.reshape(h, w), depth.reshape(h, w) * pitch)
+    step = _dilate(step, margin).ravel()
+    return PerspectiveMap(
+        (int(corner[0]), int(corner[1])), (h, w), o, d, face, points, normals, offsets,
+        step, T, max_motion_mm, margin, caster,
+    )  # fmt: skip
+
+
+def _rigid_inverse(T: Transform) -> Transform:
+    out = np.eye(4)
+    out[:3, :3] = T[:3, :3].T
+    out[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+    return out
+
+
+def _norms(v: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """Euclidean norms along the last axis (einsum: cheaper than linalg.norm on small arrays)."""
+    out: npt.NDArray[np.float64] = np.sqrt(np.einsum("...i,...i->...", v, v))
+    return out
 
 
 @njit(cache=True, nogil=True)
@@ -427,7 +454,7 @@ def _from_faces(
     out = np.full((n, 3), np.nan)
     face = np.full(n, -1, np.int64)
     todo = np.ones(n, np.bool_)
-    T_cad = np.ascontiguousarray(np.linalg.inv(T_rig_cad))
+    T_cad = np.ascontiguousarray(_rigid_inverse(T_rig_cad))
     _query_planes(
         np.arange(n, dtype=np.int64), o, d, hint, np.zeros(n, np.bool_), T_cad,
         np.eye(4), caster.triangles, caster.normals, caster.offsets, caster.neighbours,
@@ -440,10 +467,35 @@ def _from_faces(
     return face, out
 
 
+@dataclass(frozen=True, eq=False)
+class FacetSet:
+    """Some facets of a :class:`RayCaster`'s mesh, as a mesh of their own (for drawing).
+
+    Attributes
+    ----------
+    ids : (K,) int64
+        The facets.
+    vertices : (U,) int64
+        The mesh's vertices they use.
+    faces : (K, 3) int64
+        The facets, indexing ``vertices``.
+    """
+
+    ids: npt.NDArray[np.int64]
+    vertices: npt.NDArray[np.int64]
+    faces: npt.NDArray[np.int64]
+
+    @classmethod
+    def of(cls, caster: RayCaster, ids: npt.ArrayLike) -> FacetSet:
+        f = np.asarray(ids, dtype=np.int64)
+        used, local = np.unique(caster.faces[f], return_inverse=True)
+        return cls(f, used.astype(np.int64), local.reshape(-1, 3).astype(np.int64))
+
+
 def pinhole_faces(
     caster: RayCaster,
-    T_rig_cad: npt.ArrayLike,
-    facets: npt.ArrayLike,
+    T_rig_cad: Transform,
+    facets: FacetSet,
     R_view_rig: npt.NDArray[np.float64],
     centre: npt.NDArray[np.float64],
     f_px: float,
@@ -452,14 +504,15 @@ def pinhole_faces(
     shape: tuple[int, int],
 ) -> npt.NDArray[np.int64]:
     """The facet (of ``facets``) nearest to a pinhole view at each pixel of a rectangle, by
-    the simulator's z-buffer: the ``faces`` hint of :meth:`PerspectiveMap.build`.
+    the simulator's z-buffer: the ``faces`` hint of :meth:`PerspectiveMap.build`. Callers
+    are trusted (``T_rig_cad`` rigid).
 
     Parameters
     ----------
     caster : RayCaster
-    T_rig_cad : (4, 4)
+    T_rig_cad : (4, 4) float64
         The pose the CAD is drawn at.
-    facets : (K,) int
+    facets : FacetSet
         The facets drawn (e.g. those near a point); others are never seen.
     R_view_rig, centre, f_px, principal
         The pinhole: rotation rig -> view (rows x, y, optical axis), its
@@ -474,11 +527,8 @@ def pinhole_faces(
     """
     from ._raster import rasterize
 
-    T = validate_transform(T_rig_cad, name="T_rig_cad")
-    ids = np.asarray(facets, dtype=np.int64)
-    used, local = np.unique(caster.faces[ids], return_inverse=True)
-    v = caster.vertices[used] @ T[:3, :3].T + T[:3, 3]
-    q = (v - centre) @ np.asarray(R_view_rig).T
+    R = np.asarray(R_view_rig) @ T_rig_cad[:3, :3]
+    q = caster.vertices[facets.vertices] @ R.T + (R_view_rig @ (T_rig_cad[:3, 3] - centre))
     z = q[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         sx = f_px * q[:, 0] / z + principal[0] - corner[0]
@@ -486,10 +536,10 @@ def pinhole_faces(
     h, w = shape
     zbuf = np.full((h, w), np.inf, np.float32)
     fbuf = np.full((h, w), -1, np.int32)
-    rasterize(sx, sy, z, local.reshape(-1, 3).astype(np.int64), zbuf, fbuf)
+    rasterize(sx, sy, z, facets.faces, zbuf, fbuf)
     out = np.full(h * w, -1, np.int64)
     drawn = fbuf.ravel() >= 0
-    out[drawn] = ids[fbuf.ravel()[drawn]]
+    out[drawn] = facets.ids[fbuf.ravel()[drawn]]
     return out
 
 
@@ -515,13 +565,14 @@ def face_neighbours(faces: Faces) -> npt.NDArray[np.int64]:
 
 
 def _pixel_pitch(d: Points, h: int, w: int) -> float:
-    """The smallest angle between neighbouring pixels' rays (radians)."""
+    """The smallest angle between neighbouring pixels' rays (radians), along the rectangle's
+    border rows and columns (the pitch varies smoothly across a view)."""
     g = d.reshape(h, w, 3)
     pitches = []
     if w > 1:
-        pitches.append(float(np.linalg.norm(g[:, 1:] - g[:, :-1], axis=2).min()))
+        pitches += [float(_norms(g[k, 1:] - g[k, :-1]).min()) for k in (0, h - 1)]
     if h > 1:
-        pitches.append(float(np.linalg.norm(g[1:] - g[:-1], axis=2).min()))
+        pitches += [float(_norms(g[1:, k] - g[:-1, k]).min()) for k in (0, w - 1)]
     return min(pitches) if pitches else 1e-3
 
 
@@ -538,7 +589,7 @@ def _depth_steps(
         b[axis] = slice(1, None)
         sa, sb = tuple(a), tuple(b)
         with np.errstate(invalid="ignore"):
-            gap = np.linalg.norm(points[sa] - points[sb], axis=2)
+            gap = _norms(points[sa] - points[sb])
             far = gap > _STEP_FOOTPRINTS * np.fmin(footprint[sa], footprint[sb])
         edge = (seen[sa] != seen[sb]) | (seen[sa] & seen[sb] & far)
         step[sa] |= edge
@@ -579,16 +630,18 @@ def rectified_rays(
     r[:, 1] = (v.ravel() - pair.cy) / pair.f_px
     r[:, 2] = 1.0
     d = r @ pair.R_rect_rig
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    d /= _norms(d)[:, None]
     o = np.broadcast_to(pair.centre_left, d.shape).copy()
     return o, d
 
 
 __all__ = [
     "DEFAULT_MAX_MOTION_MM",
+    "FacetSet",
     "PerspectiveMap",
     "RayCaster",
     "camera_rays",
+    "draw_map",
     "face_neighbours",
     "pinhole_faces",
     "rectified_rays",

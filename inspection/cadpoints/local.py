@@ -40,7 +40,7 @@ import numpy.typing as npt
 
 from ..deviations import ComparisonPoint, robust_location
 from ..errors import InvalidInput
-from ..perspective import PerspectiveMap, RayCaster, pinhole_faces, rectified_rays
+from ..perspective import FacetSet, RayCaster, draw_map, pinhole_faces, rectified_rays
 from ..reconstruct import Reconstructor, kernels
 from ..reconstruct.matching import local_normalise, spline_rows
 from ..reconstruct.pairs import RectifiedPair, rectified_pair
@@ -130,7 +130,7 @@ class LocalModel:
     points : tuple of ComparisonPoint
     pairs : tuple of RectifiedPair
         The rig's stereo pairs, ring pairs included.
-    facets : tuple of (K,) int64
+    facets : tuple of FacetSet
         Per point, the facets near enough to be seen in its patches (the
         support and the windows' margin, :data:`PATCH_MARGIN_MM`).
     centres : (C, 4) float64, mm, rig frame
@@ -140,7 +140,7 @@ class LocalModel:
     caster: RayCaster
     points: tuple[ComparisonPoint, ...]
     pairs: tuple[RectifiedPair, ...]
-    facets: tuple[npt.NDArray[np.int64], ...] = field(repr=False)
+    facets: tuple[FacetSet, ...] = field(repr=False)
     centres: npt.NDArray[np.float64] = field(repr=False)
 
     @classmethod
@@ -175,7 +175,10 @@ class LocalModel:
                 pairs.append(rectified_pair(the_rig, a, b, lo, hi))
         if caster is None:
             caster = RayCaster(cad)
-        facets = tuple(caster.near(cp.position, cp.radius_mm + PATCH_MARGIN_MM) for cp in pts)
+        facets = tuple(
+            FacetSet.of(caster, caster.near(cp.position, cp.radius_mm + PATCH_MARGIN_MM))
+            for cp in pts
+        )
         centres = np.array([[*c.centre, 1.0] for c in the_rig.cameras])
         return cls(caster, pts, tuple(pairs), facets, centres)
 
@@ -273,7 +276,7 @@ def _one_pair(
     X: npt.NDArray[np.float64],
     n: npt.NDArray[np.float64],
     radius_mm: float,
-    facets: npt.NDArray[np.int64],
+    facets: FacetSet,
     sees: npt.NDArray[np.bool_],
     p: LocalParams,
 ) -> tuple[PairLook, npt.NDArray[np.float64], npt.NDArray[np.float64], float]:
@@ -304,14 +307,13 @@ def _one_pair(
     o, d = rectified_rays(pair, (x0, y0), (size, size))
     hint = pinhole_faces(model.caster, T_rig, facets, pair.R_rect_rig, pair.centre_left,
                          pair.f_px, (pair.cx_left, pair.cy), (x0, y0), (size, size))  # fmt: skip
-    pm = PerspectiveMap.build(model.caster, T_rig, o, d, (size, size), corner=(x0, y0),
-                              max_motion_mm=p.max_motion_mm, faces=hint)  # fmt: skip
+    pm = draw_map(model.caster, T_rig, o, d, (size, size), (x0, y0), p.max_motion_mm, hint)
     seen = pm.face >= 0
     depth = np.full(pm.size, np.nan)
     depth[seen] = (pm.points[seen] - pair.centre_left) @ pair.R_rect_rig[2]
     disp = pair.fb / depth + pair.offset_px  # NaN off the part
     field_ = disp.reshape(size, size)
-    d_lo, d_hi = float(np.nanmin(disp)), float(np.nanmax(disp))
+    d_lo, d_hi = float(disp[seen].min()), float(disp[seen].max())
     # The right view's columns those disparities reach, with the windows' margins.
     pad = hw + p.norm_window // 2 + 2 + int(math.ceil(p.max_shift_px))
     rx0 = max(int(math.floor(x0 - d_hi)) - pad, 0)
@@ -324,11 +326,12 @@ def _one_pair(
     wl = (left < SATURATION_DN - 0.5).astype(np.float32)
     wr = (right < SATURATION_DN - 0.5).astype(np.float32)
     # The windows: every stride-th pixel whose CAD point lies within the support.
-    yy, xx = np.mgrid[0:size, 0:size]
-    near = np.zeros(pm.size, bool)
-    near[seen] = np.linalg.norm(pm.points[seen] - X, axis=1) <= radius_mm
-    grid = ((xx.ravel() + x0) % p.stride == 0) & ((yy.ravel() + y0) % p.stride == 0)
-    sel = np.flatnonzero(near & grid)
+    gx = np.arange((-x0) % p.stride, size, p.stride)
+    gy = np.arange((-y0) % p.stride, size, p.stride)
+    cand = (gy[:, None] * size + gx[None, :]).ravel()
+    off = pm.points[cand] - X
+    with np.errstate(invalid="ignore"):
+        sel = cand[np.einsum("ij,ij->i", off, off) <= radius_mm * radius_mm]
     if len(sel) == 0:
         return PairLook(name, reason="no window inside the support"), *empty
     shift = float(rx0 - x0)
@@ -361,9 +364,9 @@ def _one_pair(
     dev = np.einsum("ij,ij->i", measured - pm.points[idx], pm.normals[idx])
     # The calibration's disparity error moves the depth by z^2 / (f B) per pixel,
     # seen along the normal through the ray's angle to it.
-    cos_n = float(np.median(np.abs(np.einsum("ij,ij->i", ray, pm.normals[idx]))))
+    cos_n = float(np.mean(np.abs(np.einsum("ij,ij->i", ray, pm.normals[idx]))))
     sigma_z = z * z / pair.fb * p.calibration_px
-    return look, dev, measured, (sigma_z * cos_n / float(np.median(rz))) ** 2
+    return look, dev, measured, (sigma_z * cos_n / float(np.mean(rz))) ** 2
 
 
 def _rectify(
