@@ -18,6 +18,10 @@ Per part and path, on the same frames:
 - **comparison-point path**: the same sequence with
   ``MeasureParams(path="comparison_points")``: a sparse first pass and the
   global search place the part, then local photogrammetry at that pose;
+- **image pose + local**: the targetless alignment in the images alone
+  (``inspection.cadpoints.imagepose.image_pose``: the outline fitted in the
+  four views, then local photogrammetry at sites over the part fitted to
+  the CAD), and the points measured at its pose;
 - **local at the true pose**: what the local matching errs by itself.
 
 Beside them, each path's pose against the truth: rotation (deg) and the
@@ -61,6 +65,7 @@ RMS_GOAL_MM = 0.02
 RADII_MM = (10.0, 4.0)
 AT_FIT = "local at the cloud's pose"
 PATH = "comparison-point path"
+IMAGE = "image pose + local"
 DEPTHS = (0.3, 0.5, 1.0)
 # Ten sites on each part's top (part frame, mm); the first three are dented.
 PANEL_SITES = [
@@ -149,8 +154,10 @@ def _timed(fn: Callable[..., Any], *args: Any, **kwargs: Any) -> tuple[Any, floa
 
 def bench_part(name, cad, sites, seeds, rig_true, rec) -> dict[str, Any]:  # type: ignore[no-untyped-def]
     from inspection.cadpoints import LocalModel, measure_points
+    from inspection.cadpoints.imagepose import ImagePoseModel, image_pose
     from inspection.defects import Dent, press
     from inspection.deviations import deviations
+    from inspection.errors import InvalidInput
     from inspection.measure import MeasureParams, PartModel, measure_frames
     from inspection.rig import belt_pose
     from inspection.simulate import simulate
@@ -165,6 +172,7 @@ def bench_part(name, cad, sites, seeds, rig_true, rec) -> dict[str, Any]:  # typ
     part = PartModel.build(cad, pts[10.0])
     truth = {r: truths(part, dented, pts[r]) for r in RADII_MM}
     local = {r: LocalModel.build(cad, pts[r], rec) for r in RADII_MM}
+    img_model = ImagePoseModel.build(part, rec.rig)
     line = MeasureParams()
     on_points = MeasureParams(path="comparison_points", surface=SurfaceParams(fails_part=False))
     poses: dict[str, list[tuple[float, float]]] = {}
@@ -216,6 +224,19 @@ def bench_part(name, cad, sites, seeds, rig_true, rec) -> dict[str, Any]:  # typ
             local_errors(PATH, 4.0, mc.transform, frames)
             for key, T_fit in (("cloud", m.transform), (PATH, mc.transform)):
                 poses.setdefault(key, []).append(pose_error(T_fit @ T_rig_part))
+            # The targetless alignment in the images alone (outline, then sites), and the
+            # points measured at its pose.
+            try:
+                (img, _), w_i, c_i = _timed(image_pose, img_model, frames)
+            except InvalidInput as exc:
+                print(f"  seed {seed} ({x:+.0f}, {y:+.0f}, {deg:+.0f}): image pose: {exc}")
+            else:
+                _, w_l, c_l = _timed(measure_points, local[10.0], frames, img.transform)
+                lap(IMAGE, w_i + w_l, c_i + c_l)
+                lap("  of which the image pose", w_i, c_i)
+                poses.setdefault("image pose", []).append(pose_error(img.transform @ T_rig_part))
+                for r in RADII_MM:
+                    local_errors(IMAGE, r, img.transform, frames)
             worst = {k: float(np.nanmax(np.abs(errs[(k, 10.0)][-1])))
                      for k in ("cloud", AT_FIT, PATH)}  # fmt: skip
             print(f"  seed {seed} ({x:+.0f}, {y:+.0f}, {deg:+.0f}): CPU ms: cloud "
@@ -240,7 +261,7 @@ def report(name: str, out: dict[str, Any]) -> bool:
     ok = True
     for r in RADII_MM:
         cloud = np.concatenate(errs[("cloud", r)])
-        for key in ("cloud", AT_FIT, PATH, "local at the true pose"):
+        for key in ("cloud", AT_FIT, PATH, IMAGE, "local at the true pose"):
             if (key, r) not in errs:
                 continue
             e = np.concatenate(errs[(key, r)])

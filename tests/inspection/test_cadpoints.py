@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from inspection.cadpoints import LocalModel, LocalParams, measure_points
+from inspection.cadpoints.imagepose import ImagePoseModel, image_pose, outline_pose
 from inspection.defects import Dent, press
 from inspection.deviations import ComparisonPoint, Verdict
 from inspection.errors import InvalidInput
@@ -116,10 +117,15 @@ def test_bad_input_is_refused(scene) -> None:  # type: ignore[no-untyped-def]
 
 
 @pytest.fixture(scope="module")
-def on_points(scene):  # type: ignore[no-untyped-def]
-    model, frames, _, cad = scene
+def part(scene):  # type: ignore[no-untyped-def]
+    model, _, _, cad = scene
     # The dent out of a +-0.2 mm tolerance, the flat surface within it.
-    part = PartModel.build(cad, model.points[:2])
+    return PartModel.build(cad, model.points[:2])
+
+
+@pytest.fixture(scope="module")
+def on_points(scene, part):  # type: ignore[no-untyped-def]
+    _, frames, _, _ = scene
     params = MeasureParams(path="comparison_points", surface=SurfaceParams(fails_part=False))
     with Reconstructor.build(Rig.default()) as rec:
         return measure_frames(part, rec, frames, params)
@@ -145,3 +151,35 @@ def test_the_path_is_refused_where_it_cannot_judge() -> None:
     p = MeasureParams(path="comparison_points", surface=SurfaceParams(fails_part=False))
     with pytest.raises(InvalidInput, match="frames"):
         measure_cloud(None, np.zeros((20, 3)), p)  # type: ignore[arg-type]
+
+
+# --------------------------------------------------------------------------- the image pose
+
+
+def pose_error(T_fit: np.ndarray, T_cad_rig: np.ndarray) -> tuple[float, float]:
+    dT = T_fit @ np.linalg.inv(T_cad_rig)
+    cos = (np.trace(dT[:3, :3]) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))), float(np.linalg.norm(dT[:3, 3]))
+
+
+def test_the_images_alone_place_the_part_near_its_pose(scene, part) -> None:  # type: ignore[no-untyped-def]
+    _, frames, T_cad_rig, _ = scene
+    model = ImagePoseModel.build(part, Rig.default())
+    outline = outline_pose(model, frames)
+    fit, _ = image_pose(model, frames)
+    # A near-symmetric outline leaves the turn open between its candidates, one of
+    # which is close; the sites tell them apart.
+    errors = [pose_error(T, T_cad_rig) for T in outline.candidates]
+    deg, mm = min(errors)
+    assert deg < 1.0 and mm < 8.0
+    deg_fit, mm_fit = pose_error(fit.transform, T_cad_rig)
+    assert fit.converged and fit.rms_mm < 0.2
+    assert deg_fit < 0.5 and mm_fit < 3.0
+    assert np.isfinite(fit.pose_covariance).all()
+
+
+def test_frames_without_a_part_are_refused(part) -> None:  # type: ignore[no-untyped-def]
+    model = ImagePoseModel.build(part, Rig.default())
+    dark = [np.zeros((1024, 1280), np.uint8)] * 4
+    with pytest.raises(InvalidInput):
+        outline_pose(model, dark)
