@@ -135,6 +135,8 @@ class LocalModel:
         support and the windows' margin, :data:`PATCH_MARGIN_MM`).
     centres : (C, 4) float64, mm, rig frame
         The cameras' centres (homogeneous), whose view of each point is checked.
+    shapes : tuple of (int, int)
+        Each camera's image (height, width).
     """
 
     caster: RayCaster
@@ -142,6 +144,7 @@ class LocalModel:
     pairs: tuple[RectifiedPair, ...]
     facets: tuple[FacetSet, ...] = field(repr=False)
     centres: npt.NDArray[np.float64] = field(repr=False)
+    shapes: tuple[tuple[int, int], ...] = ()
 
     @classmethod
     def build(
@@ -180,7 +183,8 @@ class LocalModel:
             for cp in pts
         )
         centres = np.array([[*c.centre, 1.0] for c in the_rig.cameras])
-        return cls(caster, pts, tuple(pairs), facets, centres)
+        shapes = tuple(c.shape for c in the_rig.cameras)
+        return cls(caster, pts, tuple(pairs), facets, centres, shapes)
 
 
 def _volume() -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
@@ -221,9 +225,14 @@ def measure_points(
     imgs = [np.asarray(f) for f in frames]
     if not all(f.ndim == 2 and f.dtype == np.uint8 for f in imgs):
         raise InvalidInput("frames must be (H, W) uint8 images")
-    needed = 1 + max(max(q.left, q.right) for q in model.pairs)
-    if len(imgs) < needed:
-        raise InvalidInput(f"{len(imgs)} frames given, the rig's pairs need {needed}")
+    needed = len(model.shapes)
+    wrong = [k for k, f in enumerate(imgs[:needed]) if f.shape != model.shapes[k]]
+    if wrong:
+        k = wrong[0]
+        raise InvalidInput(f"frame {k} is {imgs[k].shape}, the rig's camera {k} gives "
+                           f"{model.shapes[k]}")  # fmt: skip
+    if len(imgs) != needed:
+        raise InvalidInput(f"{len(imgs)} frames given, one per camera ({needed}) needed")
     # Resampled in float32, as the cloud path does, so that the windows see no second
     # quantisation; converted once per frame, not per patch.
     floats = [f.astype(np.float32) for f in imgs]

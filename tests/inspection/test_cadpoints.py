@@ -103,8 +103,10 @@ def test_bad_input_is_refused(scene) -> None:  # type: ignore[no-untyped-def]
     model, frames, T, _ = scene
     with pytest.raises(InvalidInput):
         measure_points(model, [f.astype(np.float32) for f in frames], T)
-    with pytest.raises(InvalidInput):
+    with pytest.raises(InvalidInput, match="one per camera"):
         measure_points(model, frames[:2], T)
+    with pytest.raises(InvalidInput, match="frame 0"):
+        measure_points(model, [f[::2, ::2].copy() for f in frames], T)
     with pytest.raises(InvalidInput):
         measure_points(model, frames, np.zeros((4, 4)))
     with pytest.raises(InvalidInput):
