@@ -41,7 +41,7 @@ import numpy.typing as npt
 from ..deviations import ComparisonPoint, robust_location
 from ..errors import InvalidInput
 from ..perspective import FacetSet, RayCaster, draw_map, pinhole_faces, rectified_rays
-from ..reconstruct import Reconstructor, kernels
+from ..reconstruct import Reconstructor, ReconstructParams, kernels
 from ..reconstruct.matching import local_normalise, spline_rows
 from ..reconstruct.pairs import RectifiedPair, rectified_pair
 from ..reconstruct.params import SATURATION_DN
@@ -163,15 +163,13 @@ class LocalModel:
         pts = tuple(points)
         if not all(isinstance(p, ComparisonPoint) for p in pts):
             raise InvalidInput("points must be ComparisonPoint")
-        if isinstance(rig, Reconstructor):
-            pairs = list(rig.pairs + (rig.guide_pairs if ring_pairs else ()))
-            lo, hi, the_rig = rig.volume_lo, rig.volume_hi, rig.rig
-        elif isinstance(rig, Rig):
-            the_rig = rig
-            rec_lo, rec_hi = _volume()
-            lo, hi, pairs = rec_lo, rec_hi, []
-        else:
+        if isinstance(rig, Rig):
+            with Reconstructor.build(rig, ReconstructParams(threads=1)) as rec:
+                return cls.build(cad, pts, rec, ring_pairs=ring_pairs, caster=caster)
+        if not isinstance(rig, Reconstructor):
             raise InvalidInput(f"rig must be a Rig or a Reconstructor, got {type(rig).__name__}")
+        pairs = list(rig.pairs + (rig.guide_pairs if ring_pairs else ()))
+        lo, hi, the_rig = rig.volume_lo, rig.volume_hi, rig.rig
         have = {frozenset((p.left, p.right)) for p in pairs}
         for a, b in the_rig.stereo_pairs + (the_rig.ring_pairs if ring_pairs else ()):
             if frozenset((a, b)) not in have:
@@ -185,17 +183,6 @@ class LocalModel:
         centres = np.array([[*c.centre, 1.0] for c in the_rig.cameras])
         shapes = tuple(c.shape for c in the_rig.cameras)
         return cls(caster, pts, tuple(pairs), facets, centres, shapes)
-
-
-def _volume() -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
-    from ..reconstruct import ReconstructParams
-    from ..rig import VOLUME_MM
-
-    p = ReconstructParams()
-    m = p.volume_margin_mm
-    lo = np.array([-VOLUME_MM[0] / 2 - m, -VOLUME_MM[1] / 2 - m, 0.0])
-    hi = np.array([VOLUME_MM[0] / 2 + m, VOLUME_MM[1] / 2 + m, p.z_max_mm])
-    return lo, hi
 
 
 def measure_points(
