@@ -223,16 +223,17 @@ def measure_points(
     # Resampled in float32, as the cloud path does, so that the windows see no second
     # quantisation; converted once per frame, not per patch.
     floats = [f.astype(np.float32) for f in imgs]
-    return tuple(_measure_point(model, floats, T_rig, cp, p) for cp in model.points)
+    return tuple(_measure_point(model, floats, T_rig, k, p) for k in range(len(model.points)))
 
 
 def _measure_point(
     model: LocalModel,
     frames: list[npt.NDArray[np.float32]],
     T_rig: npt.NDArray[np.float64],
-    cp: ComparisonPoint,
+    k: int,
     p: LocalParams,
 ) -> PointMeasurement:
+    cp, facets = model.points[k], model.facets[k]
     X = apply(T_rig, np.asarray([cp.position], dtype=np.float64))[0]
     n = T_rig[:3, :3] @ np.asarray(cp.normal, dtype=np.float64)
     looks: list[PairLook] = []
@@ -240,7 +241,6 @@ def _measure_point(
     pts: list[npt.NDArray[np.float64]] = []
     cal_var: list[float] = []
     sees = _cameras_see(model, T_rig, X, p.occlusion_mm)
-    facets = model.facets[model.points.index(cp)]
     for pair in model.pairs:
         look, d, x, var = _one_pair(model, frames, pair, T_rig, X, n, cp.radius_mm, facets, sees, p)
         looks.append(look)
