@@ -370,9 +370,9 @@ class Deviations:
         Statistics of the field over the points the surface measured.
     verdict : Verdict
         The part's verdict by :func:`part_verdict`.
-    defects : tuple of SurfaceDefect
+    defects : tuple of SurfaceDefect or None
         Regions of the surface out of the surface band, largest first (empty
-        without a surface model).
+        without a surface model; None: the surface was not checked).
     defects_fail : bool
         Whether the defects fail the part (the spec's ``fails_part``).
     classes : PointClasses or None
@@ -384,14 +384,14 @@ class Deviations:
     comparison: tuple[ComparisonResult, ...]
     summary: FieldSummary
     verdict: Verdict
-    defects: tuple[SurfaceDefect, ...] = ()
+    defects: tuple[SurfaceDefect, ...] | None = ()
     defects_fail: bool = True
     classes: PointClasses | None = None
 
     @property
     def failing_defects(self) -> tuple[SurfaceDefect, ...]:
         """The defects that fail the part."""
-        return self.defects if self.defects_fail else ()
+        return self.defects if self.defects_fail and self.defects is not None else ()
 
 
 def part_verdict(

@@ -180,7 +180,7 @@ def defect_results(devs: Deviations) -> list[SurfaceDefectResult]:
             nearest_point=f.nearest_point,
             points=f.points,
         )
-        for f in devs.defects
+        for f in devs.defects or ()  # None: the surface was not checked
     ]
 
 

@@ -10,7 +10,16 @@ import numpy as np
 import numpy.typing as npt
 
 from ..alignment import Alignment
-from ..deviations import ComparisonPoint, ComparisonResult, Deviations, Verdict, part_verdict
+from ..cadpoints import PointMeasurement
+from ..deviations import (
+    MEASURED_KINDS,
+    ComparisonPoint,
+    ComparisonResult,
+    Deviations,
+    FieldSummary,
+    Verdict,
+    part_verdict,
+)
 from ..registration import Registration, StopReason
 from ..registration.solver import UNRESOLVED_REL_EIG
 from .params import MeasureParams
@@ -149,7 +158,7 @@ def _held_to_the_pose(
             continue
         cp = by_name[c.name]
         sigma, weak = pose_sigma_mm(fit, cp.position, cp.normal)
-        allowed = p.uncertainty_fraction * (cp.upper_mm - cp.lower_mm)
+        allowed = p.local.max_sigma_fraction * (cp.upper_mm - cp.lower_mm)
         if 3.0 * sigma <= allowed:
             out.append(c)
             continue
@@ -195,3 +204,48 @@ def _reason(devs: Deviations, note: str | None) -> str | None:
     if note:
         parts.append(note)
     return "; ".join(parts) or None
+
+
+def judge_points(
+    points: Sequence[ComparisonPoint], measured: Sequence[PointMeasurement], p: MeasureParams
+) -> Deviations:
+    """The comparison-point path's deviations: each point's verdict from its local
+    measurement, a point whose own uncertainty (3 sigma) exceeds ``local.max_sigma_fraction``
+    of its band not measurable; the surface between the points not checked (``defects``
+    None), the field's statistics over the windows' deviations."""
+    out: list[ComparisonResult] = []
+    for cp, m in zip(points, measured, strict=True):
+        need = cp.min_support if cp.min_support is not None else p.min_support
+        allowed = p.local.max_sigma_fraction * (cp.upper_mm - cp.lower_mm)
+        if cp.kind not in MEASURED_KINDS:
+            why: str | None = f"kind {cp.kind!r} is not measured"
+        elif not m.measurable:
+            why = m.reason
+        elif m.support < need:
+            why = f"{m.support} windows matched in its support, {need} needed"
+        elif 3.0 * m.sigma_mm > allowed:
+            why = (
+                f"its matching leaves the deviation uncertain by {3 * m.sigma_mm:.4f} mm "
+                f"(3 sigma), above {p.local.max_sigma_fraction:.0%} of its tolerance band"
+            )
+        else:
+            why = None
+        if why is not None:
+            out.append(ComparisonResult(cp.name, math.nan, m.support, Verdict.NOT_MEASURABLE,
+                                        cp.lower_mm, cp.upper_mm, math.nan, why))  # fmt: skip
+            continue
+        ok = cp.lower_mm <= m.deviation_mm <= cp.upper_mm
+        out.append(ComparisonResult(cp.name, m.deviation_mm, m.support,
+                                    Verdict.PASS if ok else Verdict.FAIL, cp.lower_mm,
+                                    cp.upper_mm, m.spread_mm))  # fmt: skip
+    windows = [m.deviations for m in measured if m.measurable]
+    d = np.concatenate(windows) if windows else np.empty(0)
+    return Deviations(
+        distances=d,
+        inliers=np.ones(len(d), bool),
+        comparison=tuple(out),
+        summary=FieldSummary.of(d),
+        verdict=part_verdict(out),
+        defects=None,
+        defects_fail=False,
+    )

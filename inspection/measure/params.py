@@ -6,6 +6,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Literal
 
+from ..cadpoints import LocalParams
 from ..errors import InvalidInput
 from ..registration import RegisterParams
 from ..surface import SurfaceParams
@@ -29,9 +30,12 @@ class MeasureParams:
 
     Attributes
     ----------
-    path : {"cloud"}
-        What is measured: the whole reconstructed cloud. (The comparison
-        points' own path is refused until it exists.)
+    path : {"cloud", "comparison_points"}
+        What is measured: the whole reconstructed cloud (``cloud``), or each
+        comparison point by local photogrammetry around it alone, the part
+        placed by a sparse first pass (``comparison_points``: no guided pass,
+        no colour map, the surface between the points is not checked, so a
+        ``surface`` whose defects fail parts needs the cloud path).
     guided : bool
         Match the frames a second time with the CAD at the first fit's pose.
     use_weights : bool
@@ -62,6 +66,8 @@ class MeasureParams:
     surface : SurfaceParams
         The band the whole surface must stay in, the smallest defect, and
         whether a defect fails the part (a spec's ``[surface]``).
+    local : LocalParams
+        How the comparison-point path matches each point's windows.
     """
 
     path: Literal["cloud", "comparison_points"] = "cloud"
@@ -76,15 +82,21 @@ class MeasureParams:
     uncertainty_fraction: float = 0.1
     register: RegisterParams = field(default_factory=lambda: LINE_REGISTER)
     surface: SurfaceParams = field(default_factory=SurfaceParams)
+    local: LocalParams = field(default_factory=LocalParams)
 
     def __post_init__(self) -> None:
-        if self.path == "comparison_points":
-            raise InvalidInput(
-                "path 'comparison_points' (photogrammetry at the comparison points) is not "
-                "available yet; measure with path 'cloud'"
-            )
-        if self.path != "cloud":
+        if self.path not in ("cloud", "comparison_points"):
             raise InvalidInput(f"path must be 'cloud' or 'comparison_points', got {self.path!r}")
+        if not isinstance(self.surface, SurfaceParams):
+            raise InvalidInput(f"surface must be SurfaceParams, got {type(self.surface).__name__}")
+        if self.path == "comparison_points" and self.surface.fails_part:
+            raise InvalidInput(
+                "path 'comparison_points' does not check the surface between the points, so "
+                "its defects cannot fail a part: measure with path 'cloud', or set the "
+                "surface's fails_part to false"
+            )
+        if not isinstance(self.local, LocalParams):
+            raise InvalidInput(f"local must be LocalParams, got {type(self.local).__name__}")
         if not (isinstance(self.max_points, int) and self.max_points >= 100):
             raise InvalidInput(f"max_points must be an integer >= 100, got {self.max_points}")
         if not (isinstance(self.guide_points, int) and self.guide_points >= 100):
@@ -105,8 +117,6 @@ class MeasureParams:
             raise InvalidInput(
                 f"register must be RegisterParams, got {type(self.register).__name__}"
             )
-        if not isinstance(self.surface, SurfaceParams):
-            raise InvalidInput(f"surface must be SurfaceParams, got {type(self.surface).__name__}")
 
     def fit_params(self, frame: Frame) -> RegisterParams:
         """The fit's parameters for a cloud in ``frame``: the view direction (the

@@ -12,6 +12,7 @@ from ..cad import CadModel
 from ..deviations import ComparisonPoint, check_comparison_points, load_comparison_points
 from ..errors import InvalidInput
 from ..grid import GridTree
+from ..perspective import RayCaster
 from ..registration import CadFaces
 from ..surface import SurfaceModel
 
@@ -35,6 +36,9 @@ class PartModel:
     surface : SurfaceModel
         The CAD's surface as the defect search samples it (built from ``cad``
         when not given).
+    caster : RayCaster
+        The CAD's exact ray casting, which draws it into the views of the
+        comparison-point path (built from ``cad`` when not given).
     """
 
     cad: CadModel
@@ -43,6 +47,7 @@ class PartModel:
     comparison_points: tuple[ComparisonPoint, ...] = ()
     faces: CadFaces | None = None
     surface: SurfaceModel | None = None
+    caster: RayCaster | None = None
 
     @classmethod
     def build(
@@ -87,6 +92,8 @@ class PartModel:
             object.__setattr__(
                 self, "surface", SurfaceModel.build(cad.vertices, cad.faces, cad.face_normals)
             )
+        if self.caster is None:
+            object.__setattr__(self, "caster", RayCaster(self.cad))
 
     def save(self, directory: str | Path) -> Path:
         """Write the tree, the alignment model and the comparison points into ``directory``."""

@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..cadpoints import PointMeasurement
 from ..deviations import Deviations, Verdict
 from ..registration import Registration
 from ..transforms import apply
@@ -86,7 +87,9 @@ class Measurement:
     deviations : Deviations or None
         Per point and at the comparison points (each comparison entry as
         judged against the pose's uncertainty); its ``verdict`` is the
-        part's.
+        part's. On the comparison-point path, its ``distances`` are the
+        windows' deviations and its ``defects`` None: the surface between
+        the points was not checked.
     points : (N, 3) float64, mm
         The cloud that was measured, in ``frame`` (the last pass's).
     passes : tuple of Pass
@@ -97,6 +100,11 @@ class Measurement:
         The same stages' CPU time, ms: the whole process's, every thread (the
         reconstruction's pool included), so the sequence's own in a process
         that does nothing else.
+    path : {"cloud", "comparison_points"}
+        Which path measured the part.
+    local : tuple of PointMeasurement
+        The comparison-point path's measurement of each point (its
+        uncertainty, the pairs that saw it); empty on the cloud path.
     """
 
     verdict: Verdict | None
@@ -110,6 +118,8 @@ class Measurement:
     passes: tuple[Pass, ...] = field(default=(), repr=False)
     timings_ms: dict[str, float] = field(default_factory=dict)
     cpu_ms: dict[str, float] = field(default_factory=dict)
+    path: str = "cloud"
+    local: tuple[PointMeasurement, ...] = field(default=(), repr=False)
 
     def points_cad(self) -> np.ndarray | None:
         """``points`` mapped into the CAD frame (None without a transform)."""

@@ -20,6 +20,13 @@ the four-camera flash rig:
    along its normal, and give the part its verdict (a surface defect fails
    it when the spec says so).
 
+The comparison-point path (``path="comparison_points"``,
+:func:`_measure_at_points`) is a branch of the same sequence: step 1 as a
+sparse pass, step 2, then, instead of steps 3 and 6, local photogrammetry
+at each comparison point with the CAD at the fitted pose shaping its
+windows (:mod:`inspection.cadpoints`), and step 7; the surface between the
+points is not checked.
+
 Invalid input raises :class:`~inspection.errors.InvalidInput`; a valid
 input that cannot be measured (no surface seen, no fit) gives a
 :class:`Measurement` with ``verdict`` None and the reason.
@@ -37,13 +44,14 @@ import numpy as np
 import numpy.typing as npt
 
 from ..alignment import align
+from ..cadpoints import LocalModel, measure_points
 from ..deviations import deviations
 from ..errors import InspectionError, InvalidInput
 from ..reconstruct import Cloud, Guide, Matching, Reconstructor
 from ..registration import LOSSES, Registration, register
 from ..rig import Rig
 from ..transforms import apply
-from .judging import _fit_problem, _held_to_the_pose, _reason, fit_quality
+from .judging import _fit_problem, _held_to_the_pose, _reason, fit_quality, judge_points
 from .params import Frame, MeasureParams
 from .part import PartModel
 from .result import Measurement, Pass
@@ -99,6 +107,8 @@ def measure_frames(
 def _measure_frames(
     part: PartModel, rec: Reconstructor, frames: Sequence[npt.NDArray[np.uint8]], p: MeasureParams
 ) -> Measurement:
+    if p.path == "comparison_points":
+        return _measure_at_points(part, rec, frames, p)
     timings = _Laps()
     t_start = _mark()
 
@@ -150,6 +160,77 @@ def _measure_frames(
     )  # fmt: skip
 
 
+def _measure_at_points(
+    part: PartModel, rec: Reconstructor, frames: Sequence[npt.NDArray[np.uint8]], p: MeasureParams
+) -> Measurement:
+    """The comparison-point path: a sparse first pass places the part, and each comparison
+    point is measured by local photogrammetry around it alone."""
+    timings = _Laps()
+    t_start = _mark()
+    path = "comparison_points"
+
+    # 1. A sparse pass (the windows of every few rows): enough to place the part.
+    t = _mark()
+    cloud, _ = rec.match(frames, sparse=True)
+    _lap(timings, "reconstruct", t)
+    first = _pass("first", cloud)
+    if len(first.points) == 0:
+        return _unmeasured("empty cloud: no surface seen in the frames", timings, t_start,
+                           first, path=path)  # fmt: skip
+
+    # 2. Its global alignment and fine fit.
+    t = _mark()
+    try:
+        fit = _fit(part, first.points, first.weights, p, max_points=p.guide_points)
+    except InspectionError as exc:
+        _lap(timings, "align", t)
+        return _unmeasured(f"alignment failed: {exc}", timings, t_start, first, path=path)
+    _lap(timings, "align", t)
+    passes = (dataclasses.replace(first, fit=fit),)
+    T = np.asarray(fit.transform, dtype=np.float64)
+    quality = fit_quality(fit)
+    problem = "registration gave a non-finite transform" if not np.isfinite(T).all() else None
+    problem = problem or _fit_problem(fit, quality, p)
+    if problem is not None:
+        return dataclasses.replace(
+            _unmeasured(problem, timings, t_start, *passes, path=path),
+            transform=T, registration=fit, quality=quality,
+        )  # fmt: skip
+
+    # 3. Each comparison point, by local photogrammetry with the CAD at the pose.
+    t = _mark()
+    assert part.caster is not None
+    model = LocalModel.build(part.cad, part.comparison_points, rec, caster=part.caster)
+    local = measure_points(model, frames, T, p.local)
+    _lap(timings, "points", t)
+
+    # 4. The verdicts, held to the pose's uncertainty as well as their own.
+    devs = _held_to_the_pose(judge_points(part.comparison_points, local, p),
+                             part.comparison_points, fit, p)  # fmt: skip
+    note = None
+    if quality.ambiguous:
+        note = (
+            "pose ambiguous: another pose fits almost as well "
+            f"(score {quality.runner_up_score:.2f} of the chosen one's; a symmetric-looking part)"
+        )
+    _lap(timings, "total", t_start)
+    return Measurement(
+        verdict=devs.verdict,
+        reason=_reason(devs, note),
+        frame="rig",
+        transform=T,
+        registration=fit,
+        quality=quality,
+        deviations=devs,
+        points=first.points,
+        passes=passes,
+        timings_ms=dict(timings),
+        cpu_ms=dict(timings.cpu),
+        path=path,
+        local=local,
+    )
+
+
 def measure_cloud(
     part: PartModel,
     points: npt.ArrayLike,
@@ -183,9 +264,15 @@ def measure_cloud(
     ------
     InvalidInput
         Not an (N, 3) array of finite numbers with at least
-        :data:`MIN_POINTS` points; bad weights; an unknown frame.
+        :data:`MIN_POINTS` points; bad weights; an unknown frame; a path other
+        than ``cloud``.
     """
     p = params if params is not None else MeasureParams()
+    if p.path != "cloud":
+        raise InvalidInput(
+            f"path {p.path!r} measures a trigger's frames (measure_frames); a cloud is "
+            "measured by path 'cloud'"
+        )
     if frame not in ("rig", "cad", "data"):
         raise InvalidInput(f"frame must be 'rig', 'cad' or 'data', got {frame!r}")
     _check_part(part, frame)
@@ -429,7 +516,12 @@ def rejection_mm(fit: Registration) -> float:
 
 
 def _unmeasured(
-    reason: str, timings: _Laps, t_start: tuple[float, float], *passes: Pass, frame: Frame = "rig"
+    reason: str,
+    timings: _Laps,
+    t_start: tuple[float, float],
+    *passes: Pass,
+    frame: Frame = "rig",
+    path: str = "cloud",
 ) -> Measurement:
     _lap(timings, "total", t_start)
     log.debug("not measured: %s", reason)
@@ -441,6 +533,7 @@ def _unmeasured(
         passes=passes,
         timings_ms=dict(timings),
         cpu_ms=dict(timings.cpu),
+        path=path,
     )
 
 

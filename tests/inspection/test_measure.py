@@ -114,9 +114,7 @@ def test_subsample_is_deterministic_and_keeps_order():
     assert subsample(p, 5000) is p
 
 
-def test_the_comparison_point_path_is_refused_until_it_exists():
-    with pytest.raises(InvalidInput, match="not available yet"):
-        MeasureParams(path="comparison_points")
+def test_an_unknown_path_is_refused():
     with pytest.raises(InvalidInput, match="path"):
         MeasureParams(path="holography")  # type: ignore[arg-type]
 
