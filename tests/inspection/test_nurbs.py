@@ -1,0 +1,237 @@
+"""NURBS geometry: evaluation against the basis's definition, finite differences,
+exact conics, and the grid against point evaluation."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from inspection.errors import InvalidInput
+from inspection.nurbs import Curve, Surface, basis_flops, evaluation_flops
+
+
+def _cox_de_boor(i: int, p: int, t: float, knots: np.ndarray) -> float:
+    """N_{i,p}(t) straight from the recursive definition (0/0 taken as 0),
+    with the last non-empty span closed on the right."""
+    if p == 0:
+        lo, hi = knots[i], knots[i + 1]
+        if lo <= t < hi:
+            return 1.0
+        last = np.flatnonzero(knots[1:] > knots[:-1]).max()
+        return 1.0 if (t == hi and i == last) else 0.0
+    out = 0.0
+    if knots[i + p] > knots[i]:
+        out += (t - knots[i]) / (knots[i + p] - knots[i]) * _cox_de_boor(i, p - 1, t, knots)
+    if knots[i + p + 1] > knots[i + 1]:
+        out += (
+            (knots[i + p + 1] - t)
+            / (knots[i + p + 1] - knots[i + 1])
+            * _cox_de_boor(i + 1, p - 1, t, knots)
+        )
+    return out
+
+
+def _oracle_surface_point(s: Surface, u: float, v: float) -> np.ndarray:
+    nu, nv = s.shape
+    bu = np.array([_cox_de_boor(i, s.degree_u, u, s.knots_u) for i in range(nu)])
+    bv = np.array([_cox_de_boor(j, s.degree_v, v, s.knots_v) for j in range(nv)])
+    b = np.outer(bu, bv) * s.weights
+    return (b[..., None] * s.control_points).sum((0, 1)) / b.sum()
+
+
+def _random_surface(rng, p, q, nu, nv, clamped=True):  # type: ignore[no-untyped-def]
+    def knots(n, d):  # type: ignore[no-untyped-def]
+        if clamped:
+            inner = np.sort(rng.uniform(0.0, 1.0, n - d - 1))
+            return np.r_[np.zeros(d + 1), inner, np.ones(d + 1)]
+        return np.sort(rng.uniform(-1.0, 2.0, n + d + 1))
+
+    gx, gy = np.meshgrid(np.linspace(0, 300, nu), np.linspace(0, 200, nv), indexing="ij")
+    cp = np.stack([gx, gy, rng.normal(0, 20, gx.shape)], -1) + rng.normal(0, 5, (nu, nv, 3))
+    return Surface(p, q, knots(nu, p), knots(nv, q), cp, rng.uniform(0.4, 2.5, (nu, nv)))
+
+
+CASES = [(3, 3, 8, 7, True), (2, 3, 5, 9, True), (1, 2, 4, 4, True), (3, 2, 9, 6, False)]
+
+
+@pytest.fixture(
+    scope="module", params=CASES, ids=lambda c: f"p{c[0]}q{c[1]}-{'cl' if c[4] else 'uncl'}"
+)
+def surface(request):  # type: ignore[no-untyped-def]
+    return _random_surface(np.random.default_rng(hash(request.param) % 2**32), *request.param)
+
+
+def _params(s: Surface, n: int, rng) -> tuple[np.ndarray, np.ndarray]:  # type: ignore[no-untyped-def]
+    u = rng.uniform(*s.domain_u, n)
+    v = rng.uniform(*s.domain_v, n)
+    # The domain's corners and a knot value belong to the domain too.
+    u[:3] = [s.domain_u[0], s.domain_u[1], s.knots_u[s.degree_u + 1]]
+    v[:3] = [s.domain_v[1], s.domain_v[0], s.knots_v[s.degree_v + 1]]
+    return u, v
+
+
+def test_points_match_the_recursive_definition(surface):  # type: ignore[no-untyped-def]
+    u, v = _params(surface, 40, np.random.default_rng(1))
+    got = surface.evaluate(u, v)
+    want = np.array([_oracle_surface_point(surface, a, b) for a, b in zip(u, v, strict=True)])
+    assert np.abs(got - want).max() < 1e-9
+
+
+def test_first_derivatives_match_finite_differences(surface):  # type: ignore[no-untyped-def]
+    rng = np.random.default_rng(2)
+    h = 1e-6
+    lo_u, hi_u = surface.domain_u
+    lo_v, hi_v = surface.domain_v
+    u = rng.uniform(lo_u + 2 * h, hi_u - 2 * h, 200)
+    v = rng.uniform(lo_v + 2 * h, hi_v - 2 * h, 200)
+    # Keep the difference inside one knot span, where the surface is smooth.
+    far_u = np.min(np.abs(u[:, None] - surface.knots_u[None]), axis=1) > 2 * h
+    far_v = np.min(np.abs(v[:, None] - surface.knots_v[None]), axis=1) > 2 * h
+    u, v = u[far_u & far_v], v[far_u & far_v]
+    _, su, sv = surface.evaluate(u, v, derivatives=1)
+    fd_u = (surface.evaluate(u + h, v) - surface.evaluate(u - h, v)) / (2 * h)
+    fd_v = (surface.evaluate(u, v + h) - surface.evaluate(u, v - h)) / (2 * h)
+    scale = max(np.abs(su).max(), np.abs(sv).max())
+    assert np.abs(su - fd_u).max() < 1e-6 * scale
+    assert np.abs(sv - fd_v).max() < 1e-6 * scale
+    # The derivatives are not all zero: the comparison could fail.
+    assert scale > 1.0
+
+
+def test_grid_evaluation_equals_point_evaluation(surface):  # type: ignore[no-untyped-def]
+    rng = np.random.default_rng(3)
+    us = np.sort(rng.uniform(*surface.domain_u, 23))
+    vs = np.sort(rng.uniform(*surface.domain_v, 17))
+    us[0], vs[-1] = surface.domain_u[0], surface.domain_v[1]
+    grid = surface.evaluate_grid(us, vs, derivatives=1)
+    uu, vv = np.meshgrid(us, vs, indexing="ij")
+    point = surface.evaluate(uu.ravel(), vv.ravel(), derivatives=1)
+    for g, e in zip(grid, point, strict=True):
+        assert g.shape == (23, 17, 3)
+        assert np.abs(g.reshape(-1, 3) - e).max() < 1e-9
+    # Points alone are the same points.
+    assert np.abs(surface.evaluate_grid(us, vs) - grid[0]).max() < 1e-9
+
+
+def _circle(radius: float) -> Curve:
+    """The full circle as a rational quadratic of nine control points (NURBS Book, ex. 7.2)."""
+    r = radius
+    cp = [[r, 0, 0], [r, r, 0], [0, r, 0], [-r, r, 0], [-r, 0, 0],
+          [-r, -r, 0], [0, -r, 0], [r, -r, 0], [r, 0, 0]]  # fmt: skip
+    c = math.sqrt(0.5)
+    weights = [1, c, 1, c, 1, c, 1, c, 1]
+    knots = [0, 0, 0, 0.25, 0.25, 0.5, 0.5, 0.75, 0.75, 1, 1, 1]
+    return Curve(2, knots, cp, weights)
+
+
+def test_rational_quadratic_circle_lies_on_its_radius():
+    circle = _circle(125.0)
+    t = np.linspace(0, 1, 10_001)
+    pts, d1, d2 = circle.evaluate(t, derivatives=2)
+    assert np.abs(np.linalg.norm(pts[:, :2], axis=1) - 125.0).max() < 1e-12 * 125
+    # |C|^2 is constant: C.C' = 0 and C.C'' = -C'.C'.
+    speed2 = np.einsum("ij,ij->i", d1, d1)
+    assert np.abs(np.einsum("ij,ij->i", pts, d1)).max() < 1e-12 * 125 * np.sqrt(speed2.max())
+    assert np.abs(np.einsum("ij,ij->i", pts, d2) + speed2).max() < 1e-10 * speed2.max()
+    # Finite differences of the curve agree with its first derivative.
+    h = 1e-6
+    tt = np.array([0.1, 0.33, 0.6, 0.9])
+    fd = (circle.evaluate(tt + h) - circle.evaluate(tt - h)) / (2 * h)
+    assert np.abs(fd - circle.evaluate(tt, 1)[1]).max() < 1e-5 * np.abs(d1).max()
+
+
+def test_rational_cylinder_lies_on_its_radius_on_grids_and_points():
+    circle = _circle(80.0)
+    cp = np.stack([circle.control_points, circle.control_points + [0, 0, 250.0]], axis=1)
+    w = np.stack([circle.weights, circle.weights], axis=1)
+    cylinder = Surface(2, 1, circle.knots, [0, 0, 1, 1], cp, w)
+    grid, du, dv = cylinder.evaluate_grid(np.linspace(0, 1, 401), np.linspace(0, 1, 11), 1)
+    assert np.abs(np.linalg.norm(grid[..., :2], axis=-1) - 80.0).max() < 1e-12 * 80
+    assert np.allclose(dv, [0, 0, 250.0], atol=1e-9)
+    assert np.abs(np.einsum("ijk,ijk->ij", grid[..., :2], du[..., :2])).max() < 1e-7
+    rng = np.random.default_rng(4)
+    pts = cylinder.evaluate(rng.random(1000), rng.random(1000))
+    assert np.abs(np.linalg.norm(pts[:, :2], axis=1) - 80.0).max() < 1e-12 * 80
+
+
+def test_unclamped_knots_evaluate_on_their_domain():
+    rng = np.random.default_rng(5)
+    knots = np.arange(11.0)  # degree 3, 7 control points: domain [3, 7]
+    curve = Curve(3, knots, rng.normal(0, 10, (7, 3)), rng.uniform(0.5, 2, 7))
+    assert curve.domain == (3.0, 7.0)
+    t = np.linspace(3, 7, 9)
+    got = curve.evaluate(t)
+    for ti, g in zip(t, got, strict=True):
+        b = np.array([_cox_de_boor(i, 3, ti, curve.knots) for i in range(7)]) * curve.weights
+        assert np.abs(g - (b[:, None] * curve.control_points).sum(0) / b.sum()).max() < 1e-9
+    with pytest.raises(InvalidInput, match=r"domain \[3.0, 7.0\]"):
+        curve.evaluate([2.5])
+
+
+GOOD = dict(degree_u=2, degree_v=2, knots_u=[0, 0, 0, 1, 1, 1], knots_v=[0, 0, 0, 1, 1, 1])
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (dict(knots_u=[0, 0, 0, 1, 1]), "knots_u must have n_control"),
+        (dict(knots_u=[0, 0, 1, 0.5, 1, 1]), "non-decreasing"),
+        (dict(knots_v=[0, 0, 0, np.nan, 1, 1]), "finite"),
+        (dict(knots_u=[1, 1, 1, 1, 1, 1]), "empty parameter domain"),
+        (dict(degree_u=0), "degree_u must be an integer >= 1"),
+        (dict(degree_v=2.0), "degree_v must be an integer"),
+        (dict(degree_u=3, knots_u=[0, 0, 0, 0, 1, 1, 1]), "at least 4 control points"),
+        (dict(weights=np.zeros((3, 3))), "strictly positive"),
+        (dict(weights=np.ones((3, 2))), r"weights must have shape \(3, 3\)"),
+        (dict(control_points=np.zeros((3, 3, 2))), r"shape \(nu, nv, 3\)"),
+    ],
+)
+def test_invalid_surfaces_are_refused_clearly(change, message):  # type: ignore[no-untyped-def]
+    args = dict(GOOD, control_points=np.zeros((3, 3, 3)), weights=np.ones((3, 3))) | change
+    with pytest.raises(InvalidInput, match=message):
+        Surface(**args)
+
+
+def test_an_interior_knot_beyond_the_degree_is_refused():
+    with pytest.raises(InvalidInput, match="repeats an interior knot 3 times"):
+        Curve(2, [0, 0, 0, 0.5, 0.5, 0.5, 1, 1, 1], np.zeros((6, 3)))
+    # Repeated up to the degree is a corner, which is allowed.
+    Curve(2, [0, 0, 0, 0.5, 0.5, 1, 1, 1], np.zeros((5, 3)))
+
+
+def test_invalid_parameters_are_refused_clearly(surface):  # type: ignore[no-untyped-def]
+    lo, hi = surface.domain_u
+    with pytest.raises(InvalidInput, match="u must lie in the parameter domain"):
+        surface.evaluate([hi + 1e-9], [surface.domain_v[0]])
+    with pytest.raises(InvalidInput, match="same length"):
+        surface.evaluate([lo, hi], [surface.domain_v[0]])
+    with pytest.raises(InvalidInput, match="derivatives must be one of 0..1"):
+        surface.evaluate([lo], [surface.domain_v[0]], derivatives=2)
+    with pytest.raises(InvalidInput, match="vs must be finite"):
+        surface.evaluate_grid([lo], [np.inf])
+
+
+def test_inputs_are_copied_not_shared():
+    cp = np.zeros((3, 3, 3))
+    s = Surface(control_points=cp, weights=None, **GOOD)
+    cp[...] = 5.0
+    assert np.all(s.evaluate([0.5], [0.5]) == 0.0)
+    with pytest.raises(ValueError):
+        s.control_points[0, 0, 0] = 1.0
+
+
+def test_flop_counts_follow_the_loops():
+    # Degree 1, no derivative: left, right and one step of the recursion.
+    assert basis_flops(1, 0) == 7
+    assert basis_flops(3, 1) > basis_flops(3, 0)
+    small = evaluation_flops(3, 3, 10, 10, 12, 1)
+    large = evaluation_flops(3, 3, 100, 100, 12, 1)
+    # Point by point the work is the same for every point; on a grid the
+    # per-line share shrinks as the grid grows.
+    assert large.per_point == 100 * small.per_point
+    assert large.grid < 100 * small.grid
+    assert large.ratio > small.ratio > 1.0
+    with pytest.raises(InvalidInput):
+        evaluation_flops(3, 3, 0, 10, 12)
