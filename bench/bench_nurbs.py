@@ -1,0 +1,194 @@
+"""NURBS: grid evaluation against point-by-point evaluation and geomdl.
+
+Part 1, evaluation. A bicubic rational surface (a 600 x 400 mm crowned
+panel, 16 x 14 control points, non-uniform knots, weights 0.5-2), points and
+first derivatives on 1000 x 1000 parameters:
+
+- ``Surface.evaluate_grid`` (the basis once per grid line, the row
+  contraction once per control column);
+- ``Surface.evaluate`` on the same 10^6 parameter pairs (the same compiled
+  basis and rational kernels, every point on its own);
+- geomdl (pure Python, the peer): ``derivatives(u, v, order=1)`` per point
+  on a 100 x 100 subgrid, compared per point.
+
+Wall and CPU times are medians of interleaved rounds (so that load from
+elsewhere hits all alike); ratios are per point. The flop counts are those
+of :func:`inspection.nurbs.evaluation_flops`. The largest differences are
+those between the grid and the other two, points in mm and derivatives in
+mm per unit parameter (and relative to the derivatives' size).
+
+Exit status 1 when, and only when, an agreement check fails (points to
+1e-9 mm); speed goals are printed beside the figures, never asserted.
+
+Run: ``python -m bench nurbs`` (``make bench BENCH=nurbs``).
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import statistics  # noqa: E402
+import time  # noqa: E402
+from collections.abc import Callable  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+GRID = 1000
+SUBGRID = 100
+ROUNDS = 5
+PEER_ROUNDS = 3
+AGREEMENT_MM = 1e-9
+
+
+def _timed(fn: Callable[[], object]) -> tuple[float, float, object]:
+    """(wall s, CPU s, result) of one call."""
+    w0, c0 = time.perf_counter(), time.process_time()
+    out = fn()
+    return time.perf_counter() - w0, time.process_time() - c0, out
+
+
+def _panel_surface():  # type: ignore[no-untyped-def]
+    from inspection.nurbs import Surface
+
+    rng = np.random.default_rng(0)
+    nu, nv, p = 16, 14, 3
+
+    def knots(n: int) -> np.ndarray:
+        inner = np.sort(rng.uniform(0.05, 0.95, n - p - 1))
+        return np.r_[np.zeros(p + 1), inner, np.ones(p + 1)]
+
+    gx, gy = np.meshgrid(np.linspace(-300, 300, nu), np.linspace(-200, 200, nv), indexing="ij")
+    crown = 60.0 * (1 - (gx / 300) ** 2) * (1 - 0.5 * (gy / 200) ** 2)
+    cp = np.stack([gx, gy, crown + rng.normal(0, 4, gx.shape)], -1)
+    return Surface(p, p, knots(nu), knots(nv), cp, rng.uniform(0.5, 2.0, (nu, nv)))
+
+
+def _geomdl_surface(s):  # type: ignore[no-untyped-def]
+    from geomdl import NURBS
+
+    g = NURBS.Surface()
+    g.degree_u, g.degree_v = s.degree_u, s.degree_v
+    g.ctrlpts_size_u, g.ctrlpts_size_v = s.shape
+    w = s.weights
+    cpw = np.concatenate([s.control_points * w[..., None], w[..., None]], axis=-1)
+    g.ctrlptsw = cpw.reshape(-1, 4).tolist()
+    g.knotvector_u = s.knots_u.tolist()
+    g.knotvector_v = s.knots_v.tolist()
+    return g
+
+
+def _rel(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.abs(a - b).max() / np.abs(b).max())
+
+
+def evaluation() -> bool:
+    """Part 1; returns whether the agreement checks hold."""
+    from inspection.nurbs import evaluation_flops
+
+    s = _panel_surface()
+    us = np.linspace(*s.domain_u, GRID)
+    vs = np.linspace(*s.domain_v, GRID)
+    uu, vv = (a.ravel() for a in np.meshgrid(us, vs, indexing="ij"))
+    n = GRID * GRID
+    print(
+        f"surface: bicubic rational, {s.shape[0]} x {s.shape[1]} control points, "
+        f"{GRID} x {GRID} parameters, points + first derivatives"
+    )
+    w0 = time.perf_counter()
+    s.evaluate_grid(us[:2], vs[:2], 1)
+    s.evaluate(uu[:2], vv[:2], 1)
+    print(f"kernels ready in {time.perf_counter() - w0:.2f} s")
+
+    try:
+        geomdl_surface = _geomdl_surface(s)
+    except ImportError as exc:
+        print(f"note: geomdl peer skipped ({exc}); pip install -e '.[bench]'")
+        geomdl_surface = None
+    sub = np.linspace(0, GRID - 1, SUBGRID).astype(int)
+
+    def peer() -> np.ndarray:
+        assert geomdl_surface is not None
+        out = np.empty((3, SUBGRID, SUBGRID, 3))
+        for a, i in enumerate(sub):
+            for b, j in enumerate(sub):
+                skl = geomdl_surface.derivatives(float(us[i]), float(vs[j]), order=1)
+                out[0, a, b], out[1, a, b], out[2, a, b] = skl[0][0], skl[1][0], skl[0][1]
+        return out
+
+    times: dict[str, list[tuple[float, float]]] = {"grid": [], "point": [], "geomdl": []}
+    grid_out = point_out = peer_out = None
+    for r in range(ROUNDS):
+        wall, cpu, grid_out = _timed(lambda: s.evaluate_grid(us, vs, 1))
+        times["grid"].append((wall, cpu))
+        wall, cpu, point_out = _timed(lambda: s.evaluate(uu, vv, 1))
+        times["point"].append((wall, cpu))
+        if geomdl_surface is not None and r < PEER_ROUNDS:
+            wall, cpu, peer_out = _timed(peer)
+            times["geomdl"].append((wall, cpu))
+
+    def per_point_ns(name: str, count: int) -> tuple[float, float]:
+        wall = statistics.median(t[0] for t in times[name]) / count * 1e9
+        cpu = statistics.median(t[1] for t in times[name]) / count * 1e9
+        return wall, cpu
+
+    grid_ns = per_point_ns("grid", n)
+    print(f"{'method':34s} {'points':>9s} {'wall ms':>9s} {'CPU ms':>9s} {'ns/pt wall':>11s} "
+          f"{'ns/pt CPU':>10s} {'ratio wall':>10s} {'ratio CPU':>10s}")  # fmt: skip
+    rows = [("grid (evaluate_grid)", "grid", n), ("ours per point (evaluate)", "point", n)]
+    if times["geomdl"]:
+        rows.append((f"geomdl per point ({SUBGRID}x{SUBGRID})", "geomdl", SUBGRID * SUBGRID))
+    for label, name, count in rows:
+        w, c = per_point_ns(name, count)
+        print(
+            f"{label:34s} {count:9d} {w * count / 1e6:9.1f} {c * count / 1e6:9.1f} {w:11.1f} "
+            f"{c:10.1f} {w / grid_ns[0]:10.1f} {c / grid_ns[1]:10.1f}"
+        )
+    f = evaluation_flops(s.degree_u, s.degree_v, GRID, GRID, s.shape[1], 1)
+    print(
+        f"flops: per point {f.per_point / n:.0f}/pt ({f.per_point / 1e6:.0f} Mflop), "
+        f"grid {f.grid / n:.0f}/pt ({f.grid / 1e6:.0f} Mflop), ratio {f.ratio:.2f}; "
+        f"grid speed {f.grid / statistics.median(t[0] for t in times['grid']) / 1e9:.2f} Gflop/s"
+    )
+
+    assert grid_out is not None and point_out is not None
+    ok = True
+    g = [a.reshape(-1, 3) for a in grid_out]  # type: ignore[union-attr]
+    pts_diff = float(np.abs(g[0] - point_out[0]).max())  # type: ignore[index]
+    der_diff = max(_rel(g[k], point_out[k]) for k in (1, 2))  # type: ignore[index]
+    ok &= pts_diff <= AGREEMENT_MM
+    print(
+        f"largest difference grid vs per point: points {pts_diff:.2e} mm, "
+        f"derivatives {der_diff:.1e} relative (goal <= {AGREEMENT_MM:.0e} mm: "
+        f"{'ok' if pts_diff <= AGREEMENT_MM else 'FAILED'})"
+    )
+    if peer_out is not None:
+        gs = [a[np.ix_(sub, sub)] for a in grid_out]  # type: ignore[union-attr]
+        pts_peer = float(np.abs(gs[0] - peer_out[0]).max())
+        der_peer = max(_rel(gs[k], peer_out[k]) for k in (1, 2))
+        abs_der = max(float(np.abs(gs[k] - peer_out[k]).max()) for k in (1, 2))
+        ok &= pts_peer <= AGREEMENT_MM
+        print(
+            f"largest difference grid vs geomdl: points {pts_peer:.2e} mm, derivatives "
+            f"{abs_der:.1e} mm/param ({der_peer:.1e} relative) "
+            f"({'ok' if pts_peer <= AGREEMENT_MM else 'FAILED'})"
+        )
+    point_ratio = per_point_ns("point", n)[0] / grid_ns[0]
+    print(f"goal: grid >= 10x our per point: {point_ratio:.1f}x "
+          f"({'met' if point_ratio >= 10 else 'not met'})")  # fmt: skip
+    if times["geomdl"]:
+        peer_ratio = per_point_ns("geomdl", SUBGRID * SUBGRID)[0] / grid_ns[0]
+        print(f"goal: grid >= 50x geomdl per point: {peer_ratio:.0f}x "
+              f"({'met' if peer_ratio >= 50 else 'not met'})")  # fmt: skip
+    return ok
+
+
+def main() -> int:
+    print("--- part 1: evaluation on a parameter grid")
+    ok = evaluation()
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
