@@ -4,7 +4,7 @@
   (:meth:`Surface.evaluate`) and on regular parameter grids
   (:meth:`Surface.evaluate_grid`, the basis computed once per grid line);
   :func:`evaluation_flops` counts the arithmetic of both ways.
-- :class:`Curve`: points and derivatives up to the second.
+- :class:`Curve`: points and derivatives up to the second, foot points.
 - :func:`fit_curve`: a curve's control points and weights (degree and knots
   fixed) fitted to points by orthogonal distance.
 
@@ -16,13 +16,17 @@ compiled evaluation), :mod:`.knots` (input checks), :mod:`.surface`,
 from __future__ import annotations
 
 from .curve import Curve
+from .fit import METHODS, CurveFit, fit_curve
 from .flops import EvaluationFlops, basis_flops, evaluation_flops
 from .surface import Surface
 
 __all__ = [
+    "METHODS",
     "Curve",
+    "CurveFit",
     "EvaluationFlops",
     "Surface",
     "basis_flops",
     "evaluation_flops",
+    "fit_curve",
 ]

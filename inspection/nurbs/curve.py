@@ -66,3 +66,32 @@ class Curve:
         out = np.empty((nd + 1, ts.shape[0], 3))
         kernels.curve_points(self.degree, self.knots, self._pw, ts, nd, out)
         return tuple(out) if nd else out[0]
+
+    def project(self, points: Any, params: Any, *, iterations: int = 20) -> FloatArray:
+        """Foot-point parameters of points on the curve, by Newton's method on
+        ``(C(t) - x) . C'(t) = 0`` from the given start parameters.
+
+        Parameters
+        ----------
+        points : (n, 3) float64, mm
+        params : (n,) start parameters in ``domain`` (near the foot points)
+        iterations : Newton steps; a step that would leave the domain stops at its end
+
+        Returns
+        -------
+        (n,) float64 parameters
+        """
+        x = np.array(points, dtype=np.float64)
+        t = check_params(params, self.domain, "params").copy()
+        if x.shape != (t.shape[0], 3):
+            raise InvalidInput(f"points must have shape ({t.shape[0]}, 3), got {x.shape}")
+        for _ in range(iterations):
+            c, d1, d2 = self.evaluate(t, derivatives=2)
+            r = c - x
+            g = np.einsum("ij,ij->i", r, d1)
+            h = np.einsum("ij,ij->i", d1, d1) + np.einsum("ij,ij->i", r, d2)
+            # Away from the foot point h can turn negative; a Gauss-Newton
+            # step (|C'|^2 alone) still descends there.
+            h = np.where(h > 0, h, np.einsum("ij,ij->i", d1, d1))
+            t = np.clip(t - g / h, *self.domain)
+        return t

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from inspection.errors import InvalidInput
-from inspection.nurbs import Curve, Surface, basis_flops, evaluation_flops
+from inspection.nurbs import METHODS, Curve, Surface, basis_flops, evaluation_flops, fit_curve
 
 
 def _cox_de_boor(i: int, p: int, t: float, knots: np.ndarray) -> float:
@@ -235,3 +235,126 @@ def test_flop_counts_follow_the_loops():
     assert large.ratio > small.ratio > 1.0
     with pytest.raises(InvalidInput):
         evaluation_flops(3, 3, 0, 10, 12)
+
+
+# --- fitting curves ----------------------------------------------------------------------
+
+FIT_NOISE_MM = 0.005
+
+
+def _known_curve(seed: int) -> Curve:
+    """A rational cubic space curve of 9 control points, ~300 mm long."""
+    rng = np.random.default_rng(seed)
+    n = 9
+    s = np.linspace(0, 1, n)
+    cp = np.stack([300 * s, 40 * np.sin(3 * s) + rng.normal(0, 4, n), 20 * np.cos(2 * s)], -1)
+    knots = np.r_[np.zeros(4), np.sort(rng.uniform(0.1, 0.9, n - 4)), np.ones(4)]
+    return Curve(3, knots, cp, rng.uniform(0.6, 1.6, n))
+
+
+@pytest.fixture(scope="module")
+def noisy_samples():  # type: ignore[no-untyped-def]
+    truth = _known_curve(7)
+    rng = np.random.default_rng(8)
+    t = np.sort(rng.uniform(0, 1, 150))
+    t[0], t[-1] = 0.0, 1.0
+    return truth, truth.evaluate(t) + rng.normal(0, FIT_NOISE_MM, (150, 3))
+
+
+@pytest.fixture(scope="module")
+def fits(noisy_samples):  # type: ignore[no-untyped-def]
+    truth, x = noisy_samples
+    return {m: fit_curve(x, 3, truth.knots, method=m, max_iterations=2000) for m in METHODS}
+
+
+def _deviation_from(truth: Curve, fitted: Curve) -> np.ndarray:
+    """Distances (mm) of dense samples of the truth to the fitted curve."""
+    t = np.linspace(*truth.domain, 2000)
+    pts = truth.evaluate(t)
+    return np.linalg.norm(fitted.evaluate(fitted.project(pts, t)) - pts, axis=1)
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_a_fit_recovers_a_known_curve_from_noisy_samples(fits, noisy_samples, method):  # type: ignore[no-untyped-def]
+    truth, x = noisy_samples
+    fit = fits[method]
+    assert fit.converged, fit.stop_reason
+    # Orthogonal residuals of 3-D noise: about sqrt(2) sigma.
+    assert 0.8 * math.sqrt(2) * FIT_NOISE_MM < fit.rms_mm < 1.2 * math.sqrt(2) * FIT_NOISE_MM
+    # The curve itself is closer to the truth than the noise of its samples.
+    assert _deviation_from(truth, fit.curve).max() < 2 * FIT_NOISE_MM
+    # A start with unit weights fits far worse: the fit did the work.
+    start = fit_curve(x, 3, truth.knots, method=method, max_iterations=1)
+    assert start.rms_mm > 3 * fit.rms_mm
+    # The cost never rises.
+    assert np.all(np.diff(fit.cost_history) < 0)
+
+
+def test_all_methods_reach_the_same_minimum(fits):  # type: ignore[no-untyped-def]
+    costs = np.array([f.cost for f in fits.values()])
+    assert np.ptp(costs) < 1e-6 * costs.min()
+
+
+def test_splitting_takes_the_same_steps_as_the_normal_equations(fits):  # type: ignore[no-untyped-def]
+    a, b = fits["normal"], fits["split"]
+    k = min(len(a.cost_history), len(b.cost_history), 30)
+    assert np.allclose(a.cost_history[:k], b.cost_history[:k], rtol=1e-8, atol=0)
+
+
+def test_newton_hessian_matches_finite_differences_of_the_gradient():
+    from inspection.nurbs import fit as fitmod
+
+    rng = np.random.default_rng(9)
+    n, m = 6, 12
+    knots = np.r_[np.zeros(4), [1 / 3, 2 / 3], np.ones(4)]
+    d2 = np.diff(np.eye(n), 2, axis=0)
+    prob = fitmod._Problem(3, knots, rng.normal(0, 10, (m, 3)), 1e-3, 1e-2, d2.T @ d2)
+
+    def unpack(v):  # type: ignore[no-untyped-def]
+        return fitmod._state(prob, v[:m], v[m : m + 3 * n].reshape(3, n).T, v[m + 3 * n :], 2)
+
+    def gradient(v):  # type: ignore[no-untyped-def]
+        g_t, g_y, *_ = fitmod._gradient_and_blocks(prob, unpack(v))
+        return np.r_[g_t, g_y]
+
+    v0 = np.r_[
+        np.sort(rng.uniform(0.05, 0.95, m)), rng.normal(0, 10, 3 * n), rng.uniform(0.6, 1.6, n)
+    ]
+    s0 = unpack(v0)
+    _, _, D, B, E = fitmod._gradient_and_blocks(prob, s0)
+    fitmod._second_order(prob, s0, D, B, E)
+    H = np.block([[np.diag(D), B], [B.T, E]])
+    h = 1e-6
+    fd = np.array(
+        [(gradient(v0 + h * e) - gradient(v0 - h * e)) / (2 * h) for e in np.eye(v0.size)]
+    )
+    assert np.abs(H - fd).max() < 1e-6 * np.abs(H).max()
+
+
+def test_foot_points_are_orthogonal(noisy_samples):  # type: ignore[no-untyped-def]
+    truth, x = noisy_samples
+    t = truth.project(x, np.linspace(0, 1, len(x)))
+    c, d1 = truth.evaluate(t, derivatives=1)
+    inside = (t > 0) & (t < 1)
+    cos = np.einsum("ij,ij->i", c - x, d1)[inside] / np.linalg.norm(d1[inside], axis=1)
+    assert np.abs(cos).max() < 1e-9
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        (dict(method="lm"), "method must be one of"),
+        (dict(points=np.zeros((10, 2))), r"finite \(m, 3\)"),
+        (dict(points=np.full((20, 3), np.nan)), r"finite \(m, 3\)"),
+        (dict(points=np.zeros((5, 3))), "need at least 9 points"),
+        (dict(points=np.zeros((20, 3))), "must not all coincide"),
+        (dict(weight_penalty=0.0), "weight_penalty"),
+        (dict(max_iterations=0), "max_iterations"),
+        (dict(knots=np.r_[np.zeros(4), [0.5, 0.4], np.ones(4)]), "non-decreasing"),
+    ],
+)
+def test_invalid_fits_are_refused_clearly(noisy_samples, kwargs, message):  # type: ignore[no-untyped-def]
+    truth, x = noisy_samples
+    args = dict(points=x, degree=3, knots=truth.knots) | kwargs
+    with pytest.raises(InvalidInput, match=message):
+        fit_curve(**args)
