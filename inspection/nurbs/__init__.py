@@ -7,17 +7,23 @@
 - :class:`Curve`: points and derivatives up to the second, foot points.
 - :func:`fit_curve`: a curve's control points and weights (degree and knots
   fixed) fitted to points by orthogonal distance.
+- :func:`closest_points`: foot points on a surface, inside a :class:`Trim`
+  polygon in parameter space when given; :func:`tessellate` turns a face
+  into a CAD model for the grid tree, and :class:`ExactTree` refines the
+  tree's closest points on the exact surface.
 
 Modules: :mod:`.basis` (the B-spline basis kernels), :mod:`.kernels` (the
 compiled evaluation), :mod:`.knots` (input checks), :mod:`.surface`,
-:mod:`.curve`, :mod:`.flops`, :mod:`.fit`.
+:mod:`.curve`, :mod:`.flops`, :mod:`.fit`, :mod:`.closest`, :mod:`.model`.
 """
 
 from __future__ import annotations
 
+from .closest import SurfaceClosest, Trim, closest_points
 from .curve import Curve
 from .fit import METHODS, CurveFit, fit_curve
 from .flops import EvaluationFlops, basis_flops, evaluation_flops
+from .model import ExactTree, NurbsFace, tessellate
 from .surface import Surface
 
 __all__ = [
@@ -25,8 +31,14 @@ __all__ = [
     "Curve",
     "CurveFit",
     "EvaluationFlops",
+    "ExactTree",
+    "NurbsFace",
     "Surface",
+    "SurfaceClosest",
+    "Trim",
     "basis_flops",
+    "closest_points",
     "evaluation_flops",
     "fit_curve",
+    "tessellate",
 ]

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Literal, overload
 
 import numpy as np
 
@@ -47,6 +47,12 @@ class Curve:
         for a in (self.knots, self.control_points, self.weights, self._pw):
             a.setflags(write=False)
         self.domain = domain(self.knots, self.degree)
+
+    @overload
+    def evaluate(self, t: Any, derivatives: Literal[0] = 0) -> FloatArray: ...
+
+    @overload
+    def evaluate(self, t: Any, derivatives: Literal[1, 2]) -> tuple[FloatArray, ...]: ...
 
     def evaluate(self, t: Any, derivatives: int = 0) -> FloatArray | tuple[FloatArray, ...]:
         """Points at the parameters ``t``.

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Literal, overload
 
 import numpy as np
 
@@ -69,6 +69,14 @@ class Surface:
         """The number of control points (nu, nv)."""
         return self.control_points.shape[0], self.control_points.shape[1]
 
+    @overload
+    def evaluate(self, u: Any, v: Any, derivatives: Literal[0] = 0) -> FloatArray: ...
+
+    @overload
+    def evaluate(
+        self, u: Any, v: Any, derivatives: Literal[1]
+    ) -> tuple[FloatArray, FloatArray, FloatArray]: ...
+
     def evaluate(
         self, u: Any, v: Any, derivatives: int = 0
     ) -> FloatArray | tuple[FloatArray, FloatArray, FloatArray]:
@@ -98,6 +106,14 @@ class Surface:
             us, vs, nd, pts, d_du, d_dv,
         )  # fmt: skip
         return (pts, d_du, d_dv) if nd else pts
+
+    @overload
+    def evaluate_grid(self, us: Any, vs: Any, derivatives: Literal[0] = 0) -> FloatArray: ...
+
+    @overload
+    def evaluate_grid(
+        self, us: Any, vs: Any, derivatives: Literal[1]
+    ) -> tuple[FloatArray, FloatArray, FloatArray]: ...
 
     def evaluate_grid(
         self, us: Any, vs: Any, derivatives: int = 0

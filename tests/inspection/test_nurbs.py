@@ -358,3 +358,139 @@ def test_invalid_fits_are_refused_clearly(noisy_samples, kwargs, message):  # ty
     args = dict(points=x, degree=3, knots=truth.knots) | kwargs
     with pytest.raises(InvalidInput, match=message):
         fit_curve(**args)
+
+
+# --- closest points and the exact surface ------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def panel():  # type: ignore[no-untyped-def]
+    """A crowned 300 x 200 mm rational bicubic panel."""
+    rng = np.random.default_rng(11)
+    nu, nv = 7, 6
+    gx, gy = np.meshgrid(np.linspace(-150, 150, nu), np.linspace(-100, 100, nv), indexing="ij")
+    crown = 25.0 * (1 - (gx / 150) ** 2) * (1 - 0.5 * (gy / 100) ** 2) + rng.normal(0, 2, gx.shape)
+    knots_u = np.r_[np.zeros(4), [0.3, 0.55, 0.8], np.ones(4)]
+    knots_v = np.r_[np.zeros(4), [0.4, 0.7], np.ones(4)]
+    cp = np.stack([gx, gy, crown], -1)
+    return Surface(3, 3, knots_u, knots_v, cp, rng.uniform(0.7, 1.4, (nu, nv)))
+
+
+@pytest.fixture(scope="module")
+def dense(panel):  # type: ignore[no-untyped-def]
+    """The oracle's samples: a 700 x 700 parameter grid, and half the longest
+    diagonal of its cells (mm): every surface point is that close to a sample."""
+    us = np.linspace(0, 1, 700)
+    grid = panel.evaluate_grid(us, us)
+    diag = max(
+        np.linalg.norm(grid[1:, 1:] - grid[:-1, :-1], axis=-1).max(),
+        np.linalg.norm(grid[1:, :-1] - grid[:-1, 1:], axis=-1).max(),
+    )
+    uv = np.stack(np.meshgrid(us, us, indexing="ij"), -1).reshape(-1, 2)
+    return grid.reshape(-1, 3), uv, diag / 2
+
+
+def _near_points(surface: Surface, n: int, seed: int, lo=0.0, hi=1.0):  # type: ignore[no-untyped-def]
+    rng = np.random.default_rng(seed)
+    uv = rng.uniform(lo, hi, (n, 2))
+    s, su, sv = surface.evaluate(uv[:, 0], uv[:, 1], 1)
+    normal = np.cross(su, sv)
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    return s + rng.uniform(-3, 3, n)[:, None] * normal + rng.normal(0, 1, (n, 3))
+
+
+def _oracle(x: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Index and distance of the nearest dense sample of each point (brute force)."""
+    idx, dist = [], []
+    for q in x:
+        d = np.linalg.norm(pts - q, axis=1)
+        idx.append(int(d.argmin()))
+        dist.append(float(d.min()))
+    return np.array(idx), np.array(dist)
+
+
+def test_closest_points_against_a_dense_oracle(panel, dense):  # type: ignore[no-untyped-def]
+    from inspection.nurbs.closest import closest_points
+
+    pts, _, half_cell = dense
+    x = _near_points(panel, 40, 12, 0.05, 0.95)
+    got = closest_points(panel, x)
+    assert got.converged.all()
+    j, d_oracle = _oracle(x, pts)
+    d = np.linalg.norm(x - got.points, axis=1)
+    # Never farther than the nearest of 490,000 samples, and nearer only by
+    # what the samples' spacing allows.
+    assert np.all(d <= d_oracle + 1e-9)
+    assert np.all(d_oracle <= np.hypot(d, half_cell) + 1e-9)
+    assert np.linalg.norm(got.points - pts[j], axis=1).max() < 2 * half_cell
+    # The foot point is orthogonal and the signed distance is along the normal.
+    _, su, sv = panel.evaluate(got.params[:, 0], got.params[:, 1], 1)
+    r = x - got.points
+    assert np.abs(np.einsum("ij,ij->i", r, su)).max() < 1e-8 * np.abs(su).max()
+    assert np.abs(np.einsum("ij,ij->i", r, sv)).max() < 1e-8 * np.abs(sv).max()
+    assert np.allclose(np.abs(got.distances), d, atol=1e-9)
+
+
+def test_trimming_is_respected(panel, dense):  # type: ignore[no-untyped-def]
+    from inspection.nurbs.closest import Trim, closest_points
+
+    pts, uv, half_cell = dense
+    # A pentagon: the panel with a corner cut off and its edges pulled in.
+    trim = Trim(np.array([[0.1, 0.1], [0.9, 0.1], [0.9, 0.55], [0.55, 0.9], [0.1, 0.9]]))
+    x = _near_points(panel, 60, 13)
+    got = closest_points(panel, x, trim=trim)
+    free = closest_points(panel, x)
+    outside = ~trim.contains(free.params)
+    assert 10 < outside.sum() < 50  # some feet fall outside, some inside
+    assert np.array_equal(got.on_boundary, outside)
+    # Inside feet are the untrimmed ones; every foot lies in (or on) the polygon.
+    assert np.allclose(got.points[~outside], free.points[~outside], atol=1e-9)
+    shrunk = Trim(0.5 + (trim.polygon - 0.5) * (1 + 1e-6))
+    assert shrunk.contains(got.params).all()
+    # Against the dense samples inside the trim: never farther than the nearest.
+    inside = trim.contains(uv)
+    j, d_oracle = _oracle(x, pts[inside])
+    d = np.linalg.norm(x - got.points, axis=1)
+    assert np.all(d <= d_oracle + 1e-9)
+    # A foot on the boundary has an inside sample within a cell's diagonal.
+    assert np.all(d_oracle <= d + 2 * half_cell + 1e-9)
+
+
+def test_deviations_to_the_exact_surface_beat_the_tessellation(panel):  # type: ignore[no-untyped-def]
+    from inspection.grid import GridTree
+    from inspection.nurbs.model import ExactTree, tessellate
+
+    face = tessellate(panel, 31, 21)  # 10 mm cells: chords of tens of micrometres
+    tree = GridTree.build(face.cad, spacing_mm=2.0, band_mm=4.0)
+    rng = np.random.default_rng(14)
+    uv = rng.uniform(0.02, 0.98, (500, 2))
+    s, su, sv = panel.evaluate(uv[:, 0], uv[:, 1], 1)
+    normal = np.cross(su, sv)
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    truth = rng.uniform(-0.3, 0.3, 500)
+    x = s + truth[:, None] * normal
+    mesh_error = np.abs(tree.query(x).distances - truth)
+    exact = ExactTree(tree, face).query(x)
+    assert mesh_error.max() > 1e-3  # the chords are visible
+    assert np.abs(exact.distances - truth).max() < 1e-9
+    assert np.allclose(exact.points, s, atol=1e-8)
+
+
+def test_an_exact_tree_refuses_another_tessellation(panel):  # type: ignore[no-untyped-def]
+    from inspection.grid import GridTree
+    from inspection.nurbs.model import ExactTree, tessellate
+
+    coarse, fine = tessellate(panel, 6, 5), tessellate(panel, 7, 5)
+    with pytest.raises(InvalidInput, match="not built on this face"):
+        ExactTree(GridTree.build(coarse.cad, spacing_mm=5.0, band_mm=5.0), fine)
+
+
+def test_invalid_trims_are_refused(panel):  # type: ignore[no-untyped-def]
+    from inspection.nurbs.closest import Trim, closest_points
+
+    with pytest.raises(InvalidInput, match="leaves the parameter domain"):
+        closest_points(panel, np.zeros((1, 3)), trim=Trim(np.array([[0, 0], [1.5, 0], [0, 1.0]])))
+    with pytest.raises(InvalidInput, match=r"shape \(k >= 3, 2\)"):
+        Trim(np.zeros((2, 2)))
+    with pytest.raises(InvalidInput, match="enclose an area"):
+        Trim(np.array([[0, 0], [1, 1], [2, 2.0]]))
