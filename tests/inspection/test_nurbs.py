@@ -3,12 +3,13 @@ exact conics, and the grid against point evaluation."""
 
 from __future__ import annotations
 
+import importlib.util
 import math
 
 import numpy as np
 import pytest
 
-from inspection.errors import InvalidInput
+from inspection.errors import CadLoadError, InvalidInput
 from inspection.nurbs import METHODS, Curve, Surface, basis_flops, evaluation_flops, fit_curve
 
 
@@ -494,3 +495,76 @@ def test_invalid_trims_are_refused(panel):  # type: ignore[no-untyped-def]
         Trim(np.zeros((2, 2)))
     with pytest.raises(InvalidInput, match="enclose an area"):
         Trim(np.array([[0, 0], [1, 1], [2, 2.0]]))
+
+
+# --- reading NURBS CAD -------------------------------------------------------------------
+
+HAS_RHINO = importlib.util.find_spec("rhino3dm") is not None
+
+
+def _sample_grid(s: Surface) -> np.ndarray:
+    return s.evaluate_grid(np.linspace(*s.domain_u, 15), np.linspace(*s.domain_v, 11))
+
+
+def test_step_surfaces_round_trip(tmp_path, panel):  # type: ignore[no-untyped-def]
+    from inspection.nurbs.step import read_step_surfaces, write_step_surfaces
+
+    other = _random_surface(np.random.default_rng(21), 2, 3, 5, 6)
+    path = write_step_surfaces(tmp_path / "panel.step", [panel, other])
+    back = read_step_surfaces(path, scale=2.0)
+    assert len(back) == 2
+    for want, got in zip([panel, other], back, strict=True):
+        assert (got.degree_u, got.degree_v) == (want.degree_u, want.degree_v)
+        assert np.array_equal(got.knots_u, want.knots_u)
+        assert np.array_equal(got.weights, want.weights)
+        assert np.abs(_sample_grid(got) - 2.0 * _sample_grid(want)).max() < 1e-9
+
+
+def test_the_b_spline_face_of_a_real_step_file_lies_on_its_part(shared_cad):  # type: ignore[no-untyped-def]
+    import trimesh
+
+    from inspection.nurbs.step import read_step_surfaces
+
+    (surface,) = read_step_surfaces(shared_cad("featuretype.STEP"))
+    assert (surface.degree_u, surface.degree_v) == (3, 1)
+    stl = trimesh.load(shared_cad("featuretype.STL"))
+    pts = _sample_grid(surface).reshape(-1, 3)
+    _, dist, _ = trimesh.proximity.closest_point(stl, pts)
+    # The STL is a tessellation of the same part: within its chord error.
+    assert dist.max() < 0.01 * float(np.max(stl.extents))
+
+
+def test_bad_step_files_are_refused_clearly(tmp_path):  # type: ignore[no-untyped-def]
+    from inspection.nurbs.step import read_step_surfaces
+
+    (tmp_path / "empty.step").write_text("ISO-10303-21;\nHEADER;\nENDSEC;\n")
+    with pytest.raises(CadLoadError, match="no DATA section"):
+        read_step_surfaces(tmp_path / "empty.step")
+    with pytest.raises(CadLoadError, match="missing.step"):
+        read_step_surfaces(tmp_path / "missing.step")
+    bad = (
+        "ISO-10303-21;\nDATA;\n#1 = CARTESIAN_POINT('',(0.,0.,0.));\n"
+        "#2 = B_SPLINE_SURFACE_WITH_KNOTS('',1,1,((#1,#1),(#1,#1)),.UNSPECIFIED.,.F.,.F.,.F.,"
+        "(2,2),(2,1),(0.,1.),(0.,1.),.UNSPECIFIED.);\nENDSEC;\nEND-ISO-10303-21;\n"
+    )
+    (tmp_path / "bad.step").write_text(bad)
+    with pytest.raises(CadLoadError, match=r"#2: knots_v must have n_control"):
+        read_step_surfaces(tmp_path / "bad.step")
+
+
+@pytest.mark.skipif(not HAS_RHINO, reason="rhino3dm (extra 'step') is not installed")
+def test_3dm_surfaces_round_trip_and_agree_with_rhino(tmp_path, panel):  # type: ignore[no-untyped-def]
+    import rhino3dm
+
+    from inspection.nurbs.rhino import read_3dm_surfaces, write_3dm_surfaces
+
+    path = write_3dm_surfaces(tmp_path / "panel.3dm", [panel])
+    (back,) = read_3dm_surfaces(path)
+    assert np.abs(_sample_grid(back) - _sample_grid(panel)).max() < 1e-9
+    # Rhino's own evaluation of the surface it read agrees with ours.
+    (obj,) = rhino3dm.File3dm.Read(str(path)).Objects
+    uv = np.random.default_rng(22).random((20, 2))
+    theirs = np.array([[q.X, q.Y, q.Z] for q in (obj.Geometry.PointAt(u, v) for u, v in uv)])
+    assert np.abs(back.evaluate(uv[:, 0], uv[:, 1]) - theirs).max() < 1e-9
+    with pytest.raises(CadLoadError, match="no such file"):
+        read_3dm_surfaces(tmp_path / "missing.3dm")
