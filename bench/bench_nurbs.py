@@ -37,6 +37,13 @@ with the grid tree of each tessellation and with the same tree refined on
 the NURBS surface (``ExactTree``): the error of every point's deviation and
 of every comparison point against the truth, and the time of each.
 
+Part 4, reading NURBS CAD. The same 200 rational bicubic faces (16 x 14
+control points each, about a car door's count of faces) written as STEP
+(rational B-spline surface entities) and as Rhino 3dm; read back with our
+light STEP reader and with rhino3dm: wall and CPU time (median of 3), file
+size and the largest difference of the read surfaces, plus the shared
+featuretype.STEP when it is there.
+
 Exit status 1 when, and only when, an agreement check fails (points to
 1e-9 mm; a fit not converging, or farther from the truth in RMS than the
 noise of its samples; deviations to the exact surface off the truth by more
@@ -397,6 +404,61 @@ def deviations_to_design() -> bool:
     return ok
 
 
+READ_FACES = 200
+
+
+def reading() -> bool:
+    """Part 4; returns whether both readers give back the written surfaces."""
+    import tempfile
+    from pathlib import Path
+
+    from inspection.errors import CadLoadError
+    from inspection.nurbs import (
+        read_3dm_surfaces,
+        read_step_surfaces,
+        write_3dm_surfaces,
+        write_step_surfaces,
+    )
+
+    base = _panel_surface()
+    rng = np.random.default_rng(9)
+    faces = []
+    for _ in range(READ_FACES):
+        cp = base.control_points + rng.normal(0, 1.0, base.control_points.shape)
+        faces.append(type(base)(3, 3, base.knots_u, base.knots_v, cp, base.weights))
+    us = np.linspace(0, 1, 20)
+    want = np.stack([f.evaluate_grid(us, us) for f in faces])
+    ok = True
+    print(f"{READ_FACES} faces, rational bicubic 16 x 14")
+    print(f"{'reader':24s} {'file MB':>8s} {'wall ms':>8s} {'CPU ms':>8s} {'ms/face':>8s} "
+          f"{'max diff mm':>11s}")  # fmt: skip
+    with tempfile.TemporaryDirectory() as tmp:
+        step = write_step_surfaces(Path(tmp) / "faces.step", faces)
+        readers = [("STEP, light reader (ours)", step, read_step_surfaces)]
+        try:
+            readers.append(("3dm, rhino3dm", write_3dm_surfaces(Path(tmp) / "f.3dm", faces),
+                            read_3dm_surfaces))  # fmt: skip
+        except CadLoadError as exc:
+            print(f"note: rhino3dm skipped ({exc})")
+        for label, path, read in readers:
+            runs = [_timed(partial(read, path)) for _ in range(3)]
+            wall = statistics.median(r[0] for r in runs) * 1e3
+            cpu = statistics.median(r[1] for r in runs) * 1e3
+            got = np.stack([f.evaluate_grid(us, us) for f in runs[0][2]])  # type: ignore[attr-defined]
+            diff = float(np.abs(got - want).max())
+            ok &= diff < 1e-9
+            print(f"{label:24s} {path.stat().st_size / 1e6:8.2f} {wall:8.0f} {cpu:8.0f} "
+                  f"{wall / READ_FACES:8.2f} {diff:11.1e}")  # fmt: skip
+    shared = Path(__file__).resolve().parents[1].parent / "shared/data/cad/featuretype.STEP"
+    if shared.is_file():
+        wall, cpu, got = _timed(partial(read_step_surfaces, shared))
+        n_faces = shared.read_text(encoding="latin-1").count("ADVANCED_FACE")
+        print(f"featuretype.STEP ({shared.stat().st_size / 1e3:.0f} kB, {n_faces} faces): "
+              f"{len(got)} B-spline surface(s) in {wall * 1e3:.0f} ms wall, "  # type: ignore[arg-type]
+              f"{cpu * 1e3:.0f} ms CPU")  # fmt: skip
+    return ok
+
+
 def main() -> int:
     print("--- part 1: evaluation on a parameter grid")
     ok = evaluation()
@@ -404,6 +466,8 @@ def main() -> int:
     ok &= fitting()
     print("--- part 3: deviations to the tessellation and to the NURBS surface")
     ok &= deviations_to_design()
+    print("--- part 4: reading NURBS CAD")
+    ok &= reading()
     return 0 if ok else 1
 
 
