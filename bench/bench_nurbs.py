@@ -394,8 +394,8 @@ def deviations_to_design() -> bool:
             c_err = np.array([c.deviation_mm for c in dev.comparison]) - c_truth  # type: ignore[attr-defined]
             print(
                 f"{label:30s} {len(face.cad.faces):6d} {build_s:7.1f} {wall:8.1f} {cpu:7.1f} "
-                f"{np.abs(err).max() * 1e3:10.4f} {np.sqrt(np.mean(err**2)) * 1e3:10.4f} "
-                f"{err.mean() * 1e3:8.4f} {np.abs(c_err).max() * 1e3:13.4f}"
+                f"{np.abs(err).max() * 1e3:10.3g} {np.sqrt(np.mean(err**2)) * 1e3:10.3g} "
+                f"{err.mean() * 1e3:8.2g} {np.abs(c_err).max() * 1e3:13.3g}"
             )
             if isinstance(query, ExactTree):
                 ok &= bool(np.abs(err).max() < 1e-6)
