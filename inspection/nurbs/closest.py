@@ -29,6 +29,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..errors import InvalidInput
+from . import kernels
 from .knots import FloatArray
 from .surface import Surface
 
@@ -151,7 +152,7 @@ def closest_points(
     lo = np.array([surface.domain_u[0], surface.domain_v[0]])
     hi = np.array([surface.domain_u[1], surface.domain_v[1]])
     uv = np.clip(uv, lo, hi)
-    uv, converged = _gauss_newton(surface, x, uv, lo, hi)
+    uv, converged, (s, su, sv) = _gauss_newton(surface, x, uv, lo, hi)
     on_boundary = np.zeros(x.shape[0], dtype=bool)
     if trim is not None:
         outside = ~trim.contains(uv)
@@ -159,7 +160,9 @@ def closest_points(
             uv[outside] = _closest_on_boundary(surface, trim, x[outside])
             on_boundary[outside] = True
             converged[outside] = True
-    s, su, sv = surface.evaluate(uv[:, 0], uv[:, 1], derivatives=1)
+            s[outside], su[outside], sv[outside] = surface.evaluate(
+                uv[outside, 0], uv[outside, 1], derivatives=1
+            )
     n = np.cross(su, sv)
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     d = x - s
@@ -172,34 +175,19 @@ def closest_points(
 
 def _gauss_newton(
     surface: Surface, x: FloatArray, uv: FloatArray, lo: FloatArray, hi: FloatArray
-) -> tuple[FloatArray, np.ndarray]:
-    uv = uv.copy()
-    active = np.arange(x.shape[0])
-    converged = np.zeros(x.shape[0], dtype=bool)
-    for _ in range(_MAX_STEPS):
-        if active.size == 0:
-            break
-        s, su, sv = surface.evaluate(uv[active, 0], uv[active, 1], derivatives=1)
-        r = s - x[active]
-        a11 = np.einsum("ij,ij->i", su, su)
-        a12 = np.einsum("ij,ij->i", su, sv)
-        a22 = np.einsum("ij,ij->i", sv, sv)
-        b1 = -np.einsum("ij,ij->i", su, r)
-        b2 = -np.einsum("ij,ij->i", sv, r)
-        det = a11 * a22 - a12 * a12
-        # A degenerate point (a collapsed edge) takes a gradient step instead.
-        ok = det > 1e-12 * (a11 * a22 + 1e-300)
-        safe = np.where(ok, det, 1.0)
-        du = np.where(ok, (a22 * b1 - a12 * b2) / safe, b1 / np.maximum(a11, 1e-300))
-        dv = np.where(ok, (a11 * b2 - a12 * b1) / safe, b2 / np.maximum(a22, 1e-300))
-        new = np.clip(uv[active] + np.stack([du, dv], axis=1), lo, hi)
-        step = new - uv[active]
-        moved = np.linalg.norm(su * step[:, :1] + sv * step[:, 1:], axis=1)
-        uv[active] = new
-        done = moved < _STEP_TOL_MM
-        converged[active[done]] = True
-        active = active[~done]
-    return uv, converged
+) -> tuple[FloatArray, np.ndarray, tuple[FloatArray, FloatArray, FloatArray]]:
+    """Foot parameters, whether each converged, and the surface's point and
+    first derivatives there."""
+    uv = np.ascontiguousarray(uv, dtype=np.float64).copy()
+    n = x.shape[0]
+    converged = np.zeros(n, dtype=np.bool_)
+    pts, d_du, d_dv = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3))
+    kernels.closest_gauss_newton(
+        surface.degree_u, surface.degree_v, surface.knots_u, surface.knots_v,
+        surface.homogeneous, np.ascontiguousarray(x), uv, lo[0], hi[0], lo[1], hi[1],
+        _STEP_TOL_MM, _MAX_STEPS, converged, pts, d_du, d_dv,
+    )  # fmt: skip
+    return uv, converged, (pts, d_du, d_dv)
 
 
 def _closest_on_boundary(surface: Surface, trim: Trim, x: FloatArray) -> FloatArray:

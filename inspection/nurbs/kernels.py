@@ -53,12 +53,64 @@ def _rational_derivative(b0, b1, b2, bw, x, y, z, inv, out, i):  # pragma: no co
     out[i, 2] = (b2 - bw * z) * inv
 
 
+@njit(cache=True, nogil=True, fastmath=True, inline="always")
+def _surface_point(
+    p, q, knots_u, knots_v, pw, u, v, nd, ndu_u, left_u, right_u, a_u, bu,
+    ndu_v, left_v, right_v, a_v, bv, pts, d_du, d_dv, i,
+):  # pragma: no cover  # fmt: skip
+    """Row ``i`` of the outputs: the point (and first derivatives) at (u, v)."""
+    su = find_span(pw.shape[0] - 1, p, u, knots_u)
+    ders_basis(su, u, p, knots_u, nd, ndu_u, left_u, right_u, a_u, bu)
+    sv = find_span(pw.shape[1] - 1, q, v, knots_v)
+    ders_basis(sv, v, q, knots_v, nd, ndu_v, left_v, right_v, a_v, bv)
+    c0 = c1 = c2 = c3 = 0.0
+    u0 = u1 = u2 = u3 = 0.0
+    v0 = v1 = v2 = v3 = 0.0
+    for k in range(p + 1):
+        # A4.3: the row's contraction over l first, then its share of
+        # the sum over k (and of the u-derivative with N'_k).
+        t0 = t1 = t2 = t3 = 0.0
+        s0 = s1 = s2 = s3 = 0.0
+        row = su - p + k
+        for l in range(q + 1):
+            c = sv - q + l
+            b = bv[0, l]
+            t0 += b * pw[row, c, 0]
+            t1 += b * pw[row, c, 1]
+            t2 += b * pw[row, c, 2]
+            t3 += b * pw[row, c, 3]
+            if nd:
+                b = bv[1, l]
+                s0 += b * pw[row, c, 0]
+                s1 += b * pw[row, c, 1]
+                s2 += b * pw[row, c, 2]
+                s3 += b * pw[row, c, 3]
+        b = bu[0, k]
+        c0 += b * t0
+        c1 += b * t1
+        c2 += b * t2
+        c3 += b * t3
+        if nd:
+            b = bu[1, k]
+            u0 += b * t0
+            u1 += b * t1
+            u2 += b * t2
+            u3 += b * t3
+            b = bu[0, k]
+            v0 += b * s0
+            v1 += b * s1
+            v2 += b * s2
+            v3 += b * s3
+    x, y, z, inv = _rational(c0, c1, c2, c3, pts, i)
+    if nd:
+        _rational_derivative(u0, u1, u2, u3, x, y, z, inv, d_du, i)
+        _rational_derivative(v0, v1, v2, v3, x, y, z, inv, d_dv, i)
+
+
 @njit(cache=True, nogil=True, fastmath=True)
 def surface_points(p, q, knots_u, knots_v, pw, us, vs, nd, pts, d_du, d_dv):  # pragma: no cover
     """Points (and with ``nd = 1`` first derivatives) at the parameter pairs
     ``(us[i], vs[i])``, each computed from scratch."""
-    nu = pw.shape[0] - 1
-    nv = pw.shape[1] - 1
     ndu_u = np.empty((p + 1, p + 1))
     left_u = np.empty(p + 1)
     right_u = np.empty(p + 1)
@@ -70,52 +122,75 @@ def surface_points(p, q, knots_u, knots_v, pw, us, vs, nd, pts, d_du, d_dv):  # 
     bu = np.empty((nd + 1, p + 1))
     bv = np.empty((nd + 1, q + 1))
     for i in range(us.shape[0]):
-        su = find_span(nu, p, us[i], knots_u)
-        ders_basis(su, us[i], p, knots_u, nd, ndu_u, left_u, right_u, a_u, bu)
-        sv = find_span(nv, q, vs[i], knots_v)
-        ders_basis(sv, vs[i], q, knots_v, nd, ndu_v, left_v, right_v, a_v, bv)
-        c0 = c1 = c2 = c3 = 0.0
-        u0 = u1 = u2 = u3 = 0.0
-        v0 = v1 = v2 = v3 = 0.0
-        for k in range(p + 1):
-            # A4.3: the row's contraction over l first, then its share of
-            # the sum over k (and of the u-derivative with N'_k).
-            t0 = t1 = t2 = t3 = 0.0
-            s0 = s1 = s2 = s3 = 0.0
-            row = su - p + k
-            for l in range(q + 1):
-                c = sv - q + l
-                b = bv[0, l]
-                t0 += b * pw[row, c, 0]
-                t1 += b * pw[row, c, 1]
-                t2 += b * pw[row, c, 2]
-                t3 += b * pw[row, c, 3]
-                if nd:
-                    b = bv[1, l]
-                    s0 += b * pw[row, c, 0]
-                    s1 += b * pw[row, c, 1]
-                    s2 += b * pw[row, c, 2]
-                    s3 += b * pw[row, c, 3]
-            b = bu[0, k]
-            c0 += b * t0
-            c1 += b * t1
-            c2 += b * t2
-            c3 += b * t3
-            if nd:
-                b = bu[1, k]
-                u0 += b * t0
-                u1 += b * t1
-                u2 += b * t2
-                u3 += b * t3
-                b = bu[0, k]
-                v0 += b * s0
-                v1 += b * s1
-                v2 += b * s2
-                v3 += b * s3
-        x, y, z, inv = _rational(c0, c1, c2, c3, pts, i)
-        if nd:
-            _rational_derivative(u0, u1, u2, u3, x, y, z, inv, d_du, i)
-            _rational_derivative(v0, v1, v2, v3, x, y, z, inv, d_dv, i)
+        _surface_point(
+            p, q, knots_u, knots_v, pw, us[i], vs[i], nd, ndu_u, left_u, right_u, a_u, bu,
+            ndu_v, left_v, right_v, a_v, bv, pts, d_du, d_dv, i,
+        )  # fmt: skip
+
+
+@njit(cache=True, nogil=True, fastmath=True)
+def closest_gauss_newton(
+    p, q, knots_u, knots_v, pw, x, uv, lo_u, hi_u, lo_v, hi_v, tol, max_steps, converged,
+    pts, d_du, d_dv,
+):  # pragma: no cover  # fmt: skip
+    """Gauss-Newton on (u, v) for the foot point of every ``x[i]`` from ``uv[i]``
+    (updated in place), steps clipped to the domain; ``converged[i]`` when a
+    step would move the point by less than ``tol`` (mm), which is then not
+    taken, so that ``pts``, ``d_du`` and ``d_dv`` are the surface's at ``uv``."""
+    ndu_u = np.empty((p + 1, p + 1))
+    left_u = np.empty(p + 1)
+    right_u = np.empty(p + 1)
+    a_u = np.empty((2, p + 1))
+    ndu_v = np.empty((q + 1, q + 1))
+    left_v = np.empty(q + 1)
+    right_v = np.empty(q + 1)
+    a_v = np.empty((2, q + 1))
+    bu = np.empty((2, p + 1))
+    bv = np.empty((2, q + 1))
+    for i in range(x.shape[0]):
+        u = uv[i, 0]
+        v = uv[i, 1]
+        converged[i] = False
+        for _ in range(max_steps):
+            _surface_point(
+                p, q, knots_u, knots_v, pw, u, v, 1, ndu_u, left_u, right_u, a_u, bu,
+                ndu_v, left_v, right_v, a_v, bv, pts, d_du, d_dv, i,
+            )  # fmt: skip
+            a11 = a12 = a22 = b1 = b2 = 0.0
+            for c in range(3):
+                r = pts[i, c] - x[i, c]
+                a11 += d_du[i, c] * d_du[i, c]
+                a12 += d_du[i, c] * d_dv[i, c]
+                a22 += d_dv[i, c] * d_dv[i, c]
+                b1 -= d_du[i, c] * r
+                b2 -= d_dv[i, c] * r
+            det = a11 * a22 - a12 * a12
+            if det > 1e-12 * a11 * a22:
+                du = (a22 * b1 - a12 * b2) / det
+                dv = (a11 * b2 - a12 * b1) / det
+            else:
+                # A degenerate point (a collapsed edge): a gradient step.
+                du = b1 / max(a11, 1e-300)
+                dv = b2 / max(a22, 1e-300)
+            du = min(max(u + du, lo_u), hi_u) - u
+            dv = min(max(v + dv, lo_v), hi_v) - v
+            moved = 0.0
+            for c in range(3):
+                m = d_du[i, c] * du + d_dv[i, c] * dv
+                moved += m * m
+            if moved < tol * tol:
+                converged[i] = True
+                break
+            u += du
+            v += dv
+        if not converged[i]:
+            # Out of steps: the outputs belong to where the last step went.
+            _surface_point(
+                p, q, knots_u, knots_v, pw, u, v, 1, ndu_u, left_u, right_u, a_u, bu,
+                ndu_v, left_v, right_v, a_v, bv, pts, d_du, d_dv, i,
+            )  # fmt: skip
+        uv[i, 0] = u
+        uv[i, 1] = v
 
 
 @njit(cache=True, nogil=True, fastmath=True)

@@ -65,6 +65,11 @@ class Surface:
         self.domain_v = domain(self.knots_v, self.degree_v)
 
     @property
+    def homogeneous(self) -> FloatArray:
+        """(nu, nv, 4) float64: the weighted control points ``(w P, w)`` (read-only)."""
+        return self._pw
+
+    @property
     def shape(self) -> tuple[int, int]:
         """The number of control points (nu, nv)."""
         return self.control_points.shape[0], self.control_points.shape[1]
