@@ -40,7 +40,16 @@ until the step lowers the cost (and, for Newton's indefinite Hessian, until
 the damped matrix is positive definite). A step is accepted only if it lowers
 the cost, with the parameters clipped to the domain and the weights positive;
 a fit stops when the relative decrease of the cost falls below ``tolerance``
-(converged) or after ``max_iterations``.
+(converged), when no step lowers the cost at any damping (a stationary point,
+also converged), or after ``max_iterations``. Near the minimum the foot
+points and the control points slide along the curve together, a
+reparametrisation that barely changes the curve's shape: fits take hundreds
+of iterations to settle (``bench/bench_nurbs.py`` counts them).
+
+The first and last points keep their parameters at the domain's ends:
+otherwise the curve's ends can slide along their own tangents with the foot
+points near them at almost no cost, a near-null direction of the normal
+matrix.
 """
 
 from __future__ import annotations
@@ -226,7 +235,7 @@ def fit_curve(
     method: Method = "split",
     smoothing: float = 1e-6,
     weight_penalty: float = 1e-4,
-    max_iterations: int = 100,
+    max_iterations: int = 1000,
     tolerance: float = 1e-10,
     params: Any = None,
     weights: Any = None,
@@ -243,7 +252,8 @@ def fit_curve(
     weight_penalty : lambda_w > 0 pulling the weights towards one
     max_iterations : int >= 1
     tolerance : relative decrease of the cost below which the fit has converged
-    params : (m,) initial foot-point parameters; chord length by default
+    params : (m,) initial foot-point parameters; chord length by default. The
+        first and last points keep theirs (the curve's ends are tied to them).
     weights : (n,) initial weights; ones by default
 
     Returns
