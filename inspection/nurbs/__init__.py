@@ -11,8 +11,9 @@
   polygon in parameter space when given; :func:`tessellate` turns a face
   into a CAD model for the grid tree, and :class:`ExactTree` refines the
   tree's closest points on the exact surface.
-- :func:`read_step_surfaces` (a light reader of STEP's B-spline surfaces) and
-  :func:`read_3dm_surfaces` (Rhino's 3dm, through rhino3dm), with writers.
+- :func:`read_step_surfaces` and :func:`read_step_faces` (a light reader of
+  STEP's B-spline surfaces, and of their faces' outer boundaries as trims)
+  and :func:`read_3dm_surfaces` (Rhino's 3dm, through rhino3dm), with writers.
 
 Modules: :mod:`.basis` (the B-spline basis kernels), :mod:`.kernels` (the
 compiled evaluation), :mod:`.knots` (input checks), :mod:`.surface`,
@@ -28,7 +29,7 @@ from .fit import METHODS, CurveFit, fit_curve
 from .flops import EvaluationFlops, basis_flops, evaluation_flops
 from .model import ExactTree, NurbsFace, tessellate
 from .rhino import read_3dm_surfaces, write_3dm_surfaces
-from .step import read_step_surfaces, write_step_surfaces
+from .step import read_step_faces, read_step_surfaces, write_step_surfaces
 from .surface import Surface
 
 __all__ = [
@@ -46,6 +47,7 @@ __all__ = [
     "evaluation_flops",
     "fit_curve",
     "read_3dm_surfaces",
+    "read_step_faces",
     "read_step_surfaces",
     "tessellate",
     "write_3dm_surfaces",

@@ -3,9 +3,16 @@
 Reads the entities of the DATA section and turns every
 ``B_SPLINE_SURFACE_WITH_KNOTS`` (and the complex entity that adds
 ``RATIONAL_B_SPLINE_SURFACE`` weights) into a :class:`Surface`; faces of
-other kinds (planes, cylinders) and the faces' trimming loops are not read.
-STEP stores knots as distinct values with their multiplicities and the
-control points as rows along u of ``CARTESIAN_POINT`` references.
+other kinds (planes, cylinders) are not read. STEP stores knots as distinct
+values with their multiplicities and the control points as rows along u of
+``CARTESIAN_POINT`` references.
+
+:func:`read_step_faces` also reads each B-spline face's outer boundary as a
+:class:`Trim`: the loop's edges (lines, circles and B-spline curves, bare or
+inside a ``SURFACE_CURVE``) are sampled in space between their vertices and
+projected onto the face's surface, which gives the boundary polygon in
+parameter space whatever parameter curves the file carries. Inner
+boundaries (holes) are not read: the trim model has an outer boundary only.
 
 The file's length unit is not interpreted: ``scale`` multiplies the
 coordinates to give millimetres, as for :func:`inspection.load_cad`.
@@ -20,7 +27,12 @@ from typing import Any
 import numpy as np
 
 from ..errors import CadLoadError, InspectionError
+from .closest import Trim, closest_points
+from .curve import Curve
 from .surface import Surface
+
+# Samples per edge of a face's boundary (the trim polygon's resolution).
+EDGE_SAMPLES = 32
 
 _TOKEN = re.compile(
     r"""\s*(?:
@@ -117,6 +129,20 @@ def _expand(knots: list[float], mults: list[float]) -> np.ndarray:
     return np.repeat(np.array(knots, dtype=np.float64), np.array(mults, dtype=np.int64))
 
 
+def _read_entities(path: str | Path, scale: float) -> tuple[Path, dict[int, str]]:
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="latin-1")
+    except OSError as exc:
+        raise CadLoadError(f"{p}: {exc.strerror or exc}") from exc
+    if not np.isfinite(scale) or scale <= 0:
+        raise CadLoadError(f"scale must be a finite positive number, got {scale!r}")
+    try:
+        return p, _entities(text)
+    except ValueError as exc:
+        raise CadLoadError(f"{p}: not a STEP file: {exc}") from exc
+
+
 def read_step_surfaces(path: str | Path, *, scale: float = 1.0) -> list[Surface]:
     """The B-spline surfaces of a STEP file, in file order.
 
@@ -135,17 +161,7 @@ def read_step_surfaces(path: str | Path, *, scale: float = 1.0) -> list[Surface]
         Not a readable STEP file, or a B-spline surface that does not make a
         valid NURBS surface (the reason is given).
     """
-    p = Path(path)
-    try:
-        text = p.read_text(encoding="latin-1")
-    except OSError as exc:
-        raise CadLoadError(f"{p}: {exc.strerror or exc}") from exc
-    if not np.isfinite(scale) or scale <= 0:
-        raise CadLoadError(f"scale must be a finite positive number, got {scale!r}")
-    try:
-        entities = _entities(text)
-    except ValueError as exc:
-        raise CadLoadError(f"{p}: not a STEP file: {exc}") from exc
+    p, entities = _read_entities(path, scale)
     out = []
     for eid in sorted(entities):
         if "B_SPLINE_SURFACE_WITH_KNOTS" not in entities[eid]:
@@ -156,6 +172,151 @@ def read_step_surfaces(path: str | Path, *, scale: float = 1.0) -> list[Surface]
         except (InspectionError, ValueError, KeyError, IndexError, TypeError) as exc:
             raise CadLoadError(f"{p}: B-spline surface #{eid}: {exc}") from exc
     return out
+
+
+def read_step_faces(path: str | Path, *, scale: float = 1.0) -> list[tuple[Surface, Trim]]:
+    """The B-spline faces of a STEP file with their outer boundaries, in file order.
+
+    Parameters
+    ----------
+    path : a .step or .stp file
+    scale : float > 0, multiplies the coordinates to give millimetres
+
+    Returns
+    -------
+    list of (Surface, Trim)
+
+    Raises
+    ------
+    CadLoadError
+        Not a readable STEP file, or a B-spline face whose surface or
+        boundary cannot be read (the reason is given).
+    """
+    p, entities = _read_entities(path, scale)
+    out = []
+    for eid in sorted(entities):
+        text = entities[eid]
+        if not text.lstrip().startswith("ADVANCED_FACE"):
+            continue
+        try:
+            _, bounds, surface_ref = _parts(_parse(text))["ADVANCED_FACE"][:3]
+            sparts = _parts(_parse(entities[surface_ref]))
+            if "B_SPLINE_SURFACE_WITH_KNOTS" not in sparts:
+                continue
+            surface = _surface(entities, sparts, scale)
+            out.append((surface, _outer_trim(entities, bounds, surface, scale)))
+        except (InspectionError, ValueError, KeyError, IndexError, TypeError) as exc:
+            raise CadLoadError(f"{p}: face #{eid}: {exc}") from exc
+    return out
+
+
+def _outer_trim(
+    entities: dict[int, str], bounds: list[Any], surface: Surface, scale: float
+) -> Trim:
+    """The face's outer boundary (or its only one) as a parameter-space polygon."""
+    chosen = None
+    for ref in bounds:
+        parts = _parts(_parse(entities[ref]))
+        if "FACE_OUTER_BOUND" in parts:
+            chosen = parts["FACE_OUTER_BOUND"]
+            break
+        if chosen is None and "FACE_BOUND" in parts:
+            chosen = parts["FACE_BOUND"]
+    if chosen is None:
+        raise ValueError("the face has no bound")
+    _, loop_ref, orientation = chosen[:3]
+    loop = _parts(_parse(entities[loop_ref]))["EDGE_LOOP"]
+    samples = []
+    for oe_ref in loop[1]:
+        _, _, _, edge_ref, oe_sense = _parts(_parse(entities[oe_ref]))["ORIENTED_EDGE"][:5]
+        pts = _edge_samples(entities, edge_ref, scale)
+        if oe_sense == ".F.":
+            pts = pts[::-1]
+        samples.append(pts[:-1])  # the next edge starts where this one ends
+    xyz = np.concatenate(samples)
+    if orientation == ".F.":
+        xyz = xyz[::-1]
+    uv = closest_points(surface, xyz).params
+    return Trim(uv)
+
+
+def _edge_samples(entities: dict[int, str], edge_ref: int, scale: float) -> np.ndarray:
+    """(EDGE_SAMPLES + 1, 3) points along an EDGE_CURVE from its start vertex to its end."""
+    _, v0, v1, geom_ref, same_sense = _parts(_parse(entities[edge_ref]))["EDGE_CURVE"][:5]
+    a = np.array(_vertex(entities, v0)) * scale
+    b = np.array(_vertex(entities, v1)) * scale
+    geom = _parts(_parse(entities[geom_ref]))
+    for wrapper in ("SURFACE_CURVE", "SEAM_CURVE"):
+        if wrapper in geom:
+            geom = _parts(_parse(entities[geom[wrapper][1]]))
+    s = np.linspace(0.0, 1.0, EDGE_SAMPLES + 1)
+    if "LINE" in geom:
+        return a + s[:, None] * (b - a)
+    if "CIRCLE" in geom:
+        _, placement, radius = geom["CIRCLE"][:3]
+        centre, axis, ref = _placement(entities, placement, scale)
+        other = np.cross(axis, ref)
+        r = float(radius) * scale
+
+        def angle(x: np.ndarray) -> float:
+            d = x - centre
+            return float(np.arctan2(d @ other, d @ ref))
+
+        t0, t1 = angle(a), angle(b)
+        sense = 1.0 if same_sense == ".T." else -1.0
+        sweep = (sense * (t1 - t0)) % (2 * np.pi) or 2 * np.pi
+        t = t0 + sense * sweep * s
+        return centre + r * (np.cos(t)[:, None] * ref + np.sin(t)[:, None] * other)
+    if "B_SPLINE_CURVE_WITH_KNOTS" in geom:
+        curve = _curve(entities, geom, scale)
+        dense = np.linspace(*curve.domain, 2001)
+        pts = curve.evaluate(dense)
+        ends = [dense[int(np.argmin(np.linalg.norm(pts - x, axis=1)))] for x in (a, b)]
+        t0, t1 = curve.project(np.stack([a, b]), np.array(ends))
+        if same_sense != ".T.":
+            t0, t1 = t1, t0
+        pts = curve.evaluate(t0 + s * (t1 - t0))
+        return pts if same_sense == ".T." else pts[::-1]
+    raise ValueError(
+        f"edge #{edge_ref}: its curve {sorted(geom)} is not a line, circle or B-spline"
+    )
+
+
+def _vertex(entities: dict[int, str], ref: int) -> list[float]:
+    return _point(entities, _parts(_parse(entities[ref]))["VERTEX_POINT"][1])
+
+
+def _placement(
+    entities: dict[int, str], placement: int, scale: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Centre (mm), unit axis and unit reference direction of an AXIS2_PLACEMENT_3D."""
+    _, loc, axis_ref, dir_ref = _parts(_parse(entities[placement]))["AXIS2_PLACEMENT_3D"][:4]
+    centre = np.array(_point(entities, loc)) * scale
+    # Omitted ($) directions default to z and x.
+    axis = np.array(_direction(entities, axis_ref) if isinstance(axis_ref, _Ref) else [0, 0, 1.0])
+    ref = np.array(_direction(entities, dir_ref) if isinstance(dir_ref, _Ref) else [1.0, 0, 0])
+    axis = axis / np.linalg.norm(axis)
+    ref = ref - (ref @ axis) * axis
+    return centre, axis, ref / np.linalg.norm(ref)
+
+
+def _direction(entities: dict[int, str], ref: int) -> list[float]:
+    return [float(c) for c in _parts(_parse(entities[ref]))["DIRECTION"][1]]
+
+
+def _curve(entities: dict[int, str], parts: dict[str, list[Any]], scale: float) -> Curve:
+    knots_part = parts["B_SPLINE_CURVE_WITH_KNOTS"]
+    if "B_SPLINE_CURVE" in parts:
+        degree, refs = parts["B_SPLINE_CURVE"][:2]
+        mults, knots = knots_part[:2]
+    else:
+        degree, refs = knots_part[1:3]
+        mults, knots = knots_part[6:8]
+    cp = np.array([_point(entities, r) for r in refs], dtype=np.float64) * scale
+    weights = None
+    if "RATIONAL_B_SPLINE_CURVE" in parts:
+        weights = np.array(parts["RATIONAL_B_SPLINE_CURVE"][0], dtype=np.float64)
+    return Curve(int(degree), _expand(knots, mults), cp, weights)
 
 
 def _surface(entities: dict[int, str], parts: dict[str, list[Any]], scale: float) -> Surface:

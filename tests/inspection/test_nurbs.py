@@ -568,3 +568,74 @@ def test_3dm_surfaces_round_trip_and_agree_with_rhino(tmp_path, panel):  # type:
     assert np.abs(back.evaluate(uv[:, 0], uv[:, 1]) - theirs).max() < 1e-9
     with pytest.raises(CadLoadError, match="no such file"):
         read_3dm_surfaces(tmp_path / "missing.3dm")
+
+
+TRIMMED_STEP = """ISO-10303-21;
+HEADER;
+FILE_SCHEMA(('AUTOMOTIVE_DESIGN'));
+ENDSEC;
+DATA;
+#1 = CARTESIAN_POINT('',(0.,0.,0.));
+#2 = CARTESIAN_POINT('',(0.,100.,0.));
+#3 = CARTESIAN_POINT('',(100.,0.,0.));
+#4 = CARTESIAN_POINT('',(100.,100.,0.));
+#5 = B_SPLINE_SURFACE_WITH_KNOTS('',1,1,((#1,#2),(#3,#4)),.UNSPECIFIED.,.F.,.F.,.F.,
+  (2,2),(2,2),(0.,1.),(0.,1.),.UNSPECIFIED.);
+#10 = CARTESIAN_POINT('',(10.,10.,0.));
+#11 = CARTESIAN_POINT('',(90.,10.,0.));
+#12 = CARTESIAN_POINT('',(10.,90.,0.));
+#13 = VERTEX_POINT('',#10);
+#14 = VERTEX_POINT('',#11);
+#15 = VERTEX_POINT('',#12);
+#20 = DIRECTION('',(1.,0.,0.));
+#21 = VECTOR('',#20,80.);
+#22 = LINE('',#10,#21);
+#23 = EDGE_CURVE('',#13,#14,#22,.T.);
+#30 = DIRECTION('',(0.,0.,1.));
+#31 = AXIS2_PLACEMENT_3D('',#10,#30,#20);
+#32 = CIRCLE('',#31,80.);
+#33 = EDGE_CURVE('',#14,#15,#32,.T.);
+#40 = B_SPLINE_CURVE_WITH_KNOTS('',1,(#10,#12),.UNSPECIFIED.,.F.,.F.,(2,2),(0.,1.),.UNSPECIFIED.);
+#41 = EDGE_CURVE('',#13,#15,#40,.T.);
+#50 = ORIENTED_EDGE('',*,*,#23,.T.);
+#51 = ORIENTED_EDGE('',*,*,#33,.T.);
+#52 = ORIENTED_EDGE('',*,*,#41,.F.);
+#60 = EDGE_LOOP('',(#50,#51,#52));
+#61 = FACE_OUTER_BOUND('',#60,.T.);
+#62 = ADVANCED_FACE('',(#61),#5,.T.);
+ENDSEC;
+END-ISO-10303-21;
+"""
+
+
+def test_a_step_face_brings_its_trim(tmp_path):  # type: ignore[no-untyped-def]
+    from inspection.nurbs.step import read_step_faces
+
+    # A 100 x 100 mm square patch trimmed to a quarter disc of radius 80 mm
+    # about (10, 10): a line, an arc and a reversed B-spline edge.
+    (tmp_path / "quarter.step").write_text(TRIMMED_STEP)
+    ((surface, trim),) = read_step_faces(tmp_path / "quarter.step")
+    uv = trim.polygon
+    # Every boundary vertex lies on one of the three edges (u, v = x, y / 100).
+    on_line = (np.abs(uv[:, 1] - 0.1) < 1e-9) | (np.abs(uv[:, 0] - 0.1) < 1e-9)
+    on_arc = np.abs(np.hypot(uv[:, 0] - 0.1, uv[:, 1] - 0.1) - 0.8) < 1e-9
+    assert np.all(on_line | on_arc) and on_arc.sum() > 10
+    inside = trim.contains(np.array([[0.2, 0.2], [0.6, 0.6], [0.85, 0.85], [0.05, 0.5]]))
+    assert inside.tolist() == [True, True, False, False]
+    # The face measures as trimmed: a point above the cut-away corner finds the arc.
+    from inspection.nurbs.closest import closest_points
+
+    got = closest_points(surface, np.array([[95.0, 95.0, 1.0]]), trim=trim)
+    assert got.on_boundary[0]
+    assert np.hypot(*(got.points[0, :2] - 10.0)) == pytest.approx(80.0, abs=1e-6)
+
+
+def test_the_real_b_spline_face_is_bounded_by_its_domain(shared_cad):  # type: ignore[no-untyped-def]
+    from inspection.nurbs.step import read_step_faces
+
+    ((surface, trim),) = read_step_faces(shared_cad("featuretype.STEP"), scale=60.0)
+    # Its four edges are the iso-lines at the ends of the domain.
+    lo = [surface.domain_u[0], surface.domain_v[0]]
+    hi = [surface.domain_u[1], surface.domain_v[1]]
+    assert np.allclose(trim.polygon.min(axis=0), lo, atol=1e-6)
+    assert np.allclose(trim.polygon.max(axis=0), hi, atol=1e-6)
