@@ -6,7 +6,8 @@
   :func:`evaluation_flops` counts the arithmetic of both ways.
 - :class:`Curve`: points and derivatives up to the second, foot points.
 - :func:`fit_curve`: a curve's control points and weights (degree and knots
-  fixed) fitted to points by orthogonal distance.
+  fixed) fitted to points by orthogonal distance; :func:`deviation_along`
+  the deviation of such a fitted (measured) curve from its nominal.
 - :func:`closest_points`: foot points on a surface, inside a :class:`Trim`
   polygon in parameter space when given; :func:`tessellate` turns a face
   into a CAD model for the grid tree, and :class:`ExactTree` refines the
@@ -25,7 +26,7 @@ from __future__ import annotations
 
 from .closest import SurfaceClosest, Trim, closest_points
 from .curve import Curve
-from .fit import METHODS, CurveFit, fit_curve
+from .fit import METHODS, CurveDeviation, CurveFit, deviation_along, fit_curve
 from .flops import EvaluationFlops, basis_flops, evaluation_flops
 from .model import ExactTree, NurbsFace, tessellate
 from .rhino import read_3dm_surfaces, write_3dm_surfaces
@@ -35,6 +36,7 @@ from .surface import Surface
 __all__ = [
     "METHODS",
     "Curve",
+    "CurveDeviation",
     "CurveFit",
     "EvaluationFlops",
     "ExactTree",
@@ -44,6 +46,7 @@ __all__ = [
     "Trim",
     "basis_flops",
     "closest_points",
+    "deviation_along",
     "evaluation_flops",
     "fit_curve",
     "read_3dm_surfaces",

@@ -457,3 +457,43 @@ def _trial(
     t = np.clip(s.t + dt, *dom)
     P = prob.best_control_points(prob.basis(t, 0)[0], w) if projected else s.P + dP
     return _state(prob, t, P, w, nd)
+
+
+@dataclass(frozen=True)
+class CurveDeviation:
+    """The deviation of a measured curve from its nominal, along the nominal.
+
+    ``params`` (k,) the nominal's parameters sampled; ``points`` (k, 3) mm the
+    nominal's points there; ``vectors`` (k, 3) mm from each to the closest
+    point of the measured curve; ``distances`` (k,) mm their lengths.
+    """
+
+    params: FloatArray
+    points: FloatArray
+    vectors: FloatArray
+    distances: FloatArray
+
+
+def deviation_along(measured: Curve, nominal: Curve, samples: int = 200) -> CurveDeviation:
+    """The deviation of a fitted, measured curve (a trim edge, a character
+    line) from its nominal, at ``samples`` parameters evenly spread over the
+    nominal's domain: each nominal point's vector to its closest point on
+    the measured curve.
+
+    Parameters
+    ----------
+    measured : Curve, e.g. ``fit_curve(...).curve`` of the measured edge points
+    nominal : Curve, the design's edge
+    samples : int >= 2
+    """
+    if not isinstance(samples, int) or isinstance(samples, bool) or samples < 2:
+        raise InvalidInput(f"samples must be an integer >= 2, got {samples!r}")
+    t = np.linspace(*nominal.domain, samples)
+    pts = nominal.evaluate(t)
+    # Start each foot at the nearest of dense samples of the measured curve.
+    dense = np.linspace(*measured.domain, 20 * samples + 1)
+    cloud = measured.evaluate(dense)
+    nearest = np.array([int(np.argmin(np.sum((cloud - p) ** 2, axis=1))) for p in pts])
+    feet = measured.evaluate(measured.project(pts, dense[nearest]))
+    vectors = feet - pts
+    return CurveDeviation(t, pts, vectors, np.linalg.norm(vectors, axis=1))

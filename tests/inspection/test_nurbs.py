@@ -639,3 +639,25 @@ def test_the_real_b_spline_face_is_bounded_by_its_domain(shared_cad):  # type: i
     hi = [surface.domain_u[1], surface.domain_v[1]]
     assert np.allclose(trim.polygon.min(axis=0), lo, atol=1e-6)
     assert np.allclose(trim.polygon.max(axis=0), hi, atol=1e-6)
+
+
+def test_a_measured_edge_deviates_from_its_nominal_as_it_was_made(noisy_samples):  # type: ignore[no-untyped-def]
+    from inspection.nurbs import deviation_along
+
+    nominal, _ = noisy_samples
+    # The edge as made: the nominal moved 0.2 mm along z; measured with noise.
+    made = Curve(nominal.degree, nominal.knots, nominal.control_points + [0, 0, 0.2],
+                 nominal.weights)  # fmt: skip
+    rng = np.random.default_rng(15)
+    t = np.sort(rng.uniform(0, 1, 150))
+    t[0], t[-1] = 0.0, 1.0
+    x = made.evaluate(t) + rng.normal(0, FIT_NOISE_MM, (150, 3))
+    fitted = fit_curve(x, 3, nominal.knots, method="vp-gn").curve
+    dev = deviation_along(fitted, nominal, samples=100)
+    assert dev.distances.shape == (100,)
+    # The nominal runs nearly across z (|t_z| < 0.15): the deviation is about the shift.
+    inner = slice(5, -5)
+    assert np.abs(dev.vectors[inner, 2] - 0.2).max() < 3 * FIT_NOISE_MM
+    assert np.abs(dev.distances[inner] - 0.2).max() < 3 * FIT_NOISE_MM
+    with pytest.raises(InvalidInput, match="samples must be an integer >= 2"):
+        deviation_along(fitted, nominal, samples=1)
