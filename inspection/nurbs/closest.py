@@ -12,12 +12,13 @@ converges at a rate of about |r| times the surface's curvature per step, so
 a few steps reach the foot point of points within millimetres of a panel
 whose radii are hundreds of millimetres. Steps are clipped to the domain.
 
-**Trimming.** A :class:`Trim` is the simple model of a trimmed face: one
-boundary polygon in parameter space, the surface being the part of the
-parameter domain inside it. A foot point found outside the polygon is not on
-the face; the closest point of the face then lies on its boundary, the image
-of the polygon's edges, found by the nearest of dense samples of that image
-and Gauss-Newton along the edge's own parameter.
+**Trimming.** A :class:`Trim` is the simple model of a trimmed face: a
+boundary polygon in parameter space and the polygons of its holes, the face
+being the part of the parameter domain inside the one and outside the
+others. A foot point found off the face is not on it; the closest point of
+the face then lies on its boundary, the image of the polygons' edges, found
+by the nearest of dense samples of that image and Gauss-Newton along the
+edge's own parameter.
 """
 
 from __future__ import annotations
@@ -36,35 +37,36 @@ from .surface import Surface
 # Gauss-Newton stops when a step moves the point by less than this (mm).
 _STEP_TOL_MM = 1e-10
 _MAX_STEPS = 30
-# Samples per polygon edge of a trim boundary's image.
-_EDGE_SAMPLES = 256
+# Samples per polygon edge of a trim boundary's image (the start of the
+# search along the edge).
+_EDGE_SAMPLES = 16
 
 
 @dataclass(frozen=True)
 class Trim:
-    """The outer boundary of a trimmed face in parameter space.
+    """The boundary of a trimmed face in parameter space: an outer polygon and
+    the holes in it.
 
     Parameters
     ----------
     polygon : (k, 2) float64, (u, v) vertices of a simple polygon, k >= 3
         (either orientation; not closed: the last vertex joins the first).
+    holes : tuple of (k_i, 2) float64 polygons inside ``polygon``, not
+        overlapping one another.
     """
 
     polygon: FloatArray
+    holes: tuple[FloatArray, ...] = ()
 
     def __post_init__(self) -> None:
-        poly = np.array(self.polygon, dtype=np.float64)
-        if poly.ndim != 2 or poly.shape[1] != 2 or poly.shape[0] < 3:
-            raise InvalidInput(f"a trim polygon must have shape (k >= 3, 2), got {poly.shape}")
-        if not np.all(np.isfinite(poly)):
-            raise InvalidInput("a trim polygon must be finite")
-        area = 0.5 * np.sum(
-            poly[:, 0] * np.roll(poly[:, 1], -1) - np.roll(poly[:, 0], -1) * poly[:, 1]
-        )
-        if abs(area) <= 0:
-            raise InvalidInput("a trim polygon must enclose an area")
-        poly.setflags(write=False)
-        object.__setattr__(self, "polygon", poly)
+        object.__setattr__(self, "polygon", _loop(self.polygon))
+        object.__setattr__(self, "holes", tuple(_loop(h) for h in self.holes))
+
+    def edges(self) -> tuple[FloatArray, FloatArray]:
+        """Start and end points (e, 2) of every edge of every loop."""
+        a = np.concatenate([self.polygon, *self.holes])
+        b = np.concatenate([np.roll(loop, -1, axis=0) for loop in (self.polygon, *self.holes)])
+        return a, b
 
     def check_within(self, surface: Surface) -> None:
         """InvalidInput unless the polygon lies in the surface's parameter domain."""
@@ -77,10 +79,10 @@ class Trim:
             )
 
     def contains(self, uv: Any) -> np.ndarray:
-        """(n,) bool: whether each (u, v) lies inside the polygon (even-odd rule)."""
+        """(n,) bool: whether each (u, v) lies on the face: inside the polygon
+        and in none of its holes (the even-odd rule over all loops)."""
         p = np.asarray(uv, dtype=np.float64)
-        a = self.polygon
-        b = np.roll(a, -1, axis=0)
+        a, b = self.edges()
         u, v = p[:, 0:1], p[:, 1:2]
         crosses = (a[None, :, 1] > v) != (b[None, :, 1] > v)
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -88,6 +90,19 @@ class Trim:
                 b[None, :, 1] - a[None, :, 1]
             )
         return np.asarray(np.sum(crosses & (u < at), axis=1) % 2 == 1)
+
+
+def _loop(polygon: Any) -> FloatArray:
+    poly = np.array(polygon, dtype=np.float64)
+    if poly.ndim != 2 or poly.shape[1] != 2 or poly.shape[0] < 3:
+        raise InvalidInput(f"a trim polygon must have shape (k >= 3, 2), got {poly.shape}")
+    if not np.all(np.isfinite(poly)):
+        raise InvalidInput("a trim polygon must be finite")
+    area = 0.5 * np.sum(poly[:, 0] * np.roll(poly[:, 1], -1) - np.roll(poly[:, 0], -1) * poly[:, 1])
+    if abs(area) <= 0:
+        raise InvalidInput("a trim polygon must enclose an area")
+    poly.setflags(write=False)
+    return poly
 
 
 @dataclass(frozen=True)
@@ -192,8 +207,7 @@ def _gauss_newton(
 
 def _closest_on_boundary(surface: Surface, trim: Trim, x: FloatArray) -> FloatArray:
     """(n, 2) parameters of the closest points of the trim boundary's image."""
-    a = trim.polygon
-    b = np.roll(a, -1, axis=0)
+    a, b = trim.edges()
     s = np.linspace(0.0, 1.0, _EDGE_SAMPLES, endpoint=False)
     edge = np.repeat(np.arange(a.shape[0]), _EDGE_SAMPLES)
     frac = np.tile(s, a.shape[0])

@@ -7,12 +7,12 @@ other kinds (planes, cylinders) are not read. STEP stores knots as distinct
 values with their multiplicities and the control points as rows along u of
 ``CARTESIAN_POINT`` references.
 
-:func:`read_step_faces` also reads each B-spline face's outer boundary as a
-:class:`Trim`: the loop's edges (lines, circles and B-spline curves, bare or
-inside a ``SURFACE_CURVE``) are sampled in space between their vertices and
-projected onto the face's surface, which gives the boundary polygon in
-parameter space whatever parameter curves the file carries. Inner
-boundaries (holes) are not read: the trim model has an outer boundary only.
+:func:`read_step_faces` also reads each B-spline face's bounds as a
+:class:`Trim` (the outer boundary and its holes): the loops' edges (lines,
+circles and B-spline curves, bare or inside a ``SURFACE_CURVE``) are sampled
+in space between their vertices and projected onto the face's surface, which
+gives the boundary polygons in parameter space whatever parameter curves the
+file carries.
 
 The file's length unit is not interpreted: ``scale`` multiplies the
 coordinates to give millimetres, as for :func:`inspection.load_cad`.
@@ -31,8 +31,11 @@ from .closest import Trim, closest_points
 from .curve import Curve
 from .surface import Surface
 
-# Samples per edge of a face's boundary (the trim polygon's resolution).
-EDGE_SAMPLES = 32
+# The largest chord error (mm) of a trim polygon along a circular edge, and
+# the samples of other edges (lines on a curved face map to curves in (u, v)).
+TRIM_CHORD_MM = 1e-3
+EDGE_SAMPLES = 64
+BSPLINE_EDGE_SAMPLES = 256
 
 _TOKEN = re.compile(
     r"""\s*(?:
@@ -175,7 +178,7 @@ def read_step_surfaces(path: str | Path, *, scale: float = 1.0) -> list[Surface]
 
 
 def read_step_faces(path: str | Path, *, scale: float = 1.0) -> list[tuple[Surface, Trim]]:
-    """The B-spline faces of a STEP file with their outer boundaries, in file order.
+    """The B-spline faces of a STEP file with their bounds, in file order.
 
     Parameters
     ----------
@@ -204,30 +207,42 @@ def read_step_faces(path: str | Path, *, scale: float = 1.0) -> list[tuple[Surfa
             if "B_SPLINE_SURFACE_WITH_KNOTS" not in sparts:
                 continue
             surface = _surface(entities, sparts, scale)
-            out.append((surface, _outer_trim(entities, bounds, surface, scale)))
+            out.append((surface, _face_trim(entities, bounds, surface, scale)))
         except (InspectionError, ValueError, KeyError, IndexError, TypeError) as exc:
             raise CadLoadError(f"{p}: face #{eid}: {exc}") from exc
     return out
 
 
-def _outer_trim(
-    entities: dict[int, str], bounds: list[Any], surface: Surface, scale: float
-) -> Trim:
-    """The face's outer boundary (or its only one) as a parameter-space polygon."""
-    chosen = None
+def _face_trim(entities: dict[int, str], bounds: list[Any], surface: Surface, scale: float) -> Trim:
+    """The face's bounds as parameter-space polygons: the outer one (or the
+    first, when none is marked outer) and the others as holes."""
+    outer = None
+    loops = []
     for ref in bounds:
         parts = _parts(_parse(entities[ref]))
-        if "FACE_OUTER_BOUND" in parts:
-            chosen = parts["FACE_OUTER_BOUND"]
-            break
-        if chosen is None and "FACE_BOUND" in parts:
-            chosen = parts["FACE_BOUND"]
-    if chosen is None:
-        raise ValueError("the face has no bound")
-    _, loop_ref, orientation = chosen[:3]
-    loop = _parts(_parse(entities[loop_ref]))["EDGE_LOOP"]
+        kind = "FACE_OUTER_BOUND" if "FACE_OUTER_BOUND" in parts else "FACE_BOUND"
+        _, loop_ref, orientation = parts[kind][:3]
+        loop = _parts(_parse(entities[loop_ref]))
+        if "EDGE_LOOP" not in loop:
+            continue  # a vertex loop: a point, no area
+        uv = _loop_params(entities, loop["EDGE_LOOP"][1], orientation, surface, scale)
+        if kind == "FACE_OUTER_BOUND" and outer is None:
+            outer = uv
+        else:
+            loops.append(uv)
+    if outer is None:
+        if not loops:
+            raise ValueError("the face has no edge loop")
+        outer = loops.pop(0)
+    return Trim(outer, tuple(loops))
+
+
+def _loop_params(
+    entities: dict[int, str], edges: list[Any], orientation: str, surface: Surface, scale: float
+) -> np.ndarray:
+    """(k, 2) parameters of points along an edge loop, projected onto the surface."""
     samples = []
-    for oe_ref in loop[1]:
+    for oe_ref in edges:
         _, _, _, edge_ref, oe_sense = _parts(_parse(entities[oe_ref]))["ORIENTED_EDGE"][:5]
         pts = _edge_samples(entities, edge_ref, scale)
         if oe_sense == ".F.":
@@ -236,12 +251,11 @@ def _outer_trim(
     xyz = np.concatenate(samples)
     if orientation == ".F.":
         xyz = xyz[::-1]
-    uv = closest_points(surface, xyz).params
-    return Trim(uv)
+    return closest_points(surface, xyz).params
 
 
 def _edge_samples(entities: dict[int, str], edge_ref: int, scale: float) -> np.ndarray:
-    """(EDGE_SAMPLES + 1, 3) points along an EDGE_CURVE from its start vertex to its end."""
+    """(k, 3) points along an EDGE_CURVE from its start vertex to its end."""
     _, v0, v1, geom_ref, same_sense = _parts(_parse(entities[edge_ref]))["EDGE_CURVE"][:5]
     a = np.array(_vertex(entities, v0)) * scale
     b = np.array(_vertex(entities, v1)) * scale
@@ -265,7 +279,10 @@ def _edge_samples(entities: dict[int, str], edge_ref: int, scale: float) -> np.n
         t0, t1 = angle(a), angle(b)
         sense = 1.0 if same_sense == ".T." else -1.0
         sweep = (sense * (t1 - t0)) % (2 * np.pi) or 2 * np.pi
-        t = t0 + sense * sweep * s
+        # Chords of angle 2 acos(1 - e / r) err by e from the arc.
+        step = 2 * np.arccos(max(1.0 - TRIM_CHORD_MM / r, -1.0))
+        n = max(int(np.ceil(sweep / step)), 2)
+        t = t0 + sense * sweep * np.linspace(0.0, 1.0, n + 1)
         return centre + r * (np.cos(t)[:, None] * ref + np.sin(t)[:, None] * other)
     if "B_SPLINE_CURVE_WITH_KNOTS" in geom:
         curve = _curve(entities, geom, scale)
@@ -275,7 +292,7 @@ def _edge_samples(entities: dict[int, str], edge_ref: int, scale: float) -> np.n
         t0, t1 = curve.project(np.stack([a, b]), np.array(ends))
         if same_sense != ".T.":
             t0, t1 = t1, t0
-        pts = curve.evaluate(t0 + s * (t1 - t0))
+        pts = curve.evaluate(t0 + np.linspace(0.0, 1.0, BSPLINE_EDGE_SAMPLES + 1) * (t1 - t0))
         return pts if same_sense == ".T." else pts[::-1]
     raise ValueError(
         f"edge #{edge_ref}: its curve {sorted(geom)} is not a line, circle or B-spline"

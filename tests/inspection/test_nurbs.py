@@ -602,7 +602,16 @@ DATA;
 #52 = ORIENTED_EDGE('',*,*,#41,.F.);
 #60 = EDGE_LOOP('',(#50,#51,#52));
 #61 = FACE_OUTER_BOUND('',#60,.T.);
-#62 = ADVANCED_FACE('',(#61),#5,.T.);
+#70 = CARTESIAN_POINT('',(40.,40.,0.));
+#71 = CARTESIAN_POINT('',(50.,40.,0.));
+#72 = VERTEX_POINT('',#71);
+#73 = AXIS2_PLACEMENT_3D('',#70,#30,#20);
+#74 = CIRCLE('',#73,10.);
+#75 = EDGE_CURVE('',#72,#72,#74,.T.);
+#76 = ORIENTED_EDGE('',*,*,#75,.F.);
+#77 = EDGE_LOOP('',(#76));
+#78 = FACE_BOUND('',#77,.T.);
+#62 = ADVANCED_FACE('',(#61,#78),#5,.T.);
 ENDSEC;
 END-ISO-10303-21;
 """
@@ -612,7 +621,8 @@ def test_a_step_face_brings_its_trim(tmp_path):  # type: ignore[no-untyped-def]
     from inspection.nurbs.step import read_step_faces
 
     # A 100 x 100 mm square patch trimmed to a quarter disc of radius 80 mm
-    # about (10, 10): a line, an arc and a reversed B-spline edge.
+    # about (10, 10) (a line, an arc and a reversed B-spline edge), with a
+    # hole of radius 10 mm about (40, 40) (one closed circular edge).
     (tmp_path / "quarter.step").write_text(TRIMMED_STEP)
     ((surface, trim),) = read_step_faces(tmp_path / "quarter.step")
     uv = trim.polygon
@@ -622,12 +632,19 @@ def test_a_step_face_brings_its_trim(tmp_path):  # type: ignore[no-untyped-def]
     assert np.all(on_line | on_arc) and on_arc.sum() > 10
     inside = trim.contains(np.array([[0.2, 0.2], [0.6, 0.6], [0.85, 0.85], [0.05, 0.5]]))
     assert inside.tolist() == [True, True, False, False]
+    (hole,) = trim.holes
+    assert np.abs(np.hypot(hole[:, 0] - 0.4, hole[:, 1] - 0.4) - 0.1).max() < 1e-9
+    assert trim.contains(np.array([[0.4, 0.4], [0.4, 0.52]])).tolist() == [False, True]
     # The face measures as trimmed: a point above the cut-away corner finds the arc.
     from inspection.nurbs.closest import closest_points
 
-    got = closest_points(surface, np.array([[95.0, 95.0, 1.0]]), trim=trim)
-    assert got.on_boundary[0]
+    got = closest_points(surface, np.array([[95.0, 95.0, 1.0], [42.0, 40.0, 1.0]]), trim=trim)
+    assert got.on_boundary.all()
     assert np.hypot(*(got.points[0, :2] - 10.0)) == pytest.approx(80.0, abs=1e-6)
+    # Above the hole: the closest point of the face is on the hole's rim, 8 mm
+    # across and 1 mm down (to the polygon's 1 um chords).
+    assert np.hypot(*(got.points[1, :2] - 40.0)) == pytest.approx(10.0, abs=2e-3)
+    assert np.linalg.norm(got.points[1] - [42.0, 40.0, 1.0]) == pytest.approx(65**0.5, abs=2e-3)
 
 
 def test_the_real_b_spline_face_is_bounded_by_its_domain(shared_cad):  # type: ignore[no-untyped-def]
