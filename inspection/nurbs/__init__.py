@@ -9,9 +9,10 @@
   fixed) fitted to points by orthogonal distance; :func:`deviation_along`
   the deviation of such a fitted (measured) curve from its nominal.
 - :func:`closest_points`: foot points on a surface, inside a :class:`Trim`
-  polygon in parameter space when given; :func:`tessellate` turns a face
-  into a CAD model for the grid tree, and :class:`ExactTree` refines the
-  tree's closest points on the exact surface.
+  polygon in parameter space when given; :func:`tessellate` and
+  :func:`tessellate_faces` turn faces into a CAD model for the grid tree,
+  and :class:`ExactTree` refines the tree's closest points on the exact
+  surfaces.
 - :func:`read_step_surfaces` and :func:`read_step_faces` (a light reader of
   STEP's B-spline surfaces, and of their faces' outer boundaries as trims)
   and :func:`read_3dm_surfaces` (Rhino's 3dm, through rhino3dm), with writers.
@@ -28,7 +29,7 @@ from .closest import SurfaceClosest, Trim, closest_points
 from .curve import Curve
 from .fit import METHODS, CurveDeviation, CurveFit, deviation_along, fit_curve
 from .flops import EvaluationFlops, basis_flops, evaluation_flops
-from .model import ExactTree, NurbsFace, tessellate
+from .model import ExactTree, NurbsModel, tessellate, tessellate_faces
 from .rhino import read_3dm_surfaces, write_3dm_surfaces
 from .step import read_step_faces, read_step_surfaces, write_step_surfaces
 from .surface import Surface
@@ -40,7 +41,7 @@ __all__ = [
     "CurveFit",
     "EvaluationFlops",
     "ExactTree",
-    "NurbsFace",
+    "NurbsModel",
     "Surface",
     "SurfaceClosest",
     "Trim",
@@ -53,6 +54,7 @@ __all__ = [
     "read_step_faces",
     "read_step_surfaces",
     "tessellate",
+    "tessellate_faces",
     "write_3dm_surfaces",
     "write_step_surfaces",
 ]

@@ -1,18 +1,22 @@
-"""A NURBS face as a CAD model: its tessellation for the grid tree, and exact closest points.
+"""NURBS faces as a CAD model: their tessellation for the grid tree, and exact closest points.
 
-:func:`tessellate` samples a (trimmed) surface on a regular parameter grid
-with the grid evaluation and splits every grid cell inside the trim into two
-triangles, keeping each vertex's ``(u, v)``. The grid tree is built on that
-mesh as on any CAD (:meth:`inspection.GridTree.build`); :class:`ExactTree`
-answers a query with the tree and then refines each closest point on the
-exact surface (:func:`.closest.closest_points`), starting from the
-parameters of the tessellation's closest point (interpolated in its
+:func:`tessellate` samples a (trimmed) face on a regular parameter grid with
+the grid evaluation and splits every grid cell inside the trim into two
+triangles, keeping the ``(u, v)`` of every triangle's corners;
+:func:`tessellate_faces` does so for all the faces of a part, each on a grid
+of about ``cell_mm``. The grid tree is built on that mesh as on any CAD
+(:meth:`inspection.GridTree.build`); :class:`ExactTree` answers a query with
+the tree and then refines each closest point on the exact surface of the
+face its triangle belongs to (:func:`.closest.closest_points`), starting
+from the parameters of the tessellation's closest point (interpolated in its
 triangle). A deviation is then measured to the design, not to the chords of
 its tessellation; a mesh-only CAD keeps its plain tree.
 """
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,38 +31,29 @@ from .surface import Surface
 
 
 @dataclass(frozen=True, eq=False)
-class NurbsFace:
-    """A trimmed NURBS face and its tessellation.
+class NurbsModel:
+    """Trimmed NURBS faces and their tessellation.
 
     Attributes
     ----------
-    surface : Surface
-    trim : Trim or None
-    cad : CadModel, the tessellation (faces oriented along S_u x S_v)
-    vertex_params : (V, 2) float64, the (u, v) of each vertex of ``cad``
+    surfaces : tuple of Surface, one per face
+    trims : tuple of Trim or None, one per face
+    cad : CadModel, the tessellation (triangles oriented along S_u x S_v)
+    triangle_face : (F,) int64, the face each triangle of ``cad`` samples
+    corner_params : (F, 3, 2) float64, the (u, v) of each triangle's corners
     """
 
-    surface: Surface
-    trim: Trim | None
+    surfaces: tuple[Surface, ...]
+    trims: tuple[Trim | None, ...]
     cad: CadModel
-    vertex_params: FloatArray
+    triangle_face: np.ndarray
+    corner_params: FloatArray
 
 
-def tessellate(
-    surface: Surface, m: int, k: int, *, trim: Trim | None = None, name: str = "nurbs"
-) -> NurbsFace:
-    """The surface sampled on an ``m x k`` regular parameter grid, as triangles.
-
-    Grid cells with a corner outside the trim polygon are left out, so the
-    tessellation stays inside the face.
-
-    Parameters
-    ----------
-    surface : Surface
-    m, k : int >= 2, grid lines along u and v
-    trim : Trim, optional
-    name : str, the CAD model's name
-    """
+def _grid_triangles(
+    surface: Surface, m: int, k: int, trim: Trim | None
+) -> tuple[FloatArray, np.ndarray, FloatArray]:
+    """Vertices (m k, 3), triangles (t, 3) and the vertices' (u, v) (m k, 2)."""
     if min(m, k) < 2:
         raise InvalidInput(f"a tessellation needs at least 2 x 2 grid lines, got {m} x {k}")
     us = np.linspace(*surface.domain_u, m)
@@ -75,33 +70,100 @@ def tessellate(
         a, b, c, d = a[keep], b[keep], c[keep], d[keep]
         if a.size == 0:
             raise InvalidInput("no grid cell of the tessellation lies inside the trim")
-    # Counter-clockwise in (u, v), so the faces' normals follow S_u x S_v.
-    faces = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
-    cad = CadModel.from_arrays(vertices, faces, name=name, source=f"<nurbs {name}>")
-    # The model merges and renumbers vertices: find each one's grid vertex.
-    dist, j = cKDTree(vertices).query(cad.vertices)
-    if dist.max() > 0 or np.unique(j).size != j.size:
-        raise InvalidInput("the surface folds onto itself on this grid: vertices coincide")
-    params = np.ascontiguousarray(uv[j])
-    params.setflags(write=False)
-    return NurbsFace(surface, trim, cad, params)
+    # Counter-clockwise in (u, v), so the triangles' normals follow S_u x S_v.
+    return vertices, np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)]), uv
+
+
+def _model(
+    surfaces: Sequence[Surface],
+    trims: Sequence[Trim | None],
+    grids: Sequence[tuple[int, int]],
+    name: str,
+) -> NurbsModel:
+    vertices, triangles, corner_uv, owner = [], [], [], []
+    offset = 0
+    for f, (surface, trim, (m, k)) in enumerate(zip(surfaces, trims, grids, strict=True)):
+        v, t, uv = _grid_triangles(surface, m, k, trim)
+        vertices.append(v)
+        triangles.append(t + offset)
+        corner_uv.append(uv[t])
+        owner.append(np.full(t.shape[0], f, dtype=np.int64))
+        offset += v.shape[0]
+    all_v = np.concatenate(vertices)
+    all_t = np.concatenate(triangles)
+    cad = CadModel.from_arrays(all_v, all_t, name=name, source=f"<nurbs {name}>")
+    # The model merges vertices (faces share their edges) and may drop
+    # degenerate triangles, keeping the others' order and corner order: find
+    # each of its triangles among ours by its centroid.
+    ours = all_v[all_t].mean(axis=1)
+    dist, j = cKDTree(ours).query(cad.vertices[cad.faces].mean(axis=1))
+    if dist.max() > 1e-9 * max(1.0, float(np.abs(all_v).max())):
+        raise InvalidInput("the tessellation's triangles could not be matched to their faces")
+    corner = np.ascontiguousarray(np.concatenate(corner_uv)[j])
+    face_of = np.concatenate(owner)[j]
+    for arr in (corner, face_of):
+        arr.setflags(write=False)
+    return NurbsModel(tuple(surfaces), tuple(trims), cad, face_of, corner)
+
+
+def tessellate(
+    surface: Surface, m: int, k: int, *, trim: Trim | None = None, name: str = "nurbs"
+) -> NurbsModel:
+    """One face sampled on an ``m x k`` regular parameter grid, as triangles.
+
+    Grid cells with a corner outside the trim are left out, so the
+    tessellation stays on the face.
+
+    Parameters
+    ----------
+    surface : Surface
+    m, k : int >= 2, grid lines along u and v
+    trim : Trim, optional
+    name : str, the CAD model's name
+    """
+    return _model([surface], [trim], [(m, k)], name)
+
+
+def tessellate_faces(
+    faces: Sequence[tuple[Surface, Trim | None]], *, cell_mm: float = 5.0, name: str = "nurbs"
+) -> NurbsModel:
+    """All the faces of a part (as :func:`.step.read_step_faces` gives them),
+    each on a regular parameter grid of cells of about ``cell_mm``.
+
+    A face's grid has as many cells along u as its control net is long along
+    u (the longest row of the net, an upper bound of the surface's length),
+    divided by ``cell_mm``; likewise along v.
+    """
+    if not (math.isfinite(cell_mm) and cell_mm > 0):
+        raise InvalidInput(f"cell_mm must be a positive number, got {cell_mm!r}")
+    if not faces:
+        raise InvalidInput("no faces to tessellate")
+    grids = []
+    for surface, _ in faces:
+        cp = surface.control_points
+        along_u = np.linalg.norm(np.diff(cp, axis=0), axis=-1).sum(axis=0).max()
+        along_v = np.linalg.norm(np.diff(cp, axis=1), axis=-1).sum(axis=1).max()
+        grids.append(
+            (max(2, math.ceil(along_u / cell_mm) + 1), max(2, math.ceil(along_v / cell_mm) + 1))
+        )
+    return _model([f[0] for f in faces], [f[1] for f in faces], grids, name)
 
 
 class ExactTree:
-    """Closest points on a NURBS face: the grid tree's, refined on the exact surface.
+    """Closest points on NURBS faces: the grid tree's, refined on the exact surfaces.
 
     Answers :meth:`query` like a :class:`inspection.GridTree` (so that
     :func:`inspection.deviations` takes it), with the tree's ``face`` kept.
     """
 
-    def __init__(self, tree: GridTree, face: NurbsFace) -> None:
-        if tree.cad_hash != face.cad.hash:
-            raise InvalidInput("the tree was not built on this face's tessellation")
+    def __init__(self, tree: GridTree, model: NurbsModel) -> None:
+        if tree.cad_hash != model.cad.hash:
+            raise InvalidInput("the tree was not built on this model's tessellation")
         self.tree = tree
-        self.face = face
+        self.model = model
 
     def query(self, points: np.ndarray) -> Closest:
-        """Closest points on the exact (trimmed) surface.
+        """Closest points on the exact (trimmed) faces.
 
         Parameters
         ----------
@@ -110,22 +172,30 @@ class ExactTree:
         Returns
         -------
         Closest, with ``points``, ``normals`` and signed ``distances`` of the
-        exact surface and the tessellation's closest ``face``.
+        exact surfaces and the tessellation's closest ``face`` (triangle).
         """
-        coarse = self.tree.query(points)
-        tri = self.face.cad.faces[coarse.face]
-        corners = self.face.cad.vertices[tri]
-        uv = self.face.vertex_params[tri]
-        start = np.einsum("ij,ijk->ik", _barycentric(coarse.points, corners), uv)
-        exact = closest_points(
-            self.face.surface, np.asarray(points, dtype=np.float64), start, trim=self.face.trim
+        x = np.asarray(points, dtype=np.float64)
+        coarse = self.tree.query(x)
+        cad = self.model.cad
+        corners = cad.vertices[cad.faces[coarse.face]]
+        start = np.einsum(
+            "ij,ijk->ik",
+            _barycentric(coarse.points, corners),
+            self.model.corner_params[coarse.face],
         )
-        return Closest(
-            points=exact.points,
-            normals=exact.normals,
-            distances=exact.distances,
-            face=coarse.face,
-        )
+        out_pts = np.empty_like(x)
+        out_nrm = np.empty_like(x)
+        out_dist = np.empty(x.shape[0])
+        owner = self.model.triangle_face[coarse.face]
+        for f in np.unique(owner):
+            rows = np.flatnonzero(owner == f)
+            exact = closest_points(
+                self.model.surfaces[f], x[rows], start[rows], trim=self.model.trims[f]
+            )
+            out_pts[rows], out_nrm[rows], out_dist[rows] = (
+                exact.points, exact.normals, exact.distances,
+            )  # fmt: skip
+        return Closest(points=out_pts, normals=out_nrm, distances=out_dist, face=coarse.face)
 
 
 def _barycentric(p: FloatArray, tri: FloatArray) -> FloatArray:

@@ -482,7 +482,7 @@ def test_an_exact_tree_refuses_another_tessellation(panel):  # type: ignore[no-u
     from inspection.nurbs.model import ExactTree, tessellate
 
     coarse, fine = tessellate(panel, 6, 5), tessellate(panel, 7, 5)
-    with pytest.raises(InvalidInput, match="not built on this face"):
+    with pytest.raises(InvalidInput, match="not built on this model"):
         ExactTree(GridTree.build(coarse.cad, spacing_mm=5.0, band_mm=5.0), fine)
 
 
@@ -678,3 +678,35 @@ def test_a_measured_edge_deviates_from_its_nominal_as_it_was_made(noisy_samples)
     assert np.abs(dev.distances[inner] - 0.2).max() < 3 * FIT_NOISE_MM
     with pytest.raises(InvalidInput, match="samples must be an integer >= 2"):
         deviation_along(fitted, nominal, samples=1)
+
+
+def test_a_part_of_several_trimmed_faces_measures_to_each_exact_face(tmp_path, panel):  # type: ignore[no-untyped-def]
+    from inspection.grid import GridTree
+    from inspection.nurbs.closest import Trim
+    from inspection.nurbs.model import ExactTree, tessellate_faces
+    from inspection.nurbs.step import read_step_faces
+
+    # The quarter disc with its hole (from STEP) beside the crowned panel.
+    (tmp_path / "quarter.step").write_text(TRIMMED_STEP)
+    ((disc, disc_trim),) = read_step_faces(tmp_path / "quarter.step")
+    moved = Surface(3, 3, panel.knots_u, panel.knots_v, panel.control_points + [300.0, 0, 0],
+                    panel.weights)  # fmt: skip
+    half = Trim(np.array([[0, 0], [0.5, 0], [0.5, 1], [0, 1.0]]))
+    model = tessellate_faces([(disc, disc_trim), (moved, half)], cell_mm=4.0)
+    assert set(np.unique(model.triangle_face)) == {0, 1}
+    exact = ExactTree(GridTree.build(model.cad, spacing_mm=2.0, band_mm=4.0), model)
+    rng = np.random.default_rng(16)
+    # On the disc, 0.5 mm above it, away from its boundary.
+    r, a = rng.uniform(12, 70, 200), rng.uniform(0.05, np.pi / 2 - 0.05, 200)
+    on_disc = np.stack([10 + r * np.cos(a), 10 + r * np.sin(a), np.full(200, 0.5)], 1)
+    on_disc = on_disc[np.hypot(on_disc[:, 0] - 40, on_disc[:, 1] - 40) > 12]
+    # On the panel's kept half, along its normal.
+    uv = rng.uniform([0.05, 0.05], [0.45, 0.95], (200, 2))
+    s, su, sv = moved.evaluate(uv[:, 0], uv[:, 1], 1)
+    normal = np.cross(su, sv)
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    truth = rng.uniform(-0.3, 0.3, 200)
+    got = exact.query(np.concatenate([on_disc, s + truth[:, None] * normal]))
+    n = len(on_disc)
+    assert np.allclose(np.abs(got.distances[:n]), 0.5, atol=1e-9)
+    assert np.abs(got.distances[n:] - truth).max() < 1e-9
