@@ -81,7 +81,8 @@ class Curve:
         ----------
         points : (n, 3) float64, mm
         params : (n,) start parameters in ``domain`` (near the foot points)
-        iterations : Newton steps; a step that would leave the domain stops at its end
+        iterations : at most this many Newton steps (fewer once no point moves by
+            1e-12 mm); a step that would leave the domain stops at its end
 
         Returns
         -------
@@ -99,5 +100,9 @@ class Curve:
             # Away from the foot point h can turn negative; a Gauss-Newton
             # step (|C'|^2 alone) still descends there.
             h = np.where(h > 0, h, np.einsum("ij,ij->i", d1, d1))
-            t = np.clip(t - g / h, *self.domain)
+            new = np.clip(t - g / h, *self.domain)
+            moved = np.abs(new - t) * np.linalg.norm(d1, axis=1)
+            t = new
+            if moved.max(initial=0.0) < 1e-12:
+                break
         return t

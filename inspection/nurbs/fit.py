@@ -43,8 +43,8 @@ a fit stops when the relative decrease of the cost falls below ``tolerance``
 (converged), when no step lowers the cost at any damping (a stationary point,
 also converged), or after ``max_iterations``. Near the minimum the foot
 points and the control points slide along the curve together, a
-reparametrisation that barely changes the curve's shape: fits take hundreds
-of iterations to settle (``bench/bench_nurbs.py`` counts them).
+reparametrisation that barely changes the curve's shape: fits take many
+iterations to settle (``bench/bench_nurbs.py`` counts them).
 
 The first and last points keep their parameters at the domain's ends:
 otherwise the curve's ends can slide along their own tangents with the foot
