@@ -40,6 +40,8 @@ _MAX_STEPS = 30
 # Samples per polygon edge of a trim boundary's image (the start of the
 # search along the edge).
 _EDGE_SAMPLES = 16
+# Elements of the (points, edges) arrays of one chunk of Trim.contains.
+_CONTAINS_CELLS = 1 << 20
 
 
 @dataclass(frozen=True)
@@ -83,13 +85,18 @@ class Trim:
         and in none of its holes (the even-odd rule over all loops)."""
         p = np.asarray(uv, dtype=np.float64)
         a, b = self.edges()
-        u, v = p[:, 0:1], p[:, 1:2]
-        crosses = (a[None, :, 1] > v) != (b[None, :, 1] > v)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            at = a[None, :, 0] + (v - a[None, :, 1]) * (b[None, :, 0] - a[None, :, 0]) / (
-                b[None, :, 1] - a[None, :, 1]
-            )
-        return np.asarray(np.sum(crosses & (u < at), axis=1) % 2 == 1)
+        out = np.empty(p.shape[0], dtype=bool)
+        # In chunks of points: the test holds a (points, edges) array.
+        rows = max(1, _CONTAINS_CELLS // max(a.shape[0], 1))
+        for lo in range(0, p.shape[0], rows):
+            u, v = p[lo : lo + rows, 0:1], p[lo : lo + rows, 1:2]
+            crosses = (a[None, :, 1] > v) != (b[None, :, 1] > v)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                at = a[None, :, 0] + (v - a[None, :, 1]) * (b[None, :, 0] - a[None, :, 0]) / (
+                    b[None, :, 1] - a[None, :, 1]
+                )
+            out[lo : lo + rows] = np.sum(crosses & (u < at), axis=1) % 2 == 1
+        return out
 
 
 def _loop(polygon: Any) -> FloatArray:
