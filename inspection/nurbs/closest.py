@@ -3,14 +3,14 @@
 The foot point of ``x`` minimises ``1/2 |S(u, v) - x|^2`` over the surface's
 parameters. From a start ``(u, v)`` near it (the best sample of a regular
 parameter grid, or the parameters of a tessellation's closest point),
-Gauss-Newton on the two parameters,
+Newton's method on the two parameters,
 
-    [S_u.S_u  S_u.S_v] [du]     [S_u.r]
-    [S_u.S_v  S_v.S_v] [dv] = - [S_v.r],    r = S - x,
+    [S_u.S_u + r.S_uu  S_u.S_v + r.S_uv] [du]     [S_u.r]
+    [S_u.S_v + r.S_uv  S_v.S_v + r.S_vv] [dv] = - [S_v.r],    r = S - x,
 
-converges at a rate of about |r| times the surface's curvature per step, so
-a few steps reach the foot point of points within millimetres of a panel
-whose radii are hundreds of millimetres. Steps are clipped to the domain.
+converges quadratically; where that Hessian is not positive definite (far
+off the concave side) the step is Gauss-Newton's (without the ``r.S``
+terms), which still descends. Steps are clipped to the domain.
 
 **Trimming.** A :class:`Trim` is the simple model of a trimmed face: a
 boundary polygon in parameter space and the polygons of its holes, the face
@@ -123,7 +123,7 @@ class SurfaceClosest:
     normals : (n, 3) float64, unit normal S_u x S_v / |S_u x S_v| there
     distances : (n,) float64, mm, signed: positive on the normal's side
     on_boundary : (n,) bool, the closest point lies on the trim boundary
-    converged : (n,) bool, the last step moved less than 1e-10 mm
+    converged : (n,) bool, the last step would have moved less than 1e-10 mm
     """
 
     points: FloatArray
@@ -174,7 +174,7 @@ def closest_points(
     lo = np.array([surface.domain_u[0], surface.domain_v[0]])
     hi = np.array([surface.domain_u[1], surface.domain_v[1]])
     uv = np.clip(uv, lo, hi)
-    uv, converged, (s, su, sv) = _gauss_newton(surface, x, uv, lo, hi)
+    uv, converged, (s, su, sv) = _newton(surface, x, uv, lo, hi)
     on_boundary = np.zeros(x.shape[0], dtype=bool)
     if trim is not None:
         outside = ~trim.contains(uv)
@@ -195,7 +195,7 @@ def closest_points(
     return SurfaceClosest(s, uv, n, dist, on_boundary, converged)
 
 
-def _gauss_newton(
+def _newton(
     surface: Surface, x: FloatArray, uv: FloatArray, lo: FloatArray, hi: FloatArray
 ) -> tuple[FloatArray, np.ndarray, tuple[FloatArray, FloatArray, FloatArray]]:
     """Foot parameters, whether each converged, and the surface's point and
@@ -204,7 +204,7 @@ def _gauss_newton(
     n = x.shape[0]
     converged = np.zeros(n, dtype=np.bool_)
     pts, d_du, d_dv = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3))
-    kernels.closest_gauss_newton(
+    kernels.closest_newton(
         surface.degree_u, surface.degree_v, surface.knots_u, surface.knots_v,
         surface.homogeneous, np.ascontiguousarray(x), uv, lo[0], hi[0], lo[1], hi[1],
         _STEP_TOL_MM, _MAX_STEPS, converged, pts, d_du, d_dv,

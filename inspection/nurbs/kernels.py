@@ -128,15 +128,49 @@ def surface_points(p, q, knots_u, knots_v, pw, us, vs, nd, pts, d_du, d_dv):  # 
         )  # fmt: skip
 
 
-@njit(cache=True, nogil=True, fastmath=True)
-def closest_gauss_newton(
-    p, q, knots_u, knots_v, pw, x, uv, lo_u, hi_u, lo_v, hi_v, tol, max_steps, converged,
-    pts, d_du, d_dv,
+@njit(cache=True, nogil=True, fastmath=True, inline="always")
+def _surface_point2(
+    p, q, knots_u, knots_v, pw, u, v, ndu_u, left_u, right_u, a_u, bu,
+    ndu_v, left_v, right_v, a_v, bv, out, h,
 ):  # pragma: no cover  # fmt: skip
-    """Gauss-Newton on (u, v) for the foot point of every ``x[i]`` from ``uv[i]``
-    (updated in place), steps clipped to the domain; ``converged[i]`` when a
-    step would move the point by less than ``tol`` (mm), which is then not
-    taken, so that ``pts``, ``d_du`` and ``d_dv`` are the surface's at ``uv``."""
+    """``out`` (6, 3): S, S_u, S_v, S_uu, S_uv, S_vv at (u, v) (NURBS Book eq.
+    4.20: the quotient rule applied twice); ``h`` (6, 4) scratch for the
+    homogeneous sums A, A_u, A_v, A_uu, A_uv, A_vv."""
+    su = find_span(pw.shape[0] - 1, p, u, knots_u)
+    ders_basis(su, u, p, knots_u, 2, ndu_u, left_u, right_u, a_u, bu)
+    sv = find_span(pw.shape[1] - 1, q, v, knots_v)
+    ders_basis(sv, v, q, knots_v, 2, ndu_v, left_v, right_v, a_v, bv)
+    for r in range(6):
+        for c in range(4):
+            h[r, c] = 0.0
+    for k in range(p + 1):
+        row = su - p + k
+        for l in range(q + 1):
+            col = sv - q + l
+            for c in range(4):
+                w = pw[row, col, c]
+                h[0, c] += bu[0, k] * bv[0, l] * w
+                h[1, c] += bu[1, k] * bv[0, l] * w
+                h[2, c] += bu[0, k] * bv[1, l] * w
+                h[3, c] += bu[2, k] * bv[0, l] * w
+                h[4, c] += bu[1, k] * bv[1, l] * w
+                h[5, c] += bu[0, k] * bv[2, l] * w
+    inv = 1.0 / h[0, 3]
+    for c in range(3):
+        s0 = h[0, c] * inv
+        s_u = (h[1, c] - h[1, 3] * s0) * inv
+        s_v = (h[2, c] - h[2, 3] * s0) * inv
+        out[0, c] = s0
+        out[1, c] = s_u
+        out[2, c] = s_v
+        out[3, c] = (h[3, c] - 2.0 * h[1, 3] * s_u - h[3, 3] * s0) * inv
+        out[4, c] = (h[4, c] - h[1, 3] * s_v - h[2, 3] * s_u - h[4, 3] * s0) * inv
+        out[5, c] = (h[5, c] - 2.0 * h[2, 3] * s_v - h[5, 3] * s0) * inv
+
+
+@njit(cache=True, nogil=True, fastmath=True)
+def surface_points2(p, q, knots_u, knots_v, pw, us, vs, out):  # pragma: no cover
+    """``out[k]`` (n, 3): S, S_u, S_v, S_uu, S_uv, S_vv at ``(us[i], vs[i])``."""
     ndu_u = np.empty((p + 1, p + 1))
     left_u = np.empty(p + 1)
     right_u = np.empty(p + 1)
@@ -145,50 +179,95 @@ def closest_gauss_newton(
     left_v = np.empty(q + 1)
     right_v = np.empty(q + 1)
     a_v = np.empty((2, q + 1))
-    bu = np.empty((2, p + 1))
-    bv = np.empty((2, q + 1))
+    bu = np.empty((3, p + 1))
+    bv = np.empty((3, q + 1))
+    one = np.empty((6, 3))
+    h = np.empty((6, 4))
+    for i in range(us.shape[0]):
+        _surface_point2(
+            p, q, knots_u, knots_v, pw, us[i], vs[i], ndu_u, left_u, right_u, a_u, bu,
+            ndu_v, left_v, right_v, a_v, bv, one, h,
+        )  # fmt: skip
+        for k in range(6):
+            for c in range(3):
+                out[k, i, c] = one[k, c]
+
+
+@njit(cache=True, nogil=True, fastmath=True)
+def closest_newton(
+    p, q, knots_u, knots_v, pw, x, uv, lo_u, hi_u, lo_v, hi_v, tol, max_steps, converged,
+    pts, d_du, d_dv,
+):  # pragma: no cover  # fmt: skip
+    """Newton on (u, v) for the foot point of every ``x[i]`` from ``uv[i]``
+    (updated in place), minimising |S - x|^2 / 2; steps clipped to the domain.
+    Where the Hessian is not positive definite (far from the foot point, on
+    the concave side) the step is Gauss-Newton's. ``converged[i]`` when a step
+    would move the point by less than ``tol`` (mm), which is then not taken,
+    so that ``pts``, ``d_du`` and ``d_dv`` are the surface's at ``uv``."""
+    ndu_u = np.empty((p + 1, p + 1))
+    left_u = np.empty(p + 1)
+    right_u = np.empty(p + 1)
+    a_u = np.empty((2, p + 1))
+    ndu_v = np.empty((q + 1, q + 1))
+    left_v = np.empty(q + 1)
+    right_v = np.empty(q + 1)
+    a_v = np.empty((2, q + 1))
+    bu = np.empty((3, p + 1))
+    bv = np.empty((3, q + 1))
+    d = np.empty((6, 3))
+    h = np.empty((6, 4))
     for i in range(x.shape[0]):
         u = uv[i, 0]
         v = uv[i, 1]
         converged[i] = False
-        for _ in range(max_steps):
-            _surface_point(
-                p, q, knots_u, knots_v, pw, u, v, 1, ndu_u, left_u, right_u, a_u, bu,
-                ndu_v, left_v, right_v, a_v, bv, pts, d_du, d_dv, i,
+        for step in range(max_steps + 1):
+            _surface_point2(
+                p, q, knots_u, knots_v, pw, u, v, ndu_u, left_u, right_u, a_u, bu,
+                ndu_v, left_v, right_v, a_v, bv, d, h,
             )  # fmt: skip
             a11 = a12 = a22 = b1 = b2 = 0.0
+            r11 = r12 = r22 = 0.0
             for c in range(3):
-                r = pts[i, c] - x[i, c]
-                a11 += d_du[i, c] * d_du[i, c]
-                a12 += d_du[i, c] * d_dv[i, c]
-                a22 += d_dv[i, c] * d_dv[i, c]
-                b1 -= d_du[i, c] * r
-                b2 -= d_dv[i, c] * r
-            det = a11 * a22 - a12 * a12
-            if det > 1e-12 * a11 * a22:
-                du = (a22 * b1 - a12 * b2) / det
-                dv = (a11 * b2 - a12 * b1) / det
+                r = d[0, c] - x[i, c]
+                a11 += d[1, c] * d[1, c]
+                a12 += d[1, c] * d[2, c]
+                a22 += d[2, c] * d[2, c]
+                b1 -= d[1, c] * r
+                b2 -= d[2, c] * r
+                r11 += r * d[3, c]
+                r12 += r * d[4, c]
+                r22 += r * d[5, c]
+            h11, h12, h22 = a11 + r11, a12 + r12, a22 + r22
+            det = h11 * h22 - h12 * h12
+            if h11 > 0 and det > 1e-12 * h11 * h22:
+                du = (h22 * b1 - h12 * b2) / det
+                dv = (h11 * b2 - h12 * b1) / det
             else:
-                # A degenerate point (a collapsed edge): a gradient step.
-                du = b1 / max(a11, 1e-300)
-                dv = b2 / max(a22, 1e-300)
+                det = a11 * a22 - a12 * a12
+                if det > 1e-12 * a11 * a22:
+                    du = (a22 * b1 - a12 * b2) / det
+                    dv = (a11 * b2 - a12 * b1) / det
+                else:
+                    # A degenerate point (a collapsed edge): a gradient step.
+                    du = b1 / max(a11, 1e-300)
+                    dv = b2 / max(a22, 1e-300)
             du = min(max(u + du, lo_u), hi_u) - u
             dv = min(max(v + dv, lo_v), hi_v) - v
             moved = 0.0
             for c in range(3):
-                m = d_du[i, c] * du + d_dv[i, c] * dv
+                m = d[1, c] * du + d[2, c] * dv
                 moved += m * m
             if moved < tol * tol:
                 converged[i] = True
                 break
+            if step == max_steps:
+                break  # out of steps: the outputs stay at the last point evaluated
             u += du
             v += dv
-        if not converged[i]:
-            # Out of steps: the outputs belong to where the last step went.
-            _surface_point(
-                p, q, knots_u, knots_v, pw, u, v, 1, ndu_u, left_u, right_u, a_u, bu,
-                ndu_v, left_v, right_v, a_v, bv, pts, d_du, d_dv, i,
-            )  # fmt: skip
+        for c in range(3):
+            pts[i, c] = d[0, c]
+            d_du[i, c] = d[1, c]
+            d_dv[i, c] = d[2, c]
         uv[i, 0] = u
         uv[i, 1] = v
 

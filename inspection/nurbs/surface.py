@@ -82,27 +82,35 @@ class Surface:
         self, u: Any, v: Any, derivatives: Literal[1]
     ) -> tuple[FloatArray, FloatArray, FloatArray]: ...
 
-    def evaluate(
-        self, u: Any, v: Any, derivatives: int = 0
-    ) -> FloatArray | tuple[FloatArray, FloatArray, FloatArray]:
+    @overload
+    def evaluate(self, u: Any, v: Any, derivatives: Literal[2]) -> tuple[FloatArray, ...]: ...
+
+    def evaluate(self, u: Any, v: Any, derivatives: int = 0) -> FloatArray | tuple[FloatArray, ...]:
         """Points at the parameter pairs ``(u[i], v[i])``.
 
         Parameters
         ----------
         u, v : (n,) float64 in ``domain_u`` and ``domain_v`` (or scalars)
-        derivatives : 0 or 1
+        derivatives : 0, 1 or 2
 
         Returns
         -------
         points : (n, 3) float64, mm; with ``derivatives=1`` the tuple
-        ``(points, d_du, d_dv)`` of (n, 3) arrays (mm per unit parameter).
+        ``(points, d_du, d_dv)`` of (n, 3) arrays (mm per unit parameter);
+        with ``derivatives=2`` also ``d_duu, d_duv, d_dvv``.
         """
-        nd = check_derivatives(derivatives, 1)
+        nd = check_derivatives(derivatives, 2)
         us = check_params(u, self.domain_u, "u")
         vs = check_params(v, self.domain_v, "v")
         if us.shape != vs.shape:
             raise InvalidInput(f"u and v must have the same length, got {us.size} and {vs.size}")
         n = us.shape[0]
+        if nd == 2:
+            out = np.empty((6, n, 3))
+            kernels.surface_points2(
+                self.degree_u, self.degree_v, self.knots_u, self.knots_v, self._pw, us, vs, out
+            )
+            return tuple(out)
         pts = np.empty((n, 3))
         d_du = np.empty((n if nd else 0, 3))
         d_dv = np.empty((n if nd else 0, 3))

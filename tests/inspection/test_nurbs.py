@@ -101,6 +101,28 @@ def test_first_derivatives_match_finite_differences(surface):  # type: ignore[no
     assert scale > 1.0
 
 
+def test_second_derivatives_match_finite_differences(surface):  # type: ignore[no-untyped-def]
+    rng = np.random.default_rng(20)
+    h = 1e-6
+    u = rng.uniform(surface.domain_u[0] + 0.01, surface.domain_u[1] - 0.01, 300)
+    v = rng.uniform(surface.domain_v[0] + 0.01, surface.domain_v[1] - 0.01, 300)
+    far_u = np.min(np.abs(u[:, None] - surface.knots_u[None]), axis=1) > 2 * h
+    far_v = np.min(np.abs(v[:, None] - surface.knots_v[None]), axis=1) > 2 * h
+    u, v = u[far_u & far_v], v[far_u & far_v]
+    s, su, sv, suu, suv, svv = surface.evaluate(u, v, derivatives=2)
+    first = surface.evaluate(u, v, derivatives=1)
+    for a, b in zip((s, su, sv), first, strict=True):
+        assert np.abs(a - b).max() < 1e-9 * max(1.0, np.abs(b).max())
+    _, su_p, sv_p = surface.evaluate(u + h, v, 1)
+    _, su_m, sv_m = surface.evaluate(u - h, v, 1)
+    _, _, sv_q = surface.evaluate(u, v + h, 1)
+    _, _, sv_r = surface.evaluate(u, v - h, 1)
+    scale = max(np.abs(suu).max(), np.abs(svv).max(), np.abs(suv).max())
+    assert np.abs(suu - (su_p - su_m) / (2 * h)).max() < 1e-5 * scale
+    assert np.abs(suv - (sv_p - sv_m) / (2 * h)).max() < 1e-5 * scale
+    assert np.abs(svv - (sv_q - sv_r) / (2 * h)).max() < 1e-5 * scale
+
+
 def test_grid_evaluation_equals_point_evaluation(surface):  # type: ignore[no-untyped-def]
     rng = np.random.default_rng(3)
     us = np.sort(rng.uniform(*surface.domain_u, 23))
@@ -208,8 +230,10 @@ def test_invalid_parameters_are_refused_clearly(surface):  # type: ignore[no-unt
         surface.evaluate([hi + 1e-9], [surface.domain_v[0]])
     with pytest.raises(InvalidInput, match="same length"):
         surface.evaluate([lo, hi], [surface.domain_v[0]])
+    with pytest.raises(InvalidInput, match="derivatives must be one of 0..2"):
+        surface.evaluate([lo], [surface.domain_v[0]], derivatives=3)
     with pytest.raises(InvalidInput, match="derivatives must be one of 0..1"):
-        surface.evaluate([lo], [surface.domain_v[0]], derivatives=2)
+        surface.evaluate_grid([lo], [surface.domain_v[0]], derivatives=2)
     with pytest.raises(InvalidInput, match="vs must be finite"):
         surface.evaluate_grid([lo], [np.inf])
 
@@ -430,6 +454,21 @@ def test_closest_points_against_a_dense_oracle(panel, dense):  # type: ignore[no
     assert np.abs(np.einsum("ij,ij->i", r, su)).max() < 1e-8 * np.abs(su).max()
     assert np.abs(np.einsum("ij,ij->i", r, sv)).max() < 1e-8 * np.abs(sv).max()
     assert np.allclose(np.abs(got.distances), d, atol=1e-9)
+
+
+def test_closest_points_far_off_the_surface_converge(panel):  # type: ignore[no-untyped-def]
+    from inspection.nurbs.closest import closest_points
+
+    rng = np.random.default_rng(17)
+    uv = rng.uniform(0.1, 0.9, (300, 2))
+    s, su, sv = panel.evaluate(uv[:, 0], uv[:, 1], 1)
+    normal = np.cross(su, sv)
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    off = rng.choice([-20.0, 20.0], 300)  # both sides, the concave one too
+    got = closest_points(panel, s + off[:, None] * normal)
+    assert got.converged.all()
+    assert np.allclose(got.distances, off, atol=1e-9)
+    assert np.allclose(got.params, uv, atol=1e-9)
 
 
 def test_trimming_is_respected(panel, dense):  # type: ignore[no-untyped-def]
