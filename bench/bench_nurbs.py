@@ -12,7 +12,9 @@ first derivatives on 1000 x 1000 parameters:
   on a 100 x 100 subgrid, compared per point.
 
 Wall and CPU times are medians of interleaved rounds (so that load from
-elsewhere hits all alike); ratios are per point. The flop counts are those
+elsewhere hits all alike; the grid is timed over 10 evaluations per round, a
+block as long as one per-point pass); ratios are per point, and the goal's
+ratio is the median of the rounds' own ratios. The flop counts are those
 of :func:`inspection.nurbs.evaluation_flops`. The largest differences are
 those between the grid and the other two, points in mm and derivatives in
 mm per unit parameter (and relative to the derivatives' size).
@@ -68,6 +70,7 @@ import numpy as np  # noqa: E402
 GRID = 1000
 SUBGRID = 100
 ROUNDS = 5
+GRID_REPEATS = 10
 PEER_ROUNDS = 3
 AGREEMENT_MM = 1e-9
 
@@ -150,8 +153,12 @@ def evaluation() -> bool:
     times: dict[str, list[tuple[float, float]]] = {"grid": [], "point": [], "geomdl": []}
     grid_out = point_out = peer_out = None
     for r in range(ROUNDS):
-        wall, cpu, grid_out = _timed(lambda: s.evaluate_grid(us, vs, 1))
-        times["grid"].append((wall, cpu))
+        # A block of grid evaluations as long as one per-point pass, so that
+        # a time slice lost to the shared machine weighs on both alike.
+        wall, cpu, grid_out = _timed(
+            lambda: [s.evaluate_grid(us, vs, 1) for _ in range(GRID_REPEATS)][-1]
+        )
+        times["grid"].append((wall / GRID_REPEATS, cpu / GRID_REPEATS))
         wall, cpu, point_out = _timed(lambda: s.evaluate(uu, vv, 1))
         times["point"].append((wall, cpu))
         if geomdl_surface is not None and r < PEER_ROUNDS:
@@ -204,13 +211,21 @@ def evaluation() -> bool:
             f"{abs_der:.1e} mm/param ({der_peer:.1e} relative) "
             f"({'ok' if pts_peer <= AGREEMENT_MM else 'FAILED'})"
         )
-    point_ratio = per_point_ns("point", n)[0] / grid_ns[0]
-    print(f"goal: grid >= 10x our per point: {point_ratio:.1f}x "
-          f"({'met' if point_ratio >= 10 else 'not met'})")  # fmt: skip
+
+    # The rounds' own ratios (grid and per point timed back to back), medians.
+    def round_ratio(k: int) -> float:
+        pairs = zip(times["point"], times["grid"], strict=True)
+        return float(statistics.median(pt[k] / gr[k] for pt, gr in pairs))
+
+    w_ratio, c_ratio = round_ratio(0), round_ratio(1)
+    print(f"goal: grid >= 10x our per point: {w_ratio:.1f}x wall, {c_ratio:.1f}x CPU "
+          f"(median of the rounds' ratios; "
+          f"{'met' if min(w_ratio, c_ratio) >= 10 else 'not met'})")  # fmt: skip
     if times["geomdl"]:
-        peer_ratio = per_point_ns("geomdl", SUBGRID * SUBGRID)[0] / grid_ns[0]
-        print(f"goal: grid >= 50x geomdl per point: {peer_ratio:.0f}x "
-              f"({'met' if peer_ratio >= 50 else 'not met'})")  # fmt: skip
+        peer_w = per_point_ns("geomdl", SUBGRID * SUBGRID)[0] / grid_ns[0]
+        peer_c = per_point_ns("geomdl", SUBGRID * SUBGRID)[1] / grid_ns[1]
+        print(f"goal: grid >= 50x geomdl per point: {peer_w:.0f}x wall, {peer_c:.0f}x CPU "
+              f"({'met' if min(peer_w, peer_c) >= 50 else 'not met'})")  # fmt: skip
     return ok
 
 
