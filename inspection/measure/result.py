@@ -97,6 +97,11 @@ class Measurement:
         The same stages' CPU time, ms: the whole process's, every thread (the
         reconstruction's pool included), so the sequence's own in a process
         that does nothing else.
+    maps : dict of str to (H, W) float64
+        What a sensor measures on its own pixel grid, NaN where not measured:
+        the holographic head's ``phase`` (the wrapped phase difference, rad)
+        and ``deviation`` (of each measured pixel from the CAD, mm). Empty for
+        the flash rig, whose cloud has no pixel grid.
     """
 
     verdict: Verdict | None
@@ -110,6 +115,7 @@ class Measurement:
     passes: tuple[Pass, ...] = field(default=(), repr=False)
     timings_ms: dict[str, float] = field(default_factory=dict)
     cpu_ms: dict[str, float] = field(default_factory=dict)
+    maps: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
 
     def points_cad(self) -> np.ndarray | None:
         """``points`` mapped into the CAD frame (None without a transform)."""
