@@ -116,6 +116,16 @@ class HoloHead:
             references=(ReferenceWave(-tilt, -tilt), ReferenceWave(-tilt, tilt)),
         )
 
+    def as_built(self) -> tuple[ReferenceWave, ReferenceWave]:
+        """The reference waves of the simulated head as built: the design's tilted by about
+        a tenth of a mrad and curved (radii of tens of metres), as a real head's differ from
+        its design; what the simulated line records with and its calibration finds."""
+        r = self.references
+        return (
+            ReferenceWave(r[0].tilt_x_mrad + 0.11, r[0].tilt_y_mrad - 0.07, 50_000.0),
+            ReferenceWave(r[1].tilt_x_mrad - 0.05, r[1].tilt_y_mrad + 0.09, -70_000.0),
+        )
+
     # -- derived -------------------------------------------------------------
     @property
     def wavelengths_mm(self) -> tuple[float, float]:
