@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import pickle
 import signal
 import subprocess
 import sys
@@ -24,10 +25,14 @@ from linekit import ROOT, client, free_port
 from mcap.reader import make_reader
 
 from service import bus
-from service.config import ConfigError, load_line_config
-from service.pipeline import HoloRig, Pipeline, holography_stages
+from service.config import ConfigError, load_line_config, load_part_spec
+from service.ingest import FixtureSettings, SimPart, SimulatedHead
+from service.parts import load_part, load_part_cad
+from service.pipeline import HoloRig, Pipeline, error_result, holography_stages
 from service.protocol import FrameSet, decode_frameset, frameset_version
+from service.recorder import Recorder, read_recording
 from service.replay import Tolerances, replay
+from service.results import Outcome
 from service.worker import result_from_json
 
 PIXELS = 128
@@ -226,6 +231,66 @@ def stages():
     return holography_stages(rig.calibrate(), T_head_cad=np.eye(4), truth=rig)
 
 
+@pytest.fixture(scope="module")
+def plate(trees):
+    spec = load_part_spec(ROOT / "configs" / "parts" / f"{PART}.toml")
+    return load_part(spec, ROOT / "configs" / "parts", trees)
+
+
+def _head(stages, defect_rate: float) -> SimulatedHead:
+    cad = load_part_cad(load_part_spec(ROOT / "configs" / "parts" / f"{PART}.toml"), ROOT)
+    return SimulatedHead(
+        stages,
+        [SimPart.from_cad(PART, cad)],
+        line=LINE,
+        station=STATION,
+        settings=FixtureSettings(T_head_cad=np.eye(4), defect_rate=defect_rate, seed=3),
+    )
+
+
+def test_the_simulated_head_is_seeded_and_its_dents_are_measured_where_its_truth_says(
+    stages, plate
+):
+    head = _head(stages, defect_rate=1.0)
+    a, b = head.capture(7, 10), head.capture(7, 10)
+    assert np.array_equal(a.images[0], b.images[0]) and a.serial == b.serial
+    assert not np.array_equal(a.images[0], head.capture(3, 10).images[0])
+    (dent,) = a.truth.defects
+    # Seed 3, seq 7: a dent on the plate, clear of the CAD's edges (whose band is not measured).
+    assert dent.center_mm[0] < -1.5 and dent.center_mm[1] > 1.5
+    m = stages.measure(plate, a.images)
+    dev = m.maps["deviation"]
+    x, y = stages.rig.head.grid()
+    centre = np.linalg.inv(m.transform) @ np.array([*dent.center_mm, 1.0])
+    r = np.hypot(x - centre[0], y - centre[1])
+    # The deepest measured pixels lie at the dent's centre, as deep as its truth.
+    core = np.isfinite(dev) & (r < 0.2 * dent.radius_mm)
+    clear = np.isfinite(dev) & (r > 1.5 * dent.radius_mm)
+    assert core.any() and clear.sum() > 1000
+    assert np.median(dev[core]) == pytest.approx(-dent.depth_mm, abs=0.25 * dent.depth_mm + 0.01)
+    assert abs(np.median(dev[clear])) < 0.005
+
+
+def test_the_holographic_stages_measure_the_same_in_another_process(stages, plate):
+    fs = _head(stages, defect_rate=0.0).capture(0, 10)
+    remade = pickle.loads(pickle.dumps(stages.remake))(1)
+    assert remade.name == "holography" and remade.calibration_id == stages.calibration_id
+    here, there = stages.measure(plate, fs.images), remade.measure(plate, fs.images)
+    assert np.array_equal(here.transform, there.transform)
+    assert np.array_equal(here.maps["deviation"], there.maps["deviation"], equal_nan=True)
+
+
+def test_a_hologram_of_another_size_is_an_error_result(stages, plate):
+    fs = _head(stages, defect_rate=0.0).capture(0, 10)
+    small = FrameSet(
+        line=LINE, station=STATION, part=PART, serial="s2", seq=1, triggered_ns=2,
+        calibration_id=stages.calibration_id, images=[fs.images[0][:64, :64].copy()],
+        sensor="holography",
+    )  # fmt: skip
+    r = Pipeline(stages, {PART: plate}).run(small).result
+    assert r.status.value == "error" and "128x128 mono16" in r.reason
+
+
 def test_a_flash_frameset_is_refused_by_a_holographic_station(stages):
     fs = FrameSet(
         line=LINE, station=STATION, part=PART, serial="s1", seq=0, triggered_ns=1,
@@ -247,3 +312,29 @@ def test_config_refuses_a_holography_section_on_a_flash_station(tmp_path):
     path.write_text('[station]\nsensor = "laser"\n')
     with pytest.raises(ConfigError, match="sensor"):
         load_line_config(path)
+
+
+@pytest.mark.parametrize("encoding", ["raw", "png"])
+def test_a_mono16_frameset_and_its_maps_are_recorded_and_read_back(tmp_path, encoding):
+    rng = np.random.default_rng(0)
+    image = rng.integers(0, 4096, (32, 48)).astype(np.uint16)
+    fs = FrameSet(
+        line=LINE, station=STATION, part=PART, serial="s3", seq=0, triggered_ns=5,
+        calibration_id="c", images=[image], cameras=["holo"], sensor="holography",
+    )  # fmt: skip
+    maps = {"phase": np.where(image > 2000, 1.5, np.nan), "deviation": np.full((32, 48), -0.01)}
+    result = error_result(line=LINE, station=STATION, seq=0, triggered_ns=5, reason="r",
+                          part=PART, serial="s3")  # fmt: skip
+    rec = Recorder(tmp_path, "run", image_encoding=encoding)
+    rec.record(Outcome(result, maps=maps), fs)
+    rec.close()
+    files = sorted(tmp_path.glob("*.mcap"))
+    _, (trigger,) = read_recording(files)
+    back = trigger.frameset
+    assert back is not None and back.sensor == "holography" and back.cameras == ["holo"]
+    assert back.images[0].dtype == np.uint16 and np.array_equal(back.images[0], image)
+    msgs = _messages(files)
+    phase = _raw(msgs["/maps/phase"][0])
+    values = np.frombuffer(phase.data, "<f4").reshape(32, 48)
+    assert np.array_equal(np.isnan(values), np.isnan(maps["phase"]))
+    assert np.all(values[~np.isnan(values)] == 1.5)
