@@ -956,6 +956,30 @@ class LineConfig(_Strict):
     def _holography_for_its_sensor(self) -> LineConfig:
         if self.holography is not None and self.station.sensor is not Sensor.holography:
             raise ValueError('a [holography] section is for a station with sensor = "holography"')
+        path = self.holo_calibration_path()
+        if path is not None:
+            # Read here, not when the stages are built: a bad file stops the start-up with
+            # the key and the file named.
+            from inspection.errors import InspectionError
+            from inspection.holography import HoloCalibration
+
+            if not path.is_file():
+                raise ValueError(f"[holography] calibration: no such file {str(path)!r}")
+            try:
+                head = HoloCalibration.load(path).head
+            except (OSError, InspectionError) as exc:
+                raise ValueError(f"[holography] calibration: {exc}") from None
+            h = self.head()
+            if (head.pixels, head.field_mm, head.synthetic_mm) != (
+                h.pixels,
+                h.field_mm,
+                h.synthetic_mm,
+            ):
+                raise ValueError(
+                    f"[holography] calibration {path.name} is for {head.pixels} px over "
+                    f"{head.field_mm:g} mm with a {head.synthetic_mm:g} mm synthetic wavelength; "
+                    f"the section says {h.pixels} px, {h.field_mm:g} mm, {h.synthetic_mm:g} mm"
+                )
         return self
 
     def head(self) -> HolographySection:

@@ -285,9 +285,7 @@ def holo_stages_for(cfg: LineConfig) -> Stages:
     path = cfg.holo_calibration_path()
     try:
         calib = HoloCalibration.load(path) if path is not None else truth.calibrate()
-    except OSError as exc:
-        raise ConfigError(f"[holography] calibration: {exc}") from exc
-    except InspectionError as exc:
+    except (OSError, InspectionError) as exc:
         raise ConfigError(f"[holography] calibration: {exc}") from exc
     if calib.head != head:
         raise ConfigError(

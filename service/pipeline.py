@@ -54,8 +54,7 @@ class Stages:
     Attributes
     ----------
     name : str
-        The sensor measured (``flash`` or ``holography``: a FrameSet of another
-        sensor is refused); recorded with every run.
+        Recorded with every run (``flash``, ``holography``).
     rig : object
         What ``render`` renders with.
     calibration_id : str
@@ -76,6 +75,9 @@ class Stages:
         Builds the same measuring stages in another process (a Dask worker),
         matching stereo pairs on ``threads`` threads; picklable. None: these
         stages exist in this process only.
+    sensor : str
+        The FrameSet ``sensor`` these stages measure (``flash`` or
+        ``holography``); a FrameSet of another is refused.
     """
 
     name: str
@@ -87,6 +89,7 @@ class Stages:
     guided: bool = True
     calibration_toml: str | None = None
     remake: Callable[[int], Stages] | None = None
+    sensor: str = "flash"
 
 
 @dataclass(frozen=True)
@@ -297,6 +300,7 @@ def holography_stages(
         guided=False,
         calibration_toml=toml,
         remake=HoloRemake(toml, tuple(T_fixture.ravel().tolist())),
+        sensor="holography",
     )
 
 
@@ -362,8 +366,8 @@ class Pipeline:
             return f"FrameSet of line {fs.line!r}, this is {self.line!r}"
         if self.station is not None and fs.station != self.station:
             return f"FrameSet of station {fs.station!r}, this is {self.station!r}"
-        if fs.sensor != self.stages.name:
-            return f"FrameSet of the {fs.sensor} sensor, this station measures {self.stages.name}"
+        if fs.sensor != self.stages.sensor:
+            return f"FrameSet of the {fs.sensor} sensor, this station measures {self.stages.sensor}"
         if fs.part not in self.parts:
             known = ", ".join(sorted(self.parts)) or "none"
             return f"unknown part {fs.part!r} (known: {known})"

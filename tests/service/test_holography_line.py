@@ -338,3 +338,22 @@ def test_a_mono16_frameset_and_its_maps_are_recorded_and_read_back(tmp_path, enc
     values = np.frombuffer(phase.data, "<f4").reshape(32, 48)
     assert np.array_equal(np.isnan(values), np.isnan(maps["phase"]))
     assert np.all(values[~np.isnan(values)] == 1.5)
+
+
+def test_config_reads_the_heads_calibration_file_at_load(tmp_path, stages):
+    cal = tmp_path / "holo.toml"
+    cal.write_text(stages.calibration_toml)
+    path = tmp_path / "line.toml"
+    section = '[station]\nsensor = "holography"\n\n[holography]\ncalibration = "holo.toml"\n'
+    path.write_text(section + f"pixels = {PIXELS}\n")
+    assert load_line_config(path).holo_calibration_path() == cal
+    path.write_text(section + "pixels = 256\n")
+    with pytest.raises(ConfigError, match="is for 128 px"):
+        load_line_config(path)
+    cal.write_text(stages.calibration_toml.replace("[residual]", "[residual]\nextra = 1"))
+    path.write_text(section + f"pixels = {PIXELS}\n")
+    with pytest.raises(ConfigError, match="unknown keys"):
+        load_line_config(path)
+    cal.unlink()
+    with pytest.raises(ConfigError, match="no such file"):
+        load_line_config(path)
