@@ -109,6 +109,10 @@ def line(tmp_path_factory, trees) -> dict[str, Any]:
             code, doc = get_json(f"{base}/v1/inspections/{results[serial].id}")
             assert code == 200
             rest[serial] = doc
+        # The colour map of a measured part, from the deviations the line kept.
+        any_id = next(iter(results.values())).id
+        with urllib.request.urlopen(f"{base}/v1/inspections/{any_id}/colormap.png") as resp:
+            rest["colormap"] = (resp.status, resp.headers["content-type"], resp.read()[:8])
     finally:
         if run.poll() is None:
             run.send_signal(signal.SIGINT)
@@ -143,6 +147,7 @@ def test_frames_on_zenoh_are_single_mono16_holograms(line):
 
 
 def test_results_on_zenoh_and_rest_agree_and_are_measured(line):
+    assert line["rest"]["colormap"] == (200, "image/png", b"\x89PNG\r\n\x1a\n")
     ids = set()
     for serial, r in line["results"].items():
         assert r.status.value in ("pass", "fail"), (r.status, r.reason)
