@@ -52,6 +52,7 @@ def main() -> int:
     from inspection.cad import CadModel
     from inspection.deviations import ComparisonPoint
     from inspection.holography import (
+        CalibrateParams,
         Dent,
         HoloHead,
         HoloNoise,
@@ -116,7 +117,8 @@ def main() -> int:
         print(
             f"{'':>4} {lc.wave.tilt_x_mrad:>12.4f} {lc.wave.tilt_y_mrad:>12.4f} "
             f"{lc.wave.curvature_per_m:>10.4f}   recovered (seed 1), speckle fit RMS "
-            f"{lc.displacement_rms_px:.3f} px over {lc.windows} windows"
+            f"{lc.displacement_rms_px:.3f} px over {lc.windows} windows; astigmatism "
+            f"{lc.wave.astigmatism_rad:.3f} / {lc.wave.astigmatism45_rad:.3f} rad (injected 0)"
         )
         print(
             f"{'':>4} {np.median(e[:, 0]):>12.4f} {np.median(e[:, 1]):>12.4f} "
@@ -213,24 +215,41 @@ def main() -> int:
     )
 
     # -- harsher noise models: each calibrated and measured with its own noise ----------
-    variants = {
-        "rough surface (20 um RMS)": replace(noise, roughness_um=20.0),
-        "dim, 8 bit, reference = object": replace(
-            noise, exposure=0.1, full_well_e=5000.0, bit_depth=8, reference_ratio=1.0
-        ),
-        "200 MHz lines, 300 mm mismatch": replace(
-            noise, linewidths_mhz=(200.0, 200.0), path_mismatch_mm=300.0
-        ),
-        "1 rad astigmatism on laser 2": noise,
-    }
     astig = (injected[0], replace(injected[1], astigmatism_rad=1.0))
-    print("\nnoise models and an aberration the calibration does not model")
-    print("(2 holograms each, median; um)")
+    diagonal = (injected[0], replace(injected[1], astigmatism_rad=1.0, astigmatism45_rad=0.5))
+    # name: (noise, the waves recorded with, whether the calibration models astigmatism)
+    variants = {
+        "rough surface (20 um RMS)": (replace(noise, roughness_um=20.0), injected, True),
+        "dim, 8 bit, reference = object": (
+            replace(noise, exposure=0.1, full_well_e=5000.0, bit_depth=8, reference_ratio=1.0),
+            injected,
+            True,
+        ),
+        "200 MHz lines, 300 mm mismatch": (
+            replace(noise, linewidths_mhz=(200.0, 200.0), path_mismatch_mm=300.0),
+            injected,
+            True,
+        ),
+        "1 rad astigmatism, spheres only": (noise, astig, False),
+        "1 rad astigmatism, modelled": (noise, astig, True),
+        "+ 0.5 rad diagonal, modelled": (noise, diagonal, True),
+    }
+    print("\nnoise models, and astigmatism on laser 2's reference wave (1 rad along x/y;")
+    print("then 0.5 rad along the diagonals too), calibrated with spheres only (the model")
+    print("before) and with each wave's general quadratic phase (2 holograms each, median; um)")
     print(f"{'variant':<34} {'RMS':>7} {'max':>7} {'wrong order':>12} {'peer RMS':>9}")
-    for name, variant in variants.items():
-        waves = astig if name.endswith("laser 2") else injected
+    for name, (variant, waves, modelled) in variants.items():
         image, _ = simulate_hologram(head, flat, np.eye(4), references=waves, noise=variant, seed=1)
-        vcal = calibrate_head(head, image)
+        vcal = calibrate_head(head, image, params=CalibrateParams(astigmatism=modelled))
+        recovered = ""
+        if waves is not injected and modelled:
+            w, ref = vcal.lobes[1].wave, waves[1]
+            recovered = (
+                f"  laser 2 from the speckle displacements: astigmatism "
+                f"{w.astigmatism_rad:.3f} / {w.astigmatism45_rad:.3f} rad (injected "
+                f"{ref.astigmatism_rad:g} / {ref.astigmatism45_rad:g}); the phase difference's "
+                f"residual takes the rest (coherence {vcal.residual.coherence:.4f})"
+            )
         got = []
         for seed in SEEDS[:2]:
             image, truth = simulate_hologram(
@@ -271,6 +290,8 @@ def main() -> int:
             f"{1e3 * g[3]:>9.1f}   measured {100 * g[4]:.0f} %"
         )
         print(f"  [{describe(head, variant)}]")
+        if recovered:
+            print(recovered)
 
     # -- a dent beyond a quarter of the synthetic wavelength -------------------------
     image, truth = simulate_hologram(

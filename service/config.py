@@ -46,6 +46,10 @@ Name = Annotated[str, Field(pattern=NAME_PATTERN, min_length=1, max_length=NAME_
 
 GENERATED_PANEL = "generated:panel"
 """The ``cad`` value that selects the project's own procedural sheet-metal panel."""
+GENERATED_STEPPED_PLATE = "generated:stepped-plate"
+"""The ``cad`` value that selects the holographic head's test part: a 24 mm plate with a
+step deeper than one phase interval (``inspection.holography.stepped_plate``)."""
+GENERATED = (GENERATED_PANEL, GENERATED_STEPPED_PLATE)
 
 
 class ConfigError(ValueError):
@@ -244,9 +248,9 @@ class PartSpec(PartSpecBase):
     """A part type: its CAD source, comparison points, registration and tree settings.
 
     ``cad`` is a mesh path (relative to the spec file's directory unless
-    absolute) or :data:`GENERATED_PANEL`, the project's own sheet-metal panel,
+    absolute), :data:`GENERATED_PANEL`, the project's own sheet-metal panel,
     whose parameters are given in ``panel`` (keyword arguments of
-    ``inspection.panel.PanelSpec``).
+    ``inspection.panel.PanelSpec``), or :data:`GENERATED_STEPPED_PLATE`.
     """
 
     cad: str = Field(min_length=1, max_length=4096)
@@ -256,15 +260,15 @@ class PartSpec(PartSpecBase):
     def _panel_only_when_generated(self) -> PartSpec:
         if self.panel and self.cad != GENERATED_PANEL:
             raise ValueError(f"'panel' parameters are only allowed with cad = {GENERATED_PANEL!r}")
-        if self.cad.startswith("generated:") and self.cad != GENERATED_PANEL:
+        if self.cad.startswith("generated:") and self.cad not in GENERATED:
             raise ValueError(
-                f"unknown generated CAD {self.cad!r}; the only one is {GENERATED_PANEL!r}"
+                f"unknown generated CAD {self.cad!r}; there are {', '.join(map(repr, GENERATED))}"
             )
         return self
 
     @property
     def is_generated(self) -> bool:
-        return self.cad == GENERATED_PANEL
+        return self.cad in GENERATED
 
     def cad_path(self, base_dir: Path) -> Path:
         """The CAD file's path, resolved against ``base_dir`` (the spec's directory)."""
@@ -352,8 +356,20 @@ def parse_dask_address(text: object) -> DaskAddress:
     return DaskAddress(scheduler=text)
 
 
+class Sensor(StrEnum):
+    """What a station measures with (the FrameSet's ``sensor``)."""
+
+    flash = "flash"
+    holography = "holography"
+
+
 class StationSection(_Strict):
     name: Name = "st1"
+    sensor: Sensor = Field(
+        default=Sensor.flash,
+        description="`flash`: the four-camera rig with its projected pattern; `holography`: "
+        "the small-field dual-wavelength holographic head of the [holography] section.",
+    )
     rig_calibration: str | None = Field(
         default=None,
         description="Calibrated rig (TOML written by `inspection calibrate`), relative to the "
@@ -434,6 +450,64 @@ class StationSection(_Strict):
         if self.executor is ExecutorKind.in_process or self.dask_scheduler is None:
             return None
         return parse_dask_address(self.dask_scheduler)
+
+
+class HolographySection(_Strict):
+    """The holographic head of a ``sensor = "holography"`` station, and how its simulated
+    parts lie in their fixture."""
+
+    pixels: int = Field(default=256, ge=64, le=4096, description="Sensor pixels per side (even).")
+    field_mm: float = Field(default=18.0, gt=1, le=200, description="Field of view per side.")
+    synthetic_mm: float = Field(
+        default=1.1, ge=0.05, le=100, description="Synthetic wavelength of the two lasers."
+    )
+    calibration: str | None = Field(
+        default=None,
+        description="The head's calibration (TOML of inspection.holography.HoloCalibration), "
+        "relative to the line file; unset: calibrated at start-up from a simulated flat plate "
+        "under the simulated head.",
+    )
+    fixture_height_mm: float = Field(
+        default=0.0,
+        ge=-50,
+        le=50,
+        description="Height of the part's frame in the head's frame: where the fixture holds it.",
+    )
+    height_range_mm: float = Field(
+        default=0.05,
+        ge=0,
+        le=0.5,
+        description="Half-range of the simulated part's height about the fixture's, mm; the "
+        "measurement needs it well within a quarter of the synthetic wavelength.",
+    )
+    tilt_range_mrad: float = Field(
+        default=2.0, ge=0, le=20, description="Half-range of its tilts about x and y, mrad."
+    )
+    dent_depth_mm: tuple[float, float] = Field(
+        default=(0.03, 0.15), description="Range of a simulated dent's depth, mm."
+    )
+    dent_radius_mm: tuple[float, float] = Field(
+        default=(2.5, 4.0), description="Range of where a dent blends back into the surface, mm."
+    )
+
+    @field_validator("pixels")
+    @classmethod
+    def _even(cls, v: int) -> int:
+        if v % 2:
+            raise ValueError(f"pixels must be even, got {v}")
+        return v
+
+    @field_validator("dent_depth_mm", "dent_radius_mm", mode="before")
+    @classmethod
+    def _one_number_is_a_range(cls, v: object) -> object:
+        return (v, v) if isinstance(v, int | float) and not isinstance(v, bool) else v
+
+    @field_validator("dent_depth_mm", "dent_radius_mm")
+    @classmethod
+    def _range(cls, v: tuple[float, float]) -> tuple[float, float]:
+        if not 0 < v[0] <= v[1] <= 20:
+            raise ValueError(f"a range 0 < lo <= hi <= 20 mm is needed, got {list(v)}")
+        return v
 
 
 class ProjectorSection(_Strict):
@@ -872,9 +946,52 @@ class LineConfig(_Strict):
     storage: StorageSection = Field(default_factory=StorageSection)
     retention: RetentionSection = Field(default_factory=RetentionSection)
     simulator: SimulatorSection = Field(default_factory=SimulatorSection)
+    holography: HolographySection | None = None
+    """The head of a ``sensor = "holography"`` station (its defaults when absent)."""
     spc: SpcSection = Field(default_factory=SpcSection)
     http: HttpSection = Field(default_factory=HttpSection)
     base_dir: str = Field(default=".", exclude=True)
+
+    @model_validator(mode="after")
+    def _holography_for_its_sensor(self) -> LineConfig:
+        if self.holography is not None and self.station.sensor is not Sensor.holography:
+            raise ValueError('a [holography] section is for a station with sensor = "holography"')
+        path = self.holo_calibration_path()
+        if path is not None:
+            # Read here, not when the stages are built: a bad file stops the start-up with
+            # the key and the file named.
+            from inspection.errors import InspectionError
+            from inspection.holography import HoloCalibration
+
+            if not path.is_file():
+                raise ValueError(f"[holography] calibration: no such file {str(path)!r}")
+            try:
+                head = HoloCalibration.load(path).head
+            except (OSError, InspectionError) as exc:
+                raise ValueError(f"[holography] calibration: {exc}") from None
+            h = self.head()
+            if (head.pixels, head.field_mm, head.synthetic_mm) != (
+                h.pixels,
+                h.field_mm,
+                h.synthetic_mm,
+            ):
+                raise ValueError(
+                    f"[holography] calibration {path.name} is for {head.pixels} px over "
+                    f"{head.field_mm:g} mm with a {head.synthetic_mm:g} mm synthetic wavelength; "
+                    f"the section says {h.pixels} px, {h.field_mm:g} mm, {h.synthetic_mm:g} mm"
+                )
+        return self
+
+    def head(self) -> HolographySection:
+        """The station's holographic head (the section's defaults when it is absent)."""
+        return self.holography if self.holography is not None else HolographySection()
+
+    def holo_calibration_path(self) -> Path | None:
+        value = self.head().calibration
+        if value is None:
+            return None
+        p = Path(value)
+        return p if p.is_absolute() else Path(self.base_dir) / p
 
     def rig_calibration_path(self) -> Path | None:
         if self.station.rig_calibration is None:

@@ -5,8 +5,9 @@ default is :class:`SimulatedRig`: it places the station's part on the
 conveyor in a resting pose with a random in-plane rotation and position,
 gives it a random serial, now and then presses a dent into it
 (:mod:`inspection.defects`; the truth goes into the FrameSet header), and
-renders the rig's images. A real-camera source implements the same
-one-method protocol. :func:`line_rig` makes the
+renders the rig's images. :class:`SimulatedHead` is its counterpart for a
+holographic station: the part in its fixture, one hologram per trigger. A
+real-camera source implements the same one-method protocol. :func:`line_rig` makes the
 simulator's rig the line as configured: its belt speed and slide.
 
 :class:`Ingest` fires the trigger every ``trigger_period_s`` (on an absolute
@@ -35,7 +36,7 @@ from inspection.defects import Dent, press, random_dent
 from inspection.rig import Rig
 from inspection.transforms import apply
 
-from .pipeline import Stages
+from .pipeline import HoloRig, Stages
 from .protocol import FrameSet, Truth, encode_frameset
 
 log = logging.getLogger(__name__)
@@ -236,6 +237,126 @@ class SimulatedRig:
             depth_mm=s.dent_depth_mm, radius_mm=s.dent_radius_mm, flat_mm=s.dent_flat_mm,
             bump_fraction=s.dent_bump_fraction,
         )  # fmt: skip
+
+
+@dataclass(frozen=True)
+class FixtureSettings:
+    """How a part lies under the holographic head, and the dents it may carry.
+
+    Attributes
+    ----------
+    T_head_cad : (4, 4) float64
+        The fixture's pose: where the part's frame lies in the head's.
+    height_range_mm, tilt_range_mrad : float
+        Half-ranges of the part's random height about it and of its tilts about x and y.
+    defect_rate : float
+        Fraction of parts given a dent, 0..1.
+    dent_depth_mm, dent_radius_mm : (float, float)
+        Ranges of a dent's depth (into the material) and of where it blends back, mm.
+    seed : int
+        With ``seq``, fixes everything about a part.
+    """
+
+    T_head_cad: np.ndarray
+    height_range_mm: float = 0.05
+    tilt_range_mrad: float = 2.0
+    defect_rate: float = 0.1
+    dent_depth_mm: tuple[float, float] = (0.03, 0.15)
+    dent_radius_mm: tuple[float, float] = (2.5, 4.0)
+    seed: int = 0
+
+
+class SimulatedHead:
+    """The :class:`FrameSource` of a holographic station: the part in its fixture, placed
+    within the fixture's play, now and then dented, recorded by the simulated head.
+
+    A dent (``inspection.defects.Dent``, part frame, along the part's z) moves the
+    surface by ``-depth * profile(r)`` along its normal; it goes into the FrameSet's
+    truth, with the part's pose in the head frame as ``T_rig_part``.
+
+    Parameters
+    ----------
+    stages : Stages
+        Holographic stages: ``rig`` is the :class:`~service.pipeline.HoloRig` that records.
+    parts : sequence of SimPart
+    line, station : str
+    settings : FixtureSettings
+    """
+
+    def __init__(
+        self,
+        stages: Stages,
+        parts: Sequence[SimPart],
+        *,
+        line: str,
+        station: str,
+        settings: FixtureSettings,
+    ) -> None:
+        if not isinstance(stages.rig, HoloRig):
+            raise ValueError("the simulated head needs holographic stages")
+        if not parts:
+            raise ValueError("the simulated head needs at least one part")
+        self.stages = stages
+        self.rig: HoloRig = stages.rig
+        self.parts = list(parts)
+        self.line = line
+        self.station = station
+        self.settings = settings
+
+    def capture(self, seq: int, triggered_ns: int) -> FrameSet:
+        from scipy.spatial.transform import Rotation
+
+        s = self.settings
+        rng = np.random.default_rng([s.seed, seq])
+        part = self.parts[int(rng.integers(len(self.parts)))]
+        play = np.eye(4)
+        tilts = rng.uniform(-1, 1, 2) * s.tilt_range_mrad * 1e-3
+        play[:3, :3] = Rotation.from_rotvec([tilts[0], tilts[1], 0.0]).as_matrix()
+        play[2, 3] = rng.uniform(-1, 1) * s.height_range_mm
+        T_head_part = np.asarray(s.T_head_cad, dtype=np.float64) @ play
+        serial = f"{part.name[:8].upper()}-{seq:06d}-{rng.integers(16**4):04x}"
+        defects: tuple[Dent, ...] = ()
+        if rng.random() < s.defect_rate:
+            defects = (self._random_dent(T_head_part, rng),)
+        deviation = self._deviation(T_head_part, defects)
+        image = self.rig.record(part.mesh, T_head_part, deviation, int(rng.integers(2**31)))
+        return FrameSet(
+            line=self.line,
+            station=self.station,
+            part=part.name,
+            serial=serial,
+            seq=seq,
+            triggered_ns=triggered_ns,
+            calibration_id=self.stages.calibration_id,
+            images=[image],
+            cameras=["holo"],
+            truth=Truth(T_head_part, defects),
+            sensor="holography",
+        )
+
+    def _random_dent(self, T_head_part: np.ndarray, rng: np.random.Generator) -> Dent:
+        """A dent within the middle half of the field, its axis along the part's z."""
+        s = self.settings
+        half = 0.25 * self.rig.head.field_mm
+        x, y = rng.uniform(-half, half, 2)
+        centre = np.linalg.inv(T_head_part) @ np.array([x, y, 0.0, 1.0])
+        return Dent(
+            (float(centre[0]), float(centre[1]), 0.0),
+            (0.0, 0.0, 1.0),
+            float(rng.uniform(*s.dent_depth_mm)),
+            float(rng.uniform(*s.dent_radius_mm)),
+        )
+
+    def _deviation(self, T_head_part: np.ndarray, defects: Sequence[Dent]) -> np.ndarray | None:
+        if not defects:
+            return None
+        x, y = self.rig.head.grid()
+        pixels = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], axis=1)
+        in_part = apply(np.linalg.inv(T_head_part), pixels)
+        out = np.zeros(x.size)
+        for d in defects:
+            out -= d.depth_mm * d.profile(d.axis_distance(in_part))
+        return out.reshape(x.shape)
 
 
 class SeqState:

@@ -14,6 +14,7 @@ otherwise keep the process from exiting.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import logging
 import threading
@@ -23,6 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import zenoh
 
 from inspection.cad import CadModel
@@ -32,13 +34,16 @@ from inspection.transforms import apply
 
 from . import bus
 from .api import ResultHub, create_app
-from .config import ConfigError, LineConfig, PartSpec, load_part_spec
+from .config import ConfigError, LineConfig, PartSpec, Sensor, load_part_spec
 from .executor import Executor, InProcessExecutor
 from .ingest import (
     Drift,
+    FixtureSettings,
+    FrameSource,
     Ingest,
     SeqState,
     SimPart,
+    SimulatedHead,
     SimulatedRig,
     SimulationSettings,
     line_rig,
@@ -47,7 +52,7 @@ from .journal import Journal
 from .metrics import Metrics
 from .models import Alarm, software_version
 from .parts import LoadedPart, PartRegistry, load_part_cad
-from .pipeline import Outcome, Pipeline, Stages, flash_stages
+from .pipeline import HoloRig, Outcome, Pipeline, Stages, flash_stages, holography_stages
 from .protocol import FrameSet, Keys
 from .recorder import PartScene, Recorder, Retention
 from .retention import Janitor
@@ -155,14 +160,32 @@ class Station:
     def missed_part(self) -> str:
         return next(iter(self.parts)) if len(self.parts) == 1 else "unknown"
 
-    def simulated_rig(self) -> SimulatedRig:
+    def simulated_rig(self) -> FrameSource:
+        """The station's simulated sensor: the flash rig, or the holographic head."""
         sim = self.cfg.simulator
+        parts = [
+            SimPart.from_cad(n, cad, flat=spec.is_generated) for n, (spec, cad) in self.cads.items()
+        ]
+        if self.cfg.station.sensor is Sensor.holography:
+            head = self.cfg.head()
+            return SimulatedHead(
+                self.stages,
+                parts,
+                line=self.cfg.line.name,
+                station=self.name,
+                settings=FixtureSettings(
+                    T_head_cad=fixture_pose(self.cfg),
+                    height_range_mm=head.height_range_mm,
+                    tilt_range_mrad=head.tilt_range_mrad,
+                    defect_rate=sim.defect_rate,
+                    dent_depth_mm=head.dent_depth_mm,
+                    dent_radius_mm=head.dent_radius_mm,
+                    seed=sim.seed,
+                ),
+            )
         return SimulatedRig(
             self.stages,
-            [
-                SimPart.from_cad(n, cad, flat=spec.is_generated)
-                for n, (spec, cad) in self.cads.items()
-            ],
+            parts,
             line=self.cfg.line.name,
             station=self.name,
             settings=SimulationSettings(
@@ -217,6 +240,8 @@ class Station:
         }
         if self.stages.calibration_toml is not None:
             meta["calibration_toml"] = self.stages.calibration_toml
+        if self.cfg.station.sensor is Sensor.holography:
+            meta["T_head_cad"] = json.dumps(fixture_pose(self.cfg).tolist())
         return meta
 
     def recorder(self, data_dir: Path | None = None) -> Recorder:
@@ -240,10 +265,45 @@ class Station:
         )
 
 
+def fixture_pose(cfg: LineConfig) -> np.ndarray:
+    """T_head_cad of a holographic station: the part's frame at the fixture's height."""
+    T = np.eye(4)
+    T[2, 3] = cfg.head().fixture_height_mm
+    return T
+
+
+def holo_stages_for(cfg: LineConfig) -> Stages:
+    """A holographic station's stages: the head of ``[holography]``, calibrated from its
+    file (or, without one, from a simulated flat plate under the simulated head)."""
+    from inspection.errors import InspectionError
+    from inspection.holography import HoloCalibration, HoloHead
+
+    h = cfg.head()
+    head = HoloHead.small_field(h.pixels, field_mm=h.field_mm)
+    head = dataclasses.replace(head, synthetic_mm=h.synthetic_mm)
+    truth = HoloRig.simulated(head)
+    path = cfg.holo_calibration_path()
+    try:
+        calib = HoloCalibration.load(path) if path is not None else truth.calibrate()
+    except (OSError, InspectionError) as exc:
+        raise ConfigError(f"[holography] calibration: {exc}") from exc
+    if calib.head != head:
+        raise ConfigError(
+            f"[holography] calibration {path} is for another head "
+            f"({calib.head.pixels} px over {calib.head.field_mm:g} mm, synthetic "
+            f"{calib.head.synthetic_mm:g} mm) than the section's"
+        )
+    log.info("holographic head calibrated: %s (%s)", calib.id, calib.source)
+    return holography_stages(calib, T_head_cad=fixture_pose(cfg), truth=truth)
+
+
 def stages_for(cfg: LineConfig) -> Stages:
     """The line's stages: the four-camera flash rig, calibrated as configured, whose
     simulator renders the line as configured (belt speed, flash duration, slide) at the
-    calibrated cameras' image size."""
+    calibrated cameras' image size; or, for ``sensor = "holography"``, the head's
+    (:func:`holo_stages_for`)."""
+    if cfg.station.sensor is Sensor.holography:
+        return holo_stages_for(cfg)
     path = cfg.rig_calibration_path()
     cam = (Rig.load(path) if path else Rig.default()).cameras[0]
     truth = line_rig(

@@ -45,7 +45,13 @@ from inspection.deviations import ComparisonPoint
 from inspection.errors import CadLoadError, InspectionError, InvalidInput, TreeMismatch
 from inspection.measure import Frame, MeasureParams, PartModel, RegisterParams, measure_cloud
 
-from .config import PartSpec, PartSpecBase, canonical_hash, load_part_spec
+from .config import (
+    GENERATED_STEPPED_PLATE,
+    PartSpec,
+    PartSpecBase,
+    canonical_hash,
+    load_part_spec,
+)
 from .models import Job, JobState, PartPublic, PartState
 from .names import NAME_RULE, is_valid_name
 
@@ -199,7 +205,11 @@ def panel_spec(params: dict[str, Any]) -> Any:
 
 
 def load_part_cad(spec: PartSpec, base_dir: Path) -> CadModel:
-    """The CAD model of a spec: its mesh file, or the generated panel."""
+    """The CAD model of a spec: its mesh file, or a generated part."""
+    if spec.cad == GENERATED_STEPPED_PLATE:
+        from inspection.holography import stepped_plate
+
+        return CadModel.from_mesh(stepped_plate(), name=spec.name)
     if spec.is_generated:
         from inspection.panel import sheet_metal_panel
 

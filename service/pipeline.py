@@ -1,11 +1,12 @@
-"""One FrameSet in, one InspectionResult out, through :func:`inspection.measure_frames`.
+"""One FrameSet in, one InspectionResult out, through the measuring sequence.
 
 The worker and replay call the same :meth:`Pipeline.run`, which is what lets
 a replay reproduce a recorded result exactly. What the pipeline measures
 with is collected in :class:`Stages`: the one ``measure`` callable that an
 executor runs (``inspection.measure_frames`` on the calibrated rig, for the
-flash rig of :func:`flash_stages`), and the simulator that renders the
-frames of the simulated line. The parts are the
+flash rig of :func:`flash_stages`; ``inspection.measure_hologram`` on the
+calibrated head, for the holographic head of :func:`holography_stages`), and
+the simulator that renders the frames of the simulated line. The parts are the
 :class:`~service.parts.LoadedPart` objects of the station's
 :class:`~service.parts.PartRegistry`: the worker and the REST API measure
 with the same tree, alignment model and spec.
@@ -53,7 +54,7 @@ class Stages:
     Attributes
     ----------
     name : str
-        Recorded with every run (``flash``).
+        Recorded with every run (``flash``, ``holography``).
     rig : object
         What ``render`` renders with.
     calibration_id : str
@@ -74,6 +75,9 @@ class Stages:
         Builds the same measuring stages in another process (a Dask worker),
         matching stereo pairs on ``threads`` threads; picklable. None: these
         stages exist in this process only.
+    sensor : str
+        The FrameSet ``sensor`` these stages measure (``flash`` or
+        ``holography``); a FrameSet of another is refused.
     """
 
     name: str
@@ -85,6 +89,7 @@ class Stages:
     guided: bool = True
     calibration_toml: str | None = None
     remake: Callable[[int], Stages] | None = None
+    sensor: str = "flash"
 
 
 @dataclass(frozen=True)
@@ -192,6 +197,113 @@ def flash_stages(
     )
 
 
+@dataclass(frozen=True)
+class HoloRig:
+    """The simulated holographic head as built: its design, the reference waves it really
+    records with and its noise (what :attr:`Stages.rig` is for :func:`holography_stages`)."""
+
+    head: Any
+    """inspection.holography.HoloHead"""
+    references: tuple[Any, Any]
+    """inspection.holography.ReferenceWave, two"""
+    noise: Any = None
+    """inspection.holography.HoloNoise, or None: its defaults"""
+
+    @classmethod
+    def simulated(cls, head: Any) -> HoloRig:
+        """``head`` with the reference waves of :meth:`~inspection.holography.HoloHead.as_built`."""
+        return cls(head, head.as_built())
+
+    def record(
+        self, mesh: Any, T_head_part: np.ndarray, deviation_mm: np.ndarray | None, seed: int
+    ) -> np.ndarray:
+        """One hologram, (n, n) uint16, of ``mesh`` at ``T_head_part`` with ``deviation_mm``."""
+        from inspection.holography import simulate_hologram
+
+        image, _ = simulate_hologram(
+            self.head, mesh, T_head_part, deviation_mm=deviation_mm,
+            references=self.references, noise=self.noise, seed=seed,
+        )  # fmt: skip
+        return image
+
+    def calibrate(self, seed: int = 1) -> Any:
+        """The head calibrated from one simulated hologram of a flat plate at z = 0."""
+        from inspection.holography import calibrate_head
+
+        plate = trimesh.creation.box((1.5 * self.head.field_mm, 1.5 * self.head.field_mm, 3.0))
+        plate.apply_translation((0.0, 0.0, -1.5))
+        return calibrate_head(self.head, self.record(plate, np.eye(4), None, seed))
+
+
+@dataclass(frozen=True)
+class HoloRender:
+    """A :attr:`Stages.render` for :func:`holography_stages`: one hologram, no deviation."""
+
+    def __call__(
+        self, rig: Any, mesh: trimesh.Trimesh, T_head_part: np.ndarray, seed: int
+    ) -> list[np.ndarray]:
+        return [rig.record(mesh, T_head_part, None, seed)]
+
+
+@dataclass(frozen=True)
+class HoloRemake:
+    """A :attr:`Stages.remake` for :func:`holography_stages`: the calibration as TOML text and
+    the fixture's pose, which is all a process elsewhere needs to measure the same way."""
+
+    calibration_toml: str
+    T_head_cad: tuple[float, ...]
+
+    def __call__(self, threads: int) -> Stages:
+        from inspection.holography import HoloCalibration
+
+        calib = HoloCalibration.from_toml(self.calibration_toml)
+        return holography_stages(calib, T_head_cad=np.reshape(self.T_head_cad, (4, 4)))
+
+
+def holography_stages(
+    calibration: Any, *, T_head_cad: np.ndarray, truth: HoloRig | None = None
+) -> Stages:
+    """The holographic head's stages: ``inspection.measure_hologram`` with the calibrated head
+    measures one ``mono16`` hologram per trigger of a part held at ``T_head_cad``; the
+    simulator records with ``truth`` (default: the calibration's head as built).
+
+    Parameters
+    ----------
+    calibration : inspection.holography.HoloCalibration
+    T_head_cad : (4, 4) float64
+        Where the fixture holds the part (its CAD frame in the head frame).
+    truth : HoloRig, optional
+    """
+    from inspection.errors import InvalidInput
+    from inspection.measure import measure_hologram
+
+    T_fixture = np.array(T_head_cad, dtype=np.float64)
+    if T_fixture.shape != (4, 4) or not np.isfinite(T_fixture).all():
+        raise ValueError("T_head_cad must be a finite (4, 4) array")
+    n = calibration.head.pixels
+
+    def measure(part: LoadedPart, frames: list[np.ndarray]) -> Measurement:
+        if len(frames) != 1 or frames[0].dtype != np.uint16 or frames[0].shape != (n, n):
+            shown = ", ".join(f"{f.shape[1]}x{f.shape[0]} {f.dtype}" for f in frames)
+            raise InvalidInput(
+                f"the holographic head takes one {n}x{n} mono16 image per trigger, got {shown}"
+            )
+        return measure_hologram(part.model, calibration, frames[0], T_fixture, part.params)
+
+    toml = calibration.to_toml()
+    return Stages(
+        name="holography",
+        rig=truth if truth is not None else HoloRig.simulated(calibration.head),
+        calibration_id=calibration.id,
+        measure=measure,
+        render=HoloRender(),
+        guided=False,
+        calibration_toml=toml,
+        remake=HoloRemake(toml, tuple(T_fixture.ravel().tolist())),
+        sensor="holography",
+    )
+
+
 # --------------------------------------------------------------------------- results
 
 
@@ -254,6 +366,8 @@ class Pipeline:
             return f"FrameSet of line {fs.line!r}, this is {self.line!r}"
         if self.station is not None and fs.station != self.station:
             return f"FrameSet of station {fs.station!r}, this is {self.station!r}"
+        if fs.sensor != self.stages.sensor:
+            return f"FrameSet of the {fs.sensor} sensor, this station measures {self.stages.sensor}"
         if fs.part not in self.parts:
             known = ", ".join(sorted(self.parts)) or "none"
             return f"unknown part {fs.part!r} (known: {known})"

@@ -7,14 +7,19 @@ well-known schemas, as protobuf; results as JSON with their JSON Schema):
 =========================  ==============================  ================================
 topic                      schema                          what
 =========================  ==============================  ================================
-``/<camera>/image``        foxglove.RawImage (mono8) or    one per camera and trigger
-                           foxglove.CompressedImage (png)  (frame ``<camera>``)
+``/<camera>/image``        foxglove.RawImage (mono8,       one per camera and trigger
+                           mono16) or                      (frame ``<camera>``)
+                           foxglove.CompressedImage (png)
 ``/<camera>/calibration``  foxglove.CameraCalibration      once per file: intrinsics in the
                                                            camera's frame (R = I, P = K[I|0])
 ``/<camera>/transform``    foxglove.FrameTransform         once per file: ``rig`` to
                                                            ``<camera>`` (static)
 ``/frameset``              JSON (FrameSet header)          line, station, part, serial,
-                                                           seq, triggered_ns, truth
+                                                           seq, triggered_ns, truth, sensor
+``/maps/<name>``           foxglove.RawImage (32FC1)       a sensor's maps with its frames:
+                                                           the holographic head's ``phase``
+                                                           (rad) and ``deviation`` (mm),
+                                                           NaN where not measured
 ``/cloud``                 foxglove.PointCloud             x, y, z (rig frame, mm) and
                                                            ``deviation`` (mm, float32)
 ``/part/pose``             foxglove.FrameTransform         T_rig_cad (``rig`` to ``part_cad``)
@@ -103,6 +108,10 @@ alone give a smaller file than the default strategy, and sooner (the line bench 
 OpenCV's PNG settings)."""
 
 
+RAW_DTYPES: dict[str, np.dtype[Any]] = {"mono8": np.dtype(np.uint8), "mono16": np.dtype("<u2")}
+"""The camera images' RawImage encodings, as read back."""
+
+
 @dataclass(frozen=True)
 class PartScene:
     """What the recording shows of a part type: its CAD and its comparison points.
@@ -187,6 +196,7 @@ FRAMESET_SCHEMA = {
             ("calibration_id", "string"),
             ("cameras", "array"),
             ("truth", ["object", "null"]),
+            ("sensor", "string"),
         ]
     },
 }
@@ -403,6 +413,7 @@ class Recorder:
                     "calibration_id": fs.calibration_id,
                     "cameras": list(fs.cameras),
                     "truth": None if fs.truth is None else fs.truth.to_json(),
+                    "sensor": fs.sensor,
                 }
                 f.json(
                     "/frameset",
@@ -413,6 +424,8 @@ class Recorder:
                 )
                 for cam, img in zip(fs.cameras, fs.images, strict=True):
                     f.proto(f"/{cam}/image", self._image(cam, img, t), t)
+                for name, values in outcome.maps.items():
+                    f.proto(f"/maps/{name}", _float_image(fs.cameras[0], values, t), t)
                 if outcome.points is not None and len(outcome.points):
                     f.proto("/cloud", foxglove.cloud(outcome.points, outcome.distances, t), t)
                 self.frames_recorded += 1
@@ -476,14 +489,15 @@ class Recorder:
                 timestamp=foxglove.timestamp(t), frame_id=cam, format="png", data=buf.tobytes()
             )
         h, w = img.shape
+        wide = img.dtype == np.uint16
         return RawImage(
             timestamp=foxglove.timestamp(t),
             frame_id=cam,
             width=w,
             height=h,
-            encoding="mono8",
-            step=w,
-            data=np.ascontiguousarray(img).tobytes(),
+            encoding="mono16" if wide else "mono8",
+            step=2 * w if wide else w,
+            data=np.ascontiguousarray(img, dtype="<u2" if wide else np.uint8).tobytes(),
         )
 
     def close(self) -> None:
@@ -493,6 +507,20 @@ class Recorder:
                 self._file.close()
                 self._file = None
         self.enforce_budget()
+
+
+def _float_image(frame_id: str, values: np.ndarray, t: int) -> RawImage:
+    """A map as foxglove.RawImage ``32FC1`` (little-endian float32, NaN where not measured)."""
+    h, w = values.shape
+    return RawImage(
+        timestamp=foxglove.timestamp(t),
+        frame_id=frame_id,
+        width=w,
+        height=h,
+        encoding="32FC1",
+        step=4 * w,
+        data=np.ascontiguousarray(values, dtype="<f4").tobytes(),
+    )
 
 
 # --------------------------------------------------------------------------- reading
@@ -676,6 +704,8 @@ def read_recording(
                     images=[images[(r.triggered_ns, c)] for c in cams],
                     cameras=cams,
                     truth=None if h["truth"] is None else Truth.from_json(h["truth"]),
+                    # Recordings from before the holographic head are of the flash rig.
+                    sensor=h.get("sensor", "flash"),
                 )
         triggers.append(RecordedTrigger(fs, r))
     return metadata, triggers
@@ -685,10 +715,13 @@ def _decode_image(topic: str, schema: str, data: bytes) -> np.ndarray:
     if schema == "foxglove.RawImage":
         raw = RawImage()
         raw.ParseFromString(data)
-        if raw.encoding != "mono8" or len(raw.data) != raw.height * raw.step:
-            raise ValueError(f"{topic}: not a mono8 image of {raw.height} rows of {raw.step}")
-        arr = np.frombuffer(raw.data, np.uint8).reshape(raw.height, raw.step)
-        return arr[:, : raw.width].copy()
+        dtype = RAW_DTYPES.get(raw.encoding)
+        if dtype is None or len(raw.data) != raw.height * raw.step or raw.step % dtype.itemsize:
+            raise ValueError(
+                f"{topic}: not a mono8 or mono16 image of {raw.height} rows of {raw.step}"
+            )
+        arr = np.frombuffer(raw.data, dtype).reshape(raw.height, raw.step // dtype.itemsize)
+        return arr[:, : raw.width].astype(dtype.newbyteorder("="))
     comp = CompressedImage()
     comp.ParseFromString(data)
     img = cv2.imdecode(np.frombuffer(comp.data, np.uint8), cv2.IMREAD_UNCHANGED)

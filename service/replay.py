@@ -14,6 +14,7 @@ compares with the logged result:
 
 from __future__ import annotations
 
+import json
 import logging
 import tempfile
 import threading
@@ -27,7 +28,7 @@ import numpy as np
 from .config import PartSpec
 from .models import InspectionResult
 from .parts import LoadedPart, load_part, load_part_cad
-from .pipeline import Pipeline, Stages, flash_stages
+from .pipeline import Pipeline, Stages, flash_stages, holography_stages
 from .protocol import FrameSet, encode_frameset
 from .recorder import RecordedTrigger, read_recording
 
@@ -122,6 +123,8 @@ def recorded_stages(metadata: dict[str, dict[str, str]]) -> Stages:
         The recording names other stages, or its calibration does not load.
     """
     rig = metadata.get("rig", {})
+    if rig.get("stages") == "holography":
+        return _holography_stages(rig)
     if rig.get("stages", "flash") != "flash":
         raise ReplayError(f"recorded with the {rig['stages']!r} stages, which no longer exist")
     # Recordings from before the guided pass existed say nothing: they were one pass.
@@ -136,6 +139,27 @@ def recorded_stages(metadata: dict[str, dict[str, str]]) -> Stages:
             stages = flash_stages(path, guided=guided)
         except Exception as exc:
             raise ReplayError(f"the recorded rig calibration does not load: {exc}") from exc
+    want = rig.get("calibration_id")
+    if want and stages.calibration_id != want:
+        raise ReplayError(
+            f"the recorded calibration loads as {stages.calibration_id!r}, recorded {want!r}"
+        )
+    return stages
+
+
+def _holography_stages(rig: dict[str, str]) -> Stages:
+    """The holographic stages with the calibrated head and the fixture of the recording."""
+    from inspection.errors import InspectionError
+    from inspection.holography import HoloCalibration
+
+    try:
+        calib = HoloCalibration.from_toml(rig["calibration_toml"], where="recorded calibration")
+        T = np.asarray(json.loads(rig["T_head_cad"]), dtype=np.float64)
+        stages = holography_stages(calib, T_head_cad=T)
+    except KeyError as exc:
+        raise ReplayError(f"the recording lacks the holographic head's {exc.args[0]}") from exc
+    except (InspectionError, ValueError) as exc:
+        raise ReplayError(f"the recorded holographic head does not load: {exc}") from exc
     want = rig.get("calibration_id")
     if want and stages.calibration_id != want:
         raise ReplayError(

@@ -65,12 +65,15 @@ class Outcome:
         are not inliers.
     transform : (4, 4) float64 or None
         T_cad_<frame> of ``points``.
+    maps : dict of str to (H, W) float64
+        The sensor's own maps (``inspection.Measurement.maps``), for the recordings.
     """
 
     result: InspectionResult
     points: np.ndarray | None = field(default=None, repr=False)
     distances: np.ndarray | None = field(default=None, repr=False)
     transform: np.ndarray | None = field(default=None, repr=False)
+    maps: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
 
     def points_cad(self) -> np.ndarray | None:
         """``points`` in the CAD frame (None without a fit)."""
@@ -149,7 +152,7 @@ def outcome(m: Measurement, trigger: Trigger) -> Outcome:
     )
     points = m.points if len(m.points) else None
     T = None if "transform" not in fit else np.asarray(m.transform, dtype=np.float64)
-    return Outcome(result, points=points, distances=distances, transform=T)
+    return Outcome(result, points=points, distances=distances, transform=T, maps=dict(m.maps))
 
 
 def point_results(devs: Deviations) -> list[PointResult]:

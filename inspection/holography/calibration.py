@@ -2,15 +2,18 @@
 
 1. **The lobes** are found in the plate hologram's spectrum
    (:func:`~inspection.holography.spectrum.find_lobes`).
-2. **Each lobe's reference wave** (tilt and curvature): the lobe's field
-   ``O W*`` carries the wave's phase, whose local gradient is the local
+2. **Each lobe's reference wave** (tilt and quadratic phase): the lobe's
+   field ``O W*`` carries the wave's phase, whose local gradient is the local
    spatial frequency; propagated from ``-dz`` to ``+dz``, a speckle pattern
    moves by ``2 dz`` times its direction of travel (Fourier shift theorem on
-   the angular spectrum), here ``D(x) = -2 dz (tilt + x / radius)``. The
-   displacements of the reconstructions' intensities, window by window
-   (:func:`~inspection.holography.correlation.correlate`), are fitted by least
-   squares for (tilt_x, tilt_y, 1 / radius). The flat plate's own phase has
-   no gradient, so it moves nothing.
+   the angular spectrum), here ``D(x) = -2 dz (tilt + C x)`` with ``C`` the
+   phase's symmetric curvature matrix ``[[c_xx, c_xy], [c_xy, c_yy]]`` (a
+   sphere: ``c_xx = c_yy = 1 / radius``, ``c_xy = 0``; the rest is
+   astigmatism). The displacements of the reconstructions' intensities,
+   window by window (:func:`~inspection.holography.correlation.correlate`),
+   are fitted by least squares for (tilt_x, tilt_y, c_xx, c_xy, c_yy), or,
+   with ``CalibrateParams.astigmatism`` off, for the sphere alone. The flat
+   plate's own phase has no gradient, so it moves nothing.
 3. **The phase difference's residual**: tilts good to a few microradians still
    leave a ramp of radians in the two lasers' phase difference over the
    field, far beyond what a shape measurement may keep. The plate's known
@@ -41,7 +44,7 @@ from scipy.optimize import minimize
 
 from ..errors import CalibrationError, InvalidInput
 from .correlation import Displacement, correlate
-from .head import HoloHead, ReferenceWave
+from .head import ASTIGMATISM_HALF_MM, HoloHead, ReferenceWave
 from .propagate import propagate
 from .spectrum import Field, Lobe, find_lobes, lobe_field, spectrum
 
@@ -66,18 +69,30 @@ class LobeCalibration:
 
 @dataclass(frozen=True)
 class PhaseResidual:
-    """The phase difference's residual model ``m(x) = a x + b y + c (x^2 + y^2) / 2 + d``:
-    ``a``, ``b`` in rad/mm, ``c`` in rad/mm^2, ``d`` in rad; ``coherence`` is the
-    normalised coherent sum it reached on the plate (1: every pixel agreed)."""
+    """The phase difference's residual model
+    ``m(x) = a x + b y + c (x^2 + y^2) / 2 + e (x^2 - y^2) / 2 + f x y + d``:
+    ``a``, ``b`` in rad/mm, ``c``, ``e``, ``f`` in rad/mm^2, ``d`` in rad;
+    ``coherence`` is the normalised coherent sum it reached on the plate (1:
+    every pixel agreed). ``e`` and ``f`` (the difference's astigmatism) are 0
+    when the calibration models spheres only."""
 
     a: float
     b: float
     c: float
     d: float
     coherence: float
+    e: float = 0.0
+    f: float = 0.0
 
     def phase(self, x: npt.NDArray[np.float64], y: npt.NDArray[np.float64]) -> npt.NDArray:
-        return self.a * x + self.b * y + 0.5 * self.c * (x * x + y * y) + self.d
+        return (
+            self.a * x
+            + self.b * y
+            + 0.5 * self.c * (x * x + y * y)
+            + 0.5 * self.e * (x * x - y * y)
+            + self.f * x * y
+            + self.d
+        )
 
 
 @dataclass(frozen=True)
@@ -151,6 +166,8 @@ class HoloCalibration:
                 f"tilt_x_mrad = {w.tilt_x_mrad!r}",
                 f"tilt_y_mrad = {w.tilt_y_mrad!r}",
                 f"radius_mm = {_num(w.radius_mm)}",
+                f"astigmatism_rad = {w.astigmatism_rad!r}",
+                f"astigmatism45_rad = {w.astigmatism45_rad!r}",
                 f"displacement_rms_px = {lc.displacement_rms_px!r}",
                 f"windows = {lc.windows}",
             ]
@@ -163,6 +180,8 @@ class HoloCalibration:
             f"c = {r.c!r}",
             f"d = {r.d!r}",
             f"coherence = {r.coherence!r}",
+            f"e = {r.e!r}",
+            f"f = {r.f!r}",
             "",
         ]
         return "\n".join(lines)
@@ -219,7 +238,7 @@ class HoloCalibration:
                 _keys(
                     lb,
                     {"row", "col", "radius", "tilt_x_mrad", "tilt_y_mrad", "radius_mm",
-                     "displacement_rms_px", "windows"},
+                     "astigmatism_rad", "astigmatism45_rad", "displacement_rms_px", "windows"},
                     where,
                 )  # fmt: skip
                 lobes.append(
@@ -229,6 +248,9 @@ class HoloCalibration:
                             float(lb["tilt_x_mrad"]),
                             float(lb["tilt_y_mrad"]),
                             float(lb["radius_mm"]),
+                            # Calibrations from before the astigmatism was modelled have none.
+                            astigmatism_rad=float(lb.get("astigmatism_rad", 0.0)),
+                            astigmatism45_rad=float(lb.get("astigmatism45_rad", 0.0)),
                         ),
                         displacement_rms_px=float(lb["displacement_rms_px"]),
                         windows=int(lb["windows"]),
@@ -237,11 +259,20 @@ class HoloCalibration:
             if len(lobes) != 2 or len(head.references) != 2:
                 raise InvalidInput(f"{where}: needs exactly two lobes and two design waves")
             rs = data["residual"]
-            _keys(rs, {"a", "b", "c", "d", "coherence"}, where)
+            _keys(rs, {"a", "b", "c", "d", "coherence", "e", "f"}, where)
             calib = cls(
                 head=head,
                 lobes=(lobes[0], lobes[1]),
-                residual=PhaseResidual(*(float(rs[k]) for k in ("a", "b", "c", "d", "coherence"))),
+                residual=PhaseResidual(
+                    a=float(rs["a"]),
+                    b=float(rs["b"]),
+                    c=float(rs["c"]),
+                    d=float(rs["d"]),
+                    coherence=float(rs["coherence"]),
+                    # Calibrations from before the astigmatism was modelled have none.
+                    e=float(rs.get("e", 0.0)),
+                    f=float(rs.get("f", 0.0)),
+                ),
                 source=str(data.get("source", "")),
             )
         except (KeyError, TypeError, ValueError, IndexError) as exc:
@@ -263,6 +294,9 @@ class CalibrateParams:
     dz_mm: float = 30.0
     window: int = 64
     min_peak: float = 0.3
+    astigmatism: bool = True
+    """Fit each wave's curvature along x, y and the diagonals apart (any quadratic phase);
+    off: one curvature for both axes (a spherical wave)."""
 
 
 def calibrate_head(
@@ -292,7 +326,7 @@ def calibrate_head(
     for lobe, wavelength in zip(lobes, head.wavelengths_mm, strict=True):
         field = lobe_field(spec, lobe)
         disp = plane_displacements(head, field, wavelength, params.dz_mm, params.window)
-        cals.append(_fit_wave(head, lobe, disp, params))
+        cals.append(_fit_wave(head, lobe, disp, wavelength, params))
     calib = HoloCalibration(
         head=head,
         lobes=(cals[0], cals[1]),
@@ -301,7 +335,7 @@ def calibrate_head(
     gamma = calib.difference(image) * np.exp(
         -1j * 4.0 * np.pi * plate_height_mm / head.synthetic_mm
     )
-    residual = _fit_residual(gamma, x, y)
+    residual = _fit_residual(gamma, x, y, astigmatism=params.astigmatism)
     log.debug("holography calibration: residual %s", residual)
     return HoloCalibration(
         head=head,
@@ -325,39 +359,70 @@ def plane_displacements(
 
 
 def _fit_wave(
-    head: HoloHead, lobe: Lobe, disp: Displacement, params: CalibrateParams
+    head: HoloHead, lobe: Lobe, disp: Displacement, wavelength_mm: float, params: CalibrateParams
 ) -> LobeCalibration:
-    # D(x) = -2 dz (tilt + x / R), both axes sharing 1/R: linear in (tx, ty, 1/R).
+    # D(x) = -2 dz (tilt + C x): linear in (tx, ty, c_xx, c_xy, c_yy), or in
+    # (tx, ty, c) for a sphere (C = c I).
     n = head.pixels
     good = disp.good(min_peak=params.min_peak)
     xs = (disp.cols - (n - 1) / 2.0) * head.pitch_mm
     ys = (disp.rows - (n - 1) / 2.0) * head.pitch_mm
     s = -2.0 * params.dz_mm
+    unknowns = 5 if params.astigmatism else 3
     for _ in range(2):  # a second fit without the windows beyond 3 sigma
         m = int(good.sum())
-        if m < 6:
+        if m < 6:  # two equations each: at least twice as many as the unknowns
             raise CalibrationError(f"only {m} speckle windows correlate: cannot fit the wave")
-        A = np.zeros((2 * m, 3))
-        A[:m, 0] = s
-        A[m:, 1] = s
-        A[:m, 2] = s * xs[good]
-        A[m:, 2] = s * ys[good]
+        A = _design(xs[good], ys[good], unknowns) * s
         rhs = np.concatenate([disp.dx[good], disp.dy[good]]) * head.pitch_mm
         sol, *_ = np.linalg.lstsq(A, rhs, rcond=None)
         res = (rhs - A @ sol) / head.pitch_mm
         rms = float(np.sqrt(np.mean(res**2)))
-        full = np.hypot(
-            disp.dx - (s * (sol[0] + sol[2] * xs)) / head.pitch_mm,
-            disp.dy - (s * (sol[1] + sol[2] * ys)) / head.pitch_mm,
-        )
+        model = (_design(xs, ys, unknowns) * s @ sol).reshape(2, -1) / head.pitch_mm
+        full = np.hypot(disp.dx - model[0], disp.dy - model[1])
         good = good & (full <= 3.0 * max(rms, 1e-3) * math.sqrt(2.0))
-    radius = math.inf if sol[2] == 0 else 1.0 / float(sol[2])
-    wave = ReferenceWave(float(sol[0]) * 1e3, float(sol[1]) * 1e3, radius)
+    if params.astigmatism:
+        cxx, cxy, cyy = (float(v) for v in sol[2:])
+    else:
+        cxx, cxy, cyy = float(sol[2]), 0.0, float(sol[2])
+    # C = c I + a [[1, 0], [0, -1]] + b [[0, 1], [1, 0]]: sphere and the two astigmatisms.
+    c, a = 0.5 * (cxx + cyy), 0.5 * (cxx - cyy)
+    k_h2 = 2.0 * math.pi / wavelength_mm * ASTIGMATISM_HALF_MM**2
+    wave = ReferenceWave(
+        float(sol[0]) * 1e3,
+        float(sol[1]) * 1e3,
+        math.inf if c == 0 else 1.0 / c,
+        astigmatism_rad=0.5 * k_h2 * a,
+        astigmatism45_rad=0.5 * k_h2 * cxy,
+    )
     return LobeCalibration(lobe=lobe, wave=wave, displacement_rms_px=rms, windows=int(good.sum()))
 
 
+def _design(
+    xs: npt.NDArray[np.float64], ys: npt.NDArray[np.float64], unknowns: int
+) -> npt.NDArray[np.float64]:
+    """Rows ``[dx; dy]`` of ``D / (-2 dz)`` in (tx, ty, c) or (tx, ty, c_xx, c_xy, c_yy)."""
+    m = len(xs)
+    A = np.zeros((2 * m, unknowns))
+    A[:m, 0] = 1.0
+    A[m:, 1] = 1.0
+    if unknowns == 3:
+        A[:m, 2] = xs
+        A[m:, 2] = ys
+    else:
+        A[:m, 2] = xs
+        A[:m, 3] = ys
+        A[m:, 3] = xs
+        A[m:, 4] = ys
+    return A
+
+
 def _fit_residual(
-    gamma: Field, x: npt.NDArray[np.float64], y: npt.NDArray[np.float64]
+    gamma: Field,
+    x: npt.NDArray[np.float64],
+    y: npt.NDArray[np.float64],
+    *,
+    astigmatism: bool = True,
 ) -> PhaseResidual:
     n = gamma.shape[0]
     pitch = float(x[0, 1] - x[0, 0])
@@ -376,22 +441,27 @@ def _fit_residual(
         i, j = np.unravel_index(int(spec.argmax()), spec.shape)
         if spec[i, j] > best[0]:
             best = (float(spec[i, j]), float(f[j]), float(f[i]), float(c))
+    # The terms m(x) is made of: tilts, sphere, and (modelled) the two astigmatisms.
+    terms = [x, y, r2] + ([0.5 * (x * x - y * y), x * y] if astigmatism else [])
 
     def cost(p: npt.NDArray[np.float64]) -> tuple[float, npt.NDArray[np.float64]]:
-        m = p[0] * x + p[1] * y + p[2] * r2
+        m = sum(pk * g for pk, g in zip(p, terms, strict=True))
         s = np.sum(gamma * np.exp(-1j * m))
         mag = abs(s)
         # d|S|/dp = Re(conj(S) dS/dp) / |S|, dS/dp = sum(-i g e^{-im} dm/dp).
         t = -1j * gamma * np.exp(-1j * m)
-        grad = np.array(
-            [(np.conj(s) * np.sum(t * g)).real / mag for g in (x, y, r2)], dtype=np.float64
-        )
+        grad = np.array([(np.conj(s) * np.sum(t * g)).real / mag for g in terms], dtype=np.float64)
         return -mag / total, -grad / total
 
-    res = minimize(cost, np.array(best[1:]), jac=True, method="BFGS")
-    a, b, c = (float(v) for v in res.x)
-    s = np.sum(gamma * np.exp(-1j * (a * x + b * y + c * r2)))
-    return PhaseResidual(a=a, b=b, c=c, d=float(np.angle(s)), coherence=float(abs(s)) / total)
+    start = np.array(list(best[1:]) + [0.0] * (len(terms) - 3))
+    res = minimize(cost, start, jac=True, method="BFGS")
+    p = [float(v) for v in res.x] + [0.0] * (5 - len(terms))
+    m = sum(pk * g for pk, g in zip(p, [x, y, r2, 0.5 * (x * x - y * y), x * y], strict=True))
+    s = np.sum(gamma * np.exp(-1j * m))
+    return PhaseResidual(
+        a=p[0], b=p[1], c=p[2], d=float(np.angle(s)), coherence=float(abs(s)) / total,
+        e=p[3], f=p[4],
+    )  # fmt: skip
 
 
 def _numbers(c: HoloCalibration) -> tuple[Any, ...]:
@@ -415,9 +485,17 @@ def _numbers(c: HoloCalibration) -> tuple[Any, ...]:
                 lc.displacement_rms_px,
                 lc.windows,
             )
+            # A wave without astigmatism hashes as before it was modelled: the ids of
+            # earlier calibrations stay valid.
+            + (
+                (lc.wave.astigmatism_rad, lc.wave.astigmatism45_rad)
+                if lc.wave.astigmatism_rad or lc.wave.astigmatism45_rad
+                else ()
+            )
             for lc in c.lobes
         ),
-        (c.residual.a, c.residual.b, c.residual.c, c.residual.d, c.residual.coherence),
+        (c.residual.a, c.residual.b, c.residual.c, c.residual.d, c.residual.coherence)
+        + ((c.residual.e, c.residual.f) if c.residual.e or c.residual.f else ()),
     )
 
 

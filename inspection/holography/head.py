@@ -30,6 +30,8 @@ SPEED_OF_LIGHT_MM_S = 2.99792458e11
 # and the central term (the object's autocorrelation, radius 2 r) never meet.
 LOBE_POSITION = 0.65
 LOBE_BUDGET = 0.3  # largest lobe radius (NA plus the reference curvature's spread) / Nyquist
+ASTIGMATISM_HALF_MM = 9.0
+"""Half width of the 18 mm field: the astigmatism's phase is stated at that radius."""
 
 
 @dataclass(frozen=True)
@@ -38,16 +40,19 @@ class ReferenceWave:
 
     Its phase is ``k (tilt_x x + tilt_y y + (x^2 + y^2) / (2 radius))``: a
     plane wave tilted by ``tilt_*_mrad``, curved with the radius ``radius_mm``
-    (positive: diverging; ``inf``: plane); the astigmatism is a phase over the
-    18 mm field's half width, not scaled by the wavenumber.
+    (positive: diverging; ``inf``: plane); the astigmatism on top is a phase
+    over the 18 mm field's half width (:data:`ASTIGMATISM_HALF_MM`), not scaled
+    by the wavenumber. Together: any quadratic phase.
     """
 
     tilt_x_mrad: float
     tilt_y_mrad: float
     radius_mm: float = math.inf
     astigmatism_rad: float = 0.0
-    """Phase of ``(x^2 - y^2) / (field / 2)^2`` on top: an aberration the calibration's
-    model (tilt and curvature) does not hold, for the simulator to inject."""
+    """Phase of ``(x^2 - y^2) / h^2`` on top (``h`` = :data:`ASTIGMATISM_HALF_MM`): the
+    curvatures along x and y differ."""
+    astigmatism45_rad: float = 0.0
+    """Phase of ``2 x y / h^2`` on top: the same, along the diagonals."""
 
     @property
     def curvature_per_m(self) -> float:
@@ -63,9 +68,19 @@ class ReferenceWave:
         if not math.isinf(self.radius_mm):
             out = out + k * (x * x + y * y) / (2.0 * self.radius_mm)
         if self.astigmatism_rad:
-            half = 9.0  # mm: the aberration is stated over the small-field head's half width
-            out = out + self.astigmatism_rad * (x * x - y * y) / half**2
+            out = out + self.astigmatism_rad * (x * x - y * y) / ASTIGMATISM_HALF_MM**2
+        if self.astigmatism45_rad:
+            out = out + self.astigmatism45_rad * 2.0 * x * y / ASTIGMATISM_HALF_MM**2
         return out
+
+    def curvatures(self, wavelength_mm: float) -> tuple[float, float, float]:
+        """``(c_xx, c_xy, c_yy)``, 1/mm: the phase's quadratic part is
+        ``k (c_xx x^2 + 2 c_xy x y + c_yy y^2) / 2`` at ``wavelength_mm``."""
+        k = 2.0 * math.pi / wavelength_mm
+        c = 0.0 if math.isinf(self.radius_mm) else 1.0 / self.radius_mm
+        a = 2.0 * self.astigmatism_rad / (k * ASTIGMATISM_HALF_MM**2)
+        b = 2.0 * self.astigmatism45_rad / (k * ASTIGMATISM_HALF_MM**2)
+        return c + a, b, c - a
 
 
 @dataclass(frozen=True)
@@ -114,6 +129,16 @@ class HoloHead:
             synthetic_mm=1.1,
             na=0.22 * nyquist * wavelength,
             references=(ReferenceWave(-tilt, -tilt), ReferenceWave(-tilt, tilt)),
+        )
+
+    def as_built(self) -> tuple[ReferenceWave, ReferenceWave]:
+        """The reference waves of the simulated head as built: the design's tilted by about
+        a tenth of a mrad and curved (radii of tens of metres), as a real head's differ from
+        its design; what the simulated line records with and its calibration finds."""
+        r = self.references
+        return (
+            ReferenceWave(r[0].tilt_x_mrad + 0.11, r[0].tilt_y_mrad - 0.07, 50_000.0),
+            ReferenceWave(r[1].tilt_x_mrad - 0.05, r[1].tilt_y_mrad + 0.09, -70_000.0),
         )
 
     # -- derived -------------------------------------------------------------

@@ -17,7 +17,9 @@ turned into heights at all:
    points and at the comparison points, the verdict;
 5. a region beyond the range is a deviation larger than any tolerance the
    head is used for: it fails a part that would otherwise pass, and the
-   reason names it.
+   reason names it;
+6. the phase and the judged deviations as maps on the head's pixel grid,
+   for the recordings.
 """
 
 from __future__ import annotations
@@ -115,6 +117,7 @@ def measure_hologram(
     # 4. Judged as every cloud.
     passes = (dataclasses.replace(first, fit=fit),)
     m = _judge(part, points, fit, p, "data", timings, t_start, passes)
+    m = dataclasses.replace(m, maps=_maps(holo, m))
 
     # 5. What lies beyond the range.
     if not holo.regions:
@@ -133,6 +136,17 @@ def measure_hologram(
     reason = note if not m.reason else f"{m.reason}; {note}"
     log.debug("hologram: %s", note)
     return dataclasses.replace(m, verdict=verdict, reason=reason)
+
+
+def _maps(holo: HoloShape, m: Measurement) -> dict[str, npt.NDArray[np.float64]]:
+    deviation = np.full(holo.measured.shape, np.nan)
+    if m.deviations is not None:
+        # The judged distances, one per measured pixel in row-major order; the fit's
+        # outliers stay NaN as they do in the cloud.
+        d = m.deviations
+        deviation[holo.measured] = np.where(d.inliers, d.distances, np.nan)
+    phase = np.where(holo.measured | holo.flagged, holo.wrapped_phase, np.nan)
+    return {"phase": phase, "deviation": deviation}
 
 
 def _points(

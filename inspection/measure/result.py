@@ -105,6 +105,11 @@ class Measurement:
     local : tuple of PointMeasurement
         The comparison-point path's measurement of each point (its
         uncertainty, the pairs that saw it); empty on the cloud path.
+    maps : dict of str to (H, W) float64
+        What a sensor measures on its own pixel grid, NaN where not measured:
+        the holographic head's ``phase`` (the wrapped phase difference, rad)
+        and ``deviation`` (of each measured pixel from the CAD, mm). Empty for
+        the flash rig, whose cloud has no pixel grid.
     """
 
     verdict: Verdict | None
@@ -120,6 +125,7 @@ class Measurement:
     cpu_ms: dict[str, float] = field(default_factory=dict)
     path: str = "cloud"
     local: tuple[PointMeasurement, ...] = field(default=(), repr=False)
+    maps: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
 
     def points_cad(self) -> np.ndarray | None:
         """``points`` mapped into the CAD frame (None without a transform)."""

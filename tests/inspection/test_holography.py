@@ -11,6 +11,7 @@ import trimesh
 
 from inspection.errors import InvalidInput
 from inspection.holography import (
+    CalibrateParams,
     Dent,
     HoloCalibration,
     HoloHead,
@@ -235,6 +236,60 @@ def test_the_calibration_round_trips_through_toml_and_refuses_edits(calib, tmp_p
 
 
 # -- shape against the CAD ---------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def astigmatic(head, injected, flat_plate):
+    """Laser 2's reference wave with astigmatism along x/y and the diagonals, its plate
+    hologram calibrated with the spheres-only model and with the general quadratic."""
+    waves = (injected[0], replace(injected[1], astigmatism_rad=1.0, astigmatism45_rad=-0.5))
+    image, _ = simulate_hologram(head, flat_plate, np.eye(4), references=waves, seed=1)
+    spheres = calibrate_head(head, image, params=CalibrateParams(astigmatism=False))
+    return waves, spheres, calibrate_head(head, image)
+
+
+def test_calibration_recovers_a_reference_waves_astigmatism(astigmatic):
+    waves, spheres, general = astigmatic
+    w = general.lobes[1].wave
+    # The speckle displacements see most of it; the phase difference's residual the rest.
+    assert w.astigmatism_rad == pytest.approx(1.0, abs=0.4)
+    assert w.astigmatism45_rad == pytest.approx(-0.5, abs=0.4)
+    assert spheres.lobes[1].wave.astigmatism_rad == spheres.lobes[1].wave.astigmatism45_rad == 0
+    assert general.residual.coherence > 0.98 > spheres.residual.coherence
+
+
+def test_modelling_astigmatism_gives_the_unaberrated_shape_back(head, astigmatic, part):
+    waves, spheres, general = astigmatic
+    image, truth = simulate_hologram(
+        head, part, T_TRUE, deviation_mm=dent_map(head, SHALLOW), references=waves, seed=5
+    )
+    rms = {}
+    for name, cal in (("spheres", spheres), ("general", general)):
+        shape = measure_shape(cal, image, part, np.eye(4))
+        err = (shape.height_mm - truth.height_mm)[shape.measured]
+        rms[name] = float(np.sqrt(np.mean(err**2)))
+    assert rms["general"] < 0.012 and rms["spheres"] > 2 * rms["general"], rms
+
+
+def test_a_calibration_written_before_astigmatism_was_modelled_still_loads(calib):
+    spheres = replace(
+        calib,
+        lobes=tuple(
+            replace(lc, wave=replace(lc.wave, astigmatism_rad=0.0, astigmatism45_rad=0.0))
+            for lc in calib.lobes
+        ),
+        residual=replace(calib.residual, e=0.0, f=0.0),
+    )
+    # Such a file has none of the astigmatism keys, and its id was computed without them.
+    text = "\n".join(
+        ln
+        for ln in spheres.to_toml().splitlines()
+        if not ln.startswith(("astigmatism_rad = ", "astigmatism45_rad = ", "e = ", "f = "))
+    )
+    assert "astigmatism" not in text
+    old = HoloCalibration.from_toml(text)
+    assert old == spheres and old.id == spheres.id
+    assert calib.lobes[1].wave.astigmatism_rad != 0.0 and calib.id != spheres.id
 
 
 def test_the_shape_is_right_across_the_step(shallow):
