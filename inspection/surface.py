@@ -225,6 +225,13 @@ class SurfaceModel:
     face_normals : (F, 3) float64
     centre_tree : scipy.spatial.cKDTree
         Of ``centres``: the nearest node of a point its cell's samples missed.
+    node_mm : float
+        Edge of the node grid's cells; every length of the search (the
+        support, the edge distance, the bend span) scales with it from the
+        module's defaults (:data:`NODE_MM`, :data:`SUPPORT_MM`,
+        :data:`EDGE_MM`), which suit a stereo cloud of a part of 100-1000 mm.
+        A sensor that samples a small field finely (a holographic head's
+        tens of micrometres) takes a finer grid.
     """
 
     origin: np.ndarray
@@ -241,17 +248,42 @@ class SurfaceModel:
     edge_ends: np.ndarray = field(repr=False)
     face_normals: np.ndarray = field(repr=False)
     centre_tree: cKDTree = field(repr=False)
+    node_mm: float = NODE_MM
+
+    @property
+    def support_mm(self) -> float:
+        """Radius the field is smoothed over, mm."""
+        return SUPPORT_MM * self.node_mm / NODE_MM
+
+    @property
+    def edge_mm(self) -> float:
+        """Points this near a boundary, a bend or an occlusion edge are edge points, mm."""
+        return EDGE_MM * self.node_mm / NODE_MM
 
     @classmethod
-    def build(cls, vertices: Points, faces: np.ndarray, face_normals: Vectors) -> SurfaceModel:
-        """Sample the surface of a CAD (``CadModel.vertices``, ``faces``, ``face_normals``)."""
+    def build(
+        cls,
+        vertices: Points,
+        faces: np.ndarray,
+        face_normals: Vectors,
+        *,
+        node_mm: float = NODE_MM,
+    ) -> SurfaceModel:
+        """Sample the surface of a CAD (``CadModel.vertices``, ``faces``, ``face_normals``)
+        into cells of ``node_mm``."""
+        if isinstance(node_mm, bool) or not (
+            isinstance(node_mm, int | float) and math.isfinite(node_mm) and node_mm > 0
+        ):
+            raise InvalidInput(f"the surface's node_mm must be a positive number, got {node_mm!r}")
+        node = float(node_mm)
+        k = node / NODE_MM
         V = np.asarray(vertices, dtype=np.float64)
         F = np.asarray(faces, dtype=np.int64)
         N = np.asarray(face_normals, dtype=np.float64)
         tri = V[F]
         area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
         # Samples at about four per cell: the cells' areas and centroids to a few percent.
-        per_face = np.maximum(1, np.ceil(area / (0.5 * NODE_MM) ** 2)).astype(np.int64)
+        per_face = np.maximum(1, np.ceil(area / (0.5 * node) ** 2)).astype(np.int64)
         fi = np.repeat(np.arange(len(F)), per_face)
         rng = np.random.default_rng(0)
         u, v = rng.random((2, len(fi)))
@@ -260,9 +292,9 @@ class SurfaceModel:
         t = tri[fi]
         S = t[:, 0] + u[:, None] * (t[:, 1] - t[:, 0]) + v[:, None] * (t[:, 2] - t[:, 0])
         w = (area / per_face)[fi]
-        origin = V.min(axis=0) - NODE_MM
-        dims = np.ceil((V.max(axis=0) + NODE_MM - origin) / NODE_MM).astype(np.int64) + 1
-        keys, inv = np.unique(_keys(origin, dims, S, N[fi]), return_inverse=True)
+        origin = V.min(axis=0) - node
+        dims = np.ceil((V.max(axis=0) + node - origin) / node).astype(np.int64) + 1
+        keys, inv = np.unique(_keys(origin, dims, node, S, N[fi]), return_inverse=True)
         M = len(keys)
         areas = np.bincount(inv, w, M).astype(np.float64)
         sums = np.stack([np.bincount(inv, w * S[:, j], M) for j in range(3)], axis=1)
@@ -270,12 +302,12 @@ class SurfaceModel:
         turned = np.stack([np.bincount(inv, w * N[fi, j], M) for j in range(3)], axis=1)
         normals = turned / np.maximum(np.linalg.norm(turned, axis=1, keepdims=True), 1e-300)
 
-        pairs = cKDTree(centres).query_pairs(SUPPORT_MM, output_type="ndarray")
+        pairs = cKDTree(centres).query_pairs(SUPPORT_MM * k, output_type="ndarray")
         compatible = np.einsum("ij,ij->i", normals[pairs[:, 0]], normals[pairs[:, 1]])
         pairs = pairs[compatible > _MIN_NORMAL_COS]
         gap = np.linalg.norm(centres[pairs[:, 0]] - centres[pairs[:, 1]], axis=1)
         support = _adjacency(pairs, M)
-        join = _adjacency(pairs[gap <= _JOIN_MM], M)
+        join = _adjacency(pairs[gap <= _JOIN_MM * k], M)
 
         edges = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
         owner = np.tile(np.arange(len(F)), 3)
@@ -285,8 +317,9 @@ class SurfaceModel:
         starts = np.flatnonzero(~same)
         counts = np.diff(np.r_[starts, len(edges)])
         lone = starts[counts == 1]
-        bends = _bends(centres, normals)
-        boundary = np.concatenate([_sample_segments(V[edges[lone]]), centres[bends]])
+        bends = _bends(centres, normals, _BEND_SPAN_MM * k)
+        sampled = _sample_segments(V[edges[lone]], _EDGE_STEP_MM * k)
+        boundary = np.concatenate([sampled, centres[bends]])
         pair = starts[counts == 2]
         edge_faces = np.stack([owner[pair], owner[pair + 1]], axis=1)
         edge_ends = V[edges[pair]]
@@ -298,7 +331,7 @@ class SurfaceModel:
             origin=origin, dims=dims, keys=keys, centres=centres, normals=normals, areas=areas,
             support=support, join=join, boundary=boundary, boundary_mm=boundary_mm,
             edge_faces=edge_faces, edge_ends=edge_ends, face_normals=N,
-            centre_tree=cKDTree(centres),
+            centre_tree=cKDTree(centres), node_mm=node,
         )  # fmt: skip
 
     def nodes_of(self, points: Points, normals: Vectors) -> np.ndarray:
@@ -308,7 +341,7 @@ class SurfaceModel:
         the cell's samples missed takes the nearest node whose normal agrees
         (-1 if none within two cells).
         """
-        out = _cell_nodes(self.origin, self.dims, self.keys,
+        out = _cell_nodes(self.origin, self.dims, self.node_mm, self.keys,
                           _f64(points), _f64(normals))  # fmt: skip
         return self._nearest_nodes(out, points, normals)
 
@@ -318,7 +351,7 @@ class SurfaceModel:
         if len(missed):
             k = min(4, len(self.keys))
             _, near = self.centre_tree.query(
-                np.asarray(points)[missed], k=k, distance_upper_bound=2 * NODE_MM
+                np.asarray(points)[missed], k=k, distance_upper_bound=2 * self.node_mm
             )
             near = near.reshape(len(missed), k)
             n = np.asarray(normals)[missed]
@@ -354,7 +387,7 @@ class SurfaceModel:
             )
         for u in np.empty((0, 3)) if directions is None else np.asarray(directions, float):
             silhouette |= (n0 @ u > 0) != (n1 @ u > 0)
-        return _sample_segments(self.edge_ends[silhouette])
+        return _sample_segments(self.edge_ends[silhouette], _EDGE_STEP_MM * self.node_mm / NODE_MM)
 
     def assess(
         self,
@@ -391,8 +424,8 @@ class SurfaceModel:
         d = np.asarray(distances, dtype=np.float64)
         # One pass over the points for their cells' nodes and the offsets across the surface.
         nodes, off = _point_nodes(
-            self.origin, self.dims, self.keys, _f64(points), _f64(closest), _f64(normals), d,
-            _LATERAL_MM, _LATERAL_SLOPE,
+            self.origin, self.dims, self.node_mm, self.keys, _f64(points), _f64(closest),
+            _f64(normals), d, _LATERAL_MM * self.node_mm / NODE_MM, _LATERAL_SLOPE,
         )  # fmt: skip
         nodes = self._nearest_nodes(nodes, closest, normals)
         occlusion = self.occlusion_edges(viewpoints, directions)
@@ -405,42 +438,44 @@ class SurfaceModel:
         found = self._defects(d, nodes, usable, edge, edge_mm, params, min_support, comparison)
         return classes, found
 
-    @staticmethod
     def off_edge(
-        points: Points, closest: Points, normals: Vectors, distances: Scalars
+        self, points: Points, closest: Points, normals: Vectors, distances: Scalars
     ) -> np.ndarray:
         """(N,) bool: points whose offset from the CAD runs across its surface."""
         offset = np.asarray(points) - np.asarray(closest)
         along = np.einsum("ij,ij->i", offset, normals)
         lateral = np.linalg.norm(offset - along[:, None] * normals, axis=1)
-        return lateral > _LATERAL_MM + _LATERAL_SLOPE * np.abs(np.asarray(distances))
+        lateral_mm = _LATERAL_MM * self.node_mm / NODE_MM
+        return lateral > lateral_mm + _LATERAL_SLOPE * np.abs(np.asarray(distances))
 
     def edge_distance(self, occlusion: Points) -> np.ndarray:
         """(M,) mm: each node's distance to the boundary or an occlusion edge (inf beyond
-        twice :data:`EDGE_MM`)."""
+        twice :attr:`edge_mm`)."""
         if len(occlusion) == 0:
             return self.boundary_mm
-        near, _ = cKDTree(occlusion).query(self.centres, distance_upper_bound=2 * EDGE_MM)
+        near, _ = cKDTree(occlusion).query(self.centres, distance_upper_bound=2 * self.edge_mm)
         return np.minimum(self.boundary_mm, near)
 
     def _near_edges(
         self, closest: Points, nodes: np.ndarray, occlusion: Points, edge_mm: np.ndarray
     ) -> np.ndarray:
-        """(N,) bool: closest points within EDGE_MM of the boundary or an occlusion edge.
+        """(N,) bool: closest points within :attr:`edge_mm` of the boundary or an occlusion
+        edge.
 
         Decided per node where the whole cell lies inside or outside that
         distance, per point in the cells that straddle it.
         """
-        half_cell = 0.5 * math.sqrt(3.0) * NODE_MM
-        at = np.where(nodes >= 0, edge_mm[np.maximum(nodes, 0)], EDGE_MM)
-        near = (at <= EDGE_MM - half_cell) & (nodes >= 0)
-        unsure = np.flatnonzero(~near & (at <= EDGE_MM + half_cell))
+        reach = self.edge_mm
+        half_cell = 0.5 * math.sqrt(3.0) * self.node_mm
+        at = np.where(nodes >= 0, edge_mm[np.maximum(nodes, 0)], reach)
+        near = (at <= reach - half_cell) & (nodes >= 0)
+        unsure = np.flatnonzero(~near & (at <= reach + half_cell))
         samples = np.concatenate([self.boundary, np.asarray(occlusion).reshape(-1, 3)])
         if len(unsure) and len(samples):
             dist, _ = cKDTree(samples).query(
-                np.asarray(closest)[unsure], distance_upper_bound=EDGE_MM + 1e-9
+                np.asarray(closest)[unsure], distance_upper_bound=reach + 1e-9
             )
-            near[unsure] = dist <= EDGE_MM
+            near[unsure] = dist <= reach
         return near
 
     def _defects(
@@ -458,7 +493,7 @@ class SurfaceModel:
         from the edges, a node at an edge over all; regions need ``min_area_mm2`` away from
         the edges, then take in the flagged edge nodes they touch."""
         M = len(self.keys)
-        rim = edge_mm <= EDGE_MM
+        rim = edge_mm <= self.edge_mm
         median_inner, count_inner, median_all, count_all = _node_medians(
             d, nodes, usable, usable & ~edge, M
         )
@@ -563,11 +598,11 @@ def _f64(a: object) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _key(origin, dims, p, n):  # pragma: no cover - compiled
+def _key(origin, dims, node_mm, p, n):  # pragma: no cover - compiled
     """The cell of point ``p`` and the octant of normal ``n``, as :func:`_keys` makes them."""
     key = 0
     for a in range(3):
-        c = int(math.floor((p[a] - origin[a]) / NODE_MM))
+        c = int(math.floor((p[a] - origin[a]) / node_mm))
         c = min(max(c, 0), dims[a] - 1)
         key = key * dims[a] + c if a else c
     octant = (1 if n[0] >= 0 else 0) | (2 if n[1] >= 0 else 0) | (4 if n[2] >= 0 else 0)
@@ -575,7 +610,7 @@ def _key(origin, dims, p, n):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _cell_nodes(origin, dims, keys, points, normals):  # pragma: no cover - compiled
+def _cell_nodes(origin, dims, node_mm, keys, points, normals):  # pragma: no cover - compiled
     """(N,) int64: the node of each point's cell and normal side, -1 where there is none."""
     # The sorted keys of one (i, j) column of cells are contiguous: where each
     # column's run starts, so that a point searches only its own column's few
@@ -590,7 +625,7 @@ def _cell_nodes(origin, dims, keys, points, normals):  # pragma: no cover - comp
         starts[c] = j
     out = np.empty(points.shape[0], dtype=np.int64)
     for i in range(points.shape[0]):
-        key = _key(origin, dims, points[i], normals[i])
+        key = _key(origin, dims, node_mm, points[i], normals[i])
         c = key // per_column
         lo = starts[c]
         hi = starts[c + 1]
@@ -606,11 +641,11 @@ def _cell_nodes(origin, dims, keys, points, normals):  # pragma: no cover - comp
 
 @njit(cache=True, nogil=True)
 def _point_nodes(  # pragma: no cover - compiled
-    origin, dims, keys, points, closest, normals, d, lateral_mm, slope
+    origin, dims, node_mm, keys, points, closest, normals, d, lateral_mm, slope
 ):
     """The node of each closest point (as :func:`_cell_nodes`), and whether the point's
     offset from it runs across the surface (:meth:`SurfaceModel.off_edge`)."""
-    nodes = _cell_nodes(origin, dims, keys, closest, normals)
+    nodes = _cell_nodes(origin, dims, node_mm, keys, closest, normals)
     off = np.empty(points.shape[0], dtype=np.bool_)
     for i in range(points.shape[0]):
         o0 = points[i, 0] - closest[i, 0]
@@ -624,19 +659,21 @@ def _point_nodes(  # pragma: no cover - compiled
     return nodes, off
 
 
-def _keys(origin: np.ndarray, dims: np.ndarray, points: Points, normals: Vectors) -> np.ndarray:
+def _keys(
+    origin: np.ndarray, dims: np.ndarray, node_mm: float, points: Points, normals: Vectors
+) -> np.ndarray:
     """Cell of each point and the octant of its normal, as one int64."""
-    ijk = np.floor((np.asarray(points) - origin) / NODE_MM).astype(np.int64)
+    ijk = np.floor((np.asarray(points) - origin) / node_mm).astype(np.int64)
     ijk = np.clip(ijk, 0, dims - 1)
     n = np.asarray(normals)
     octant = (n[:, 0] >= 0) | ((n[:, 1] >= 0).astype(np.int64) << 1) | ((n[:, 2] >= 0) << 2)
     return ((ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]) * 8 + octant
 
 
-def _bends(centres: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """(M,) bool: nodes with a neighbour within _BEND_SPAN_MM whose normal turns by more
+def _bends(centres: np.ndarray, normals: np.ndarray, span_mm: float) -> np.ndarray:
+    """(M,) bool: nodes with a neighbour within ``span_mm`` whose normal turns by more
     than BEND_DEG."""
-    pairs = cKDTree(centres).query_pairs(_BEND_SPAN_MM, output_type="ndarray")
+    pairs = cKDTree(centres).query_pairs(span_mm, output_type="ndarray")
     turned = np.einsum("ij,ij->i", normals[pairs[:, 0]], normals[pairs[:, 1]]) < math.cos(
         math.radians(BEND_DEG)
     )
@@ -652,12 +689,12 @@ def _adjacency(pairs: np.ndarray, m: int) -> sp.csr_matrix:
     return sp.csr_matrix((np.ones(len(i)), (i, j)), shape=(m, m))
 
 
-def _sample_segments(ends: np.ndarray) -> np.ndarray:
-    """(S, 3): points every _EDGE_STEP_MM or less along each segment of ``ends`` (E, 2, 3)."""
+def _sample_segments(ends: np.ndarray, step_mm: float) -> np.ndarray:
+    """(S, 3): points every ``step_mm`` or less along each segment of ``ends`` (E, 2, 3)."""
     if len(ends) == 0:
         return np.empty((0, 3))
     a, b = ends[:, 0], ends[:, 1]
-    steps = np.maximum(1, np.ceil(np.linalg.norm(b - a, axis=1) / _EDGE_STEP_MM)).astype(np.int64)
+    steps = np.maximum(1, np.ceil(np.linalg.norm(b - a, axis=1) / step_mm)).astype(np.int64)
     seg = np.repeat(np.arange(len(a)), steps + 1)
     t = np.arange(len(seg)) - np.repeat(np.cumsum(steps + 1) - (steps + 1), steps + 1)
     t = t / steps[seg]

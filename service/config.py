@@ -36,6 +36,7 @@ from pydantic import (
     model_validator,
 )
 
+from inspection.surface import NODE_MM as SURFACE_NODE_MM
 from inspection.surface import SurfaceParams
 
 from .names import KEY_PREFIX_PATTERN, NAME_MAX_LEN, NAME_PATTERN
@@ -176,9 +177,9 @@ _SURFACE = SurfaceParams()
 class SurfaceSettings(_Strict):
     """How the surface between the comparison points is judged; ``inspection.SurfaceParams``.
 
-    A region of the surface whose deviation (smoothed over 6 mm) leaves
-    ``[lower_mm, upper_mm]`` over at least ``min_area_mm2`` is a surface
-    defect (a dent or a bump).
+    A region of the surface whose deviation (smoothed over three nodes, 6 mm
+    at the default ``node_mm``) leaves ``[lower_mm, upper_mm]`` over at least
+    ``min_area_mm2`` is a surface defect (a dent or a bump).
     """
 
     lower_mm: float = Field(
@@ -196,9 +197,17 @@ class SurfaceSettings(_Strict):
     fails_part: bool = Field(
         default=_SURFACE.fails_part, strict=True, description="A surface defect fails the part."
     )
+    node_mm: float = Field(
+        default=SURFACE_NODE_MM,
+        gt=0,
+        le=50,
+        description="Cell of the defect search's grid on the CAD, mm; the support (3x) and "
+        "the distance that makes a point an edge point (2x) scale with it. The default suits "
+        "a stereo cloud of a part of 100-1000 mm; a sensor of a small field takes a finer one.",
+    )
 
     def params(self) -> SurfaceParams:
-        return SurfaceParams(**self.model_dump())
+        return SurfaceParams(**self.model_dump(exclude={"node_mm"}))
 
 
 class TreeSettings(_Strict):

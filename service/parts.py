@@ -327,7 +327,9 @@ def part_from_cad(
     report(1.0, "ready")
     return LoadedPart(
         spec=spec,
-        model=PartModel(cad, tree, model, comparison_points(spec)),
+        model=PartModel(
+            cad, tree, model, comparison_points(spec), surface_node_mm=spec.surface.node_mm
+        ),  # fmt: skip
         tree_hash=tree.hash,
         params=measure_params(spec),
     )

@@ -14,7 +14,7 @@ from ..errors import InvalidInput
 from ..grid import GridTree
 from ..perspective import RayCaster
 from ..registration import CadFaces
-from ..surface import SurfaceModel
+from ..surface import NODE_MM, SurfaceModel
 
 
 @dataclass(frozen=True, eq=False)
@@ -39,6 +39,9 @@ class PartModel:
     caster : RayCaster
         The CAD's exact ray casting, which draws it into the views of the
         comparison-point path (built from ``cad`` when not given).
+    surface_node_mm : float
+        Cell of the defect search's node grid, which every length of the
+        search scales with (see :class:`SurfaceModel`).
     """
 
     cad: CadModel
@@ -48,6 +51,7 @@ class PartModel:
     faces: CadFaces | None = None
     surface: SurfaceModel | None = None
     caster: RayCaster | None = None
+    surface_node_mm: float = NODE_MM
 
     @classmethod
     def build(
@@ -58,6 +62,7 @@ class PartModel:
         spacing_mm: float | None = None,
         band_mm: float | None = None,
         alignment: bool = True,
+        surface_node_mm: float = NODE_MM,
     ) -> PartModel:
         """Build the tree (``GridTree.build``) and the alignment model of ``cad``.
 
@@ -70,6 +75,8 @@ class PartModel:
         alignment : bool
             Compute the global search's model (seconds; needed for clouds
             anywhere in the rig).
+        surface_node_mm : float
+            The defect search's node grid (finer for a sensor of a small field).
         """
         if not isinstance(cad, CadModel):
             raise InvalidInput(f"cad must be a CadModel, got {type(cad).__name__}")
@@ -79,7 +86,8 @@ class PartModel:
             **({} if band_mm is None else {"band_mm": band_mm}),  # type: ignore[arg-type]
         )
         model = alignment_model(cad) if alignment else None
-        return cls(cad, tree, model, check_comparison_points(comparison_points))
+        return cls(cad, tree, model, check_comparison_points(comparison_points),
+                   surface_node_mm=surface_node_mm)  # fmt: skip
 
     def __post_init__(self) -> None:
         object.__setattr__(
@@ -90,7 +98,11 @@ class PartModel:
         if self.surface is None:
             cad = self.cad
             object.__setattr__(
-                self, "surface", SurfaceModel.build(cad.vertices, cad.faces, cad.face_normals)
+                self,
+                "surface",
+                SurfaceModel.build(
+                    cad.vertices, cad.faces, cad.face_normals, node_mm=self.surface_node_mm
+                ),
             )
         if self.caster is None:
             object.__setattr__(self, "caster", RayCaster(self.cad))
@@ -102,7 +114,10 @@ class PartModel:
         self.tree.save(d / "tree.npz")
         if self.alignment is not None:
             self.alignment.save(d / "alignment.npz", key=self.cad.hash)
-        doc = {"points": [cp.to_dict() for cp in self.comparison_points]}
+        doc = {
+            "points": [cp.to_dict() for cp in self.comparison_points],
+            "surface_node_mm": self.surface_node_mm,
+        }
         (d / "points.json").write_text(json.dumps(doc, indent=2))
         return d
 
@@ -121,4 +136,6 @@ class PartModel:
         tree = GridTree.load(d / "tree.npz", cad=cad)
         path = d / "alignment.npz"
         model = AlignmentModel.load(path, key=cad.hash) if path.is_file() else None
-        return cls(cad, tree, model, load_comparison_points(d / "points.json"))
+        node_mm = json.loads((d / "points.json").read_text()).get("surface_node_mm", NODE_MM)
+        return cls(cad, tree, model, load_comparison_points(d / "points.json"),
+                   surface_node_mm=node_mm)  # fmt: skip

@@ -460,3 +460,30 @@ def test_a_region_beyond_the_range_fails_the_part_and_is_named(plate_part, calib
     assert m.verdict is Verdict.FAIL
     assert "beyond the holographic range (+-0.275 mm)" in m.reason
     assert "(5.9, 4.9) mm" in m.reason or "(6.0, 5.0) mm" in m.reason
+
+
+@pytest.mark.parametrize("node_mm", [2.0, 0.25])
+def test_a_dent_between_the_points_is_found_on_a_grid_as_fine_as_the_field(
+    plate_part, calib, shallow, node_mm
+):
+    """The 150 um dent lies away from the one comparison point kept. On the defect search's
+    default grid (2 mm cells, 4 mm edges) nearly all of the 18 mm field is edge; on a grid
+    scaled to the head's field the dent is a defect that fails the part."""
+    from dataclasses import replace as copy
+
+    from inspection.deviations import Verdict
+    from inspection.measure import MeasureParams, PartModel, measure_hologram
+    from inspection.surface import SurfaceParams
+
+    part = PartModel(plate_part.cad, plate_part.tree, None, plate_part.comparison_points[1:],
+                     surface_node_mm=node_mm)  # fmt: skip
+    params = copy(MeasureParams(), surface=SurfaceParams(-0.08, 0.08, min_area_mm2=2.0))
+    m = measure_hologram(part, calib, shallow[0], np.eye(4), params)
+    assert [c.verdict for c in m.deviations.comparison] == [Verdict.PASS]
+    dents = [d for d in m.deviations.defects if d.kind == "dent"]
+    if node_mm == 2.0:
+        assert dents == [] and m.verdict is Verdict.PASS
+        return
+    assert len(dents) == 1 and m.verdict is Verdict.FAIL and "dent" in m.reason
+    assert np.hypot(dents[0].center_mm[0] - 5.0, dents[0].center_mm[1] + 4.0) < 1.0
+    assert -0.17 < dents[0].peak_mm < -0.1

@@ -232,13 +232,13 @@ def test_the_one_pass_kernel_agrees_with_the_array_steps(panel):
     pts[:500, 0] = cad.vertices[:, 0].max() + 3.0  # beyond the outline: offsets run across
     q = tree.query(pts)
     normals = q.normals
-    key = _keys(surface.origin, surface.dims, q.points, normals)
+    key = _keys(surface.origin, surface.dims, surface.node_mm, q.points, normals)
     pos = np.minimum(np.searchsorted(surface.keys, key), len(surface.keys) - 1)
     expected = np.where(surface.keys[pos] == key, pos, -1)
     nodes, off = _point_nodes(
-        surface.origin, surface.dims, surface.keys, pts, q.points, normals, q.distances,
-        0.05, 0.1,
+        surface.origin, surface.dims, surface.node_mm, surface.keys, pts, q.points, normals,
+        q.distances, 0.05, 0.1,
     )  # fmt: skip
     np.testing.assert_array_equal(nodes, expected)
-    np.testing.assert_array_equal(off, SurfaceModel.off_edge(pts, q.points, normals, q.distances))
+    np.testing.assert_array_equal(off, surface.off_edge(pts, q.points, normals, q.distances))
     assert off[:500].sum() > 100 and off[500:].mean() < 0.05  # both kinds are in the test
