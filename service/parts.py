@@ -247,10 +247,12 @@ def build_or_load_tree(
             expected = _expected_params(spec)
             if {k: tree.params.to_dict()[k] for k in expected} == expected:
                 log.info("part %s: tree %s loaded from %s", spec.name, tree.hash[:12], path)
+                report(0.9, "tree loaded from the cache")
                 return tree
             log.warning("part %s: cached tree %s has other parameters; rebuilding", spec.name, path)
         except (TreeMismatch, InvalidInput, OSError, ValueError, KeyError) as exc:
             log.warning("part %s: cached tree %s unusable (%s); rebuilding", spec.name, path, exc)
+    # The message is what start-up tells: building a tree is the slow part of a first start.
     report(0.1, "building tree")
     t0 = time.perf_counter()
     tree = GridTree.build(
@@ -308,7 +310,8 @@ def part_from_cad(
     tree = build_or_load_tree(cad, spec, trees_dir, report)
     model = None
     if alignment:
-        report(0.95, "computing resting poses")
+        cached = alignment_model_path(trees_dir, cad).is_file()
+        report(0.95, "loading resting poses" if cached else "computing resting poses")
         model = models.get(cad.hash) if models is not None else None
         if model is None:
             model = load_alignment_model(cad, trees_dir)
@@ -677,7 +680,11 @@ class PartRegistry:
             )
             return
         if self.alignment:
-            self._update_job(job_id, progress=0.98, message="warming up")
+            self._update_job(
+                job_id,
+                progress=0.98,
+                message="warming up: kernels load or compile, one measurement",
+            )
             from inspection.deviations import warmup as deviations_warmup
             from inspection.grid import warmup
 

@@ -1,0 +1,105 @@
+"""What a starting station tells: each phase by name, its progress, and whether
+this is a first start.
+
+A first start builds each part's tree and compiles the numerical kernels
+(minutes); a later one loads both from their caches (seconds). Which of the
+two happens is read from the caches themselves, never assumed: the tree
+cache is the part registry's (a job says "building tree" only when no cached
+tree matches), the kernel cache is numba's (``NUMBA_CACHE_DIR``, else the
+``__pycache__`` folders beside the sources).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import os
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from .models import Job, JobState
+from .parts import PartRegistry
+
+Talk = Callable[[str], None]
+"""Where start-up lines go (stdout in the CLI; a log in tests)."""
+
+_STEP = 10
+"""A tree build's progress is told every this many per cent."""
+
+
+def kernel_cache_dir() -> Path:
+    """Where numba keeps compiled kernels: ``NUMBA_CACHE_DIR``, or the package's folders."""
+    configured = os.environ.get("NUMBA_CACHE_DIR", "")
+    return Path(configured) if configured else Path(__file__).resolve().parent.parent / "inspection"
+
+
+def cached_kernels(root: Path | None = None) -> int:
+    """How many compiled kernels (numba index files) the cache holds."""
+    base = root if root is not None else kernel_cache_dir()
+    if not base.is_dir():
+        return 0
+    return sum(1 for _ in base.rglob("*.nbi"))
+
+
+def kernels_line(root: Path | None = None) -> str:
+    """One line on the kernel cache: found, or a first start that compiles."""
+    base = root if root is not None else kernel_cache_dir()
+    n = cached_kernels(base)
+    if n == 0:
+        return (
+            f"kernels: none compiled yet in {base}: a first start, they compile during the "
+            "warm-up (minutes on two cores)"
+        )
+    return f"kernels: {n} compiled kernels cached in {base} (loaded during the warm-up)"
+
+
+def phase(job: Job) -> str:
+    """A job's phase as told: its message, with the per cent of a tree build."""
+    if job.state is JobState.failed:
+        return f"failed: {job.message}"
+    if job.message == "building tree":
+        pct = int(100 * job.progress) // _STEP * _STEP
+        return f"no cached tree: building it (a first start of this part), {pct}%"
+    return job.message
+
+
+def preload(registry: PartRegistry, talk: Talk, *, poll_s: float = 0.5) -> dict[str, bool]:
+    """Build or load every registered part's tree, one part after the other, telling
+    each phase as it changes.
+
+    Returns
+    -------
+    dict of part name to bool
+        True where the tree was built (a tree file appeared in the cache),
+        False where it was loaded.
+    """
+    built: dict[str, bool] = {}
+    for name in registry.names():
+        t0 = time.perf_counter()
+        before = _cached_files(registry.trees_dir)
+        job = registry.start(name)
+        last = None
+        while True:
+            try:
+                registry.wait(job.id, timeout_s=poll_s)
+                done = True
+            except concurrent.futures.TimeoutError:
+                done = False
+            state = registry.job(job.id)
+            line = phase(state)
+            if line != last and state.message != "ready":
+                talk(f"part {name}: {line}")
+                last = line
+            if done:
+                break
+        built[name] = bool(_cached_files(registry.trees_dir) - before)
+        if state.state is JobState.done:
+            talk(f"part {name}: ready in {time.perf_counter() - t0:.1f} s")
+    return built
+
+
+def _cached_files(folder: Path) -> set[str]:
+    """The tree files of a cache (its alignment models are cached beside them)."""
+    if not folder.is_dir():
+        return set()
+    return {p.name for p in folder.glob("*.npz") if "-align-" not in p.name}
