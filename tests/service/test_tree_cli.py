@@ -56,9 +56,9 @@ def _build_tree_on(stderr_tty: bool, tmp_path, *extra: str) -> str:
     import os
     import pty
     import struct
-    import termios
     import subprocess
     import sys
+    import termios
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[2]
