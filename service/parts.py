@@ -430,6 +430,7 @@ class PartRegistry:
         # geometry, reuse the model. Only the build thread (the pool's one worker) touches it.
         self._alignment_models: dict[str, AlignmentModel] = {}
         self._job_counter = 0
+        self._watchers: list[Callable[[Job], None]] = []
 
     @classmethod
     def from_config(cls, cfg: Any) -> PartRegistry:
@@ -646,7 +647,22 @@ class PartRegistry:
 
     def _update_job(self, job_id: str, **changes: Any) -> None:
         with self._lock:
-            self._jobs[job_id] = self._jobs[job_id].model_copy(update=changes)
+            job = self._jobs[job_id] = self._jobs[job_id].model_copy(update=changes)
+            watchers = list(self._watchers)
+        for watch in watchers:  # outside the lock: a watcher may query the registry
+            watch(job)
+
+    def watch(self, watcher: Callable[[Job], None]) -> Callable[[], None]:
+        """Call ``watcher`` with every change of a job (from the build thread); returns
+        the function that stops it."""
+        with self._lock:
+            self._watchers.append(watcher)
+
+        def unwatch() -> None:
+            with self._lock:
+                self._watchers.remove(watcher)
+
+        return unwatch
 
     def _build(self, name: str, job_id: str) -> None:
         with self._lock:

@@ -11,7 +11,6 @@ tree matches), the kernel cache is numba's (``NUMBA_CACHE_DIR``, else the
 
 from __future__ import annotations
 
-import concurrent.futures
 import os
 import time
 from collections.abc import Callable
@@ -25,6 +24,8 @@ Talk = Callable[[str], None]
 
 _STEP = 10
 """A tree build's progress is told every this many per cent."""
+_UNTOLD = frozenset({"queued", "starting", "ready"})
+"""Job messages that name no phase (the part's readiness is told with its time)."""
 
 
 def kernel_cache_dir() -> Path:
@@ -63,9 +64,9 @@ def phase(job: Job) -> str:
     return job.message
 
 
-def preload(registry: PartRegistry, talk: Talk, *, poll_s: float = 0.5) -> dict[str, bool]:
+def preload(registry: PartRegistry, talk: Talk) -> dict[str, bool]:
     """Build or load every registered part's tree, one part after the other, telling
-    each phase as it changes.
+    each phase as it starts (and a tree build every 10 %).
 
     Returns
     -------
@@ -73,28 +74,28 @@ def preload(registry: PartRegistry, talk: Talk, *, poll_s: float = 0.5) -> dict[
         True where the tree was built (a tree file appeared in the cache),
         False where it was loaded.
     """
+    told: dict[str, str] = {}
+
+    def on_job(job: Job) -> None:
+        if job.message in _UNTOLD:
+            return
+        line = phase(job)
+        if told.get(job.part) != line:
+            told[job.part] = line
+            talk(f"part {job.part}: {line}")
+
     built: dict[str, bool] = {}
-    for name in registry.names():
-        t0 = time.perf_counter()
-        before = _cached_files(registry.trees_dir)
-        job = registry.start(name)
-        last = None
-        while True:
-            try:
-                registry.wait(job.id, timeout_s=poll_s)
-                done = True
-            except concurrent.futures.TimeoutError:
-                done = False
-            state = registry.job(job.id)
-            line = phase(state)
-            if line != last and state.message != "ready":
-                talk(f"part {name}: {line}")
-                last = line
-            if done:
-                break
-        built[name] = bool(_cached_files(registry.trees_dir) - before)
-        if state.state is JobState.done:
-            talk(f"part {name}: ready in {time.perf_counter() - t0:.1f} s")
+    unwatch = registry.watch(on_job)
+    try:
+        for name in registry.names():
+            t0 = time.perf_counter()
+            before = _cached_files(registry.trees_dir)
+            final = registry.wait(registry.start(name).id)
+            built[name] = bool(_cached_files(registry.trees_dir) - before)
+            if final.state is JobState.done:
+                talk(f"part {name}: ready in {time.perf_counter() - t0:.1f} s")
+    finally:
+        unwatch()
     return built
 
 

@@ -191,3 +191,22 @@ def test_help_documents_the_exit_codes():
         for code in ("0 done, and what was measured passed", "1 measured, and it did not pass",
                      "2 bad input or usage", "3 internal error"):  # fmt: skip
             assert code in text, (args, code)
+
+
+def test_errors_are_sorted_into_bad_input_and_defects():
+    """What no command catches: our errors about input exit 2, anything else 3."""
+    from inspection.errors import CadLoadError, InvalidInput
+    from service.cli import describe, is_bad_input
+    from service.config import ConfigError
+    from service.protocol import ProtocolError
+
+    for exc in (InvalidInput("x"), CadLoadError("x"), ConfigError("x"), ProtocolError("x"),
+                FileNotFoundError(2, "No such file or directory", "x.toml"),
+                IsADirectoryError(21, "Is a directory", "d")):  # fmt: skip
+        assert is_bad_input(exc), exc
+    for exc in (RuntimeError("x"), KeyError("x"), ValueError("x"), TypeError("x")):
+        assert not is_bad_input(exc), exc
+    missing = FileNotFoundError(2, "No such file or directory", "x.toml")
+    assert describe(missing, 2) == "x.toml: No such file or directory"
+    text = describe(KeyError("stage"), 3)
+    assert text == "internal error (KeyError: 'stage'); -vv shows the traceback"
