@@ -112,6 +112,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         )
         p.add_argument("--seed", type=int, default=0, help="seed of the random subsets (0)")
         p.add_argument("--json", action="store_true", help="print JSON instead of text")
+        p.add_argument("--quiet", action="store_true", help="no progress bar of the tree build")
 
     a = subparsers.add_parser(
         "align",
@@ -180,7 +181,12 @@ def measure_params(args: argparse.Namespace) -> MeasureParams:
 
 
 def load_model(
-    spec: str, scale: float, points: Sequence[ComparisonPoint] = (), *, alignment: bool
+    spec: str,
+    scale: float,
+    points: Sequence[ComparisonPoint] = (),
+    *,
+    alignment: bool,
+    quiet: bool = True,
 ) -> PartModel:
     """The part model of a CAD file, ``builtin:panel`` or a saved tree.
 
@@ -194,6 +200,8 @@ def load_model(
     alignment : bool
         Compute the global search's model (needed unless the cloud is given
         in the CAD frame).
+    quiet : bool
+        No progress bar of the tree build (there is none off a terminal).
 
     Raises
     ------
@@ -232,7 +240,10 @@ def load_model(
         cad.name,
         len(cad.faces),
     )
-    return PartModel.build(cad, points, alignment=alignment)
+    from .progress import FractionBar
+
+    with FractionBar(f"building the tree of {cad.name}", quiet=quiet) as progress:
+        return PartModel.build(cad, points, alignment=alignment, progress=progress)
 
 
 def _measure(
@@ -248,7 +259,7 @@ def _measure(
     cloud = read_cloud(args.cloud)
     read_ms = (time.perf_counter() - t0) * 1e3
     t0 = time.perf_counter()
-    part = load_model(args.model, args.scale, points, alignment=frame != "cad")
+    part = load_model(args.model, args.scale, points, alignment=frame != "cad", quiet=args.quiet)
     part_ms = (time.perf_counter() - t0) * 1e3
     m = measure_cloud(part, cloud, params, frame=frame)
     return part, m, {"read": read_ms, "part": part_ms, **m.timings_ms}, cloud

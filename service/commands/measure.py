@@ -103,6 +103,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="skip the CAD-guided second matching pass",
     )
     m.add_argument("--json", action="store_true", help="print the InspectionResult JSON")
+    m.add_argument("--quiet", action="store_true", help="no progress bar of a tree build")
     m.set_defaults(func=cmd_measure)
 
 
@@ -299,6 +300,8 @@ def cmd_measure(args: argparse.Namespace) -> int:
     from service.parts import load_part
     from service.results import outcome
 
+    from .progress import FractionBar
+
     def bad(message: object) -> int:
         print(f"inspection measure: {message}", file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -313,7 +316,8 @@ def cmd_measure(args: argparse.Namespace) -> int:
             check_frameset(frames.frameset, spec.name, rig)
         trees = args.trees if args.trees is not None else default_trees_dir()
         t0 = time.perf_counter()
-        part = load_part(spec, args.part.parent, trees)
+        with FractionBar(f"loading part {spec.name}", quiet=args.quiet) as progress:
+            part = load_part(spec, args.part.parent, trees, progress)
         part_ms = (time.perf_counter() - t0) * 1e3
     except (InspectionError, ValueError, OSError) as exc:
         # ValueError: a part spec that does not validate (service.config.ConfigError).
