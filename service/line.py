@@ -105,8 +105,12 @@ class Station:
             A part of the station could not be loaded.
         """
         say = talk if talk is not None else (lambda line: log.info("start-up: %s", line))
-        stages = stages or stages_for(cfg)
         say(startup.kernels_line())
+        if stages is None:
+            t0 = time.perf_counter()
+            say("rig: loading its calibration and preparing the measuring stages")
+            stages = stages_for(cfg)
+            say(f"rig: ready in {time.perf_counter() - t0:.1f} s")
         if not build_trees:
             cads = {}
             for path in cfg.part_spec_paths():

@@ -63,6 +63,7 @@ def _config(args: argparse.Namespace, *, mode: str | None = None) -> Any:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    _say("starting: loading the software (zenoh, the API, the measuring code)")
     from service.line import run_line
 
     cfg = _config(args)
@@ -123,6 +124,8 @@ def cmd_router(args: argparse.Namespace) -> int:
 
 
 def cmd_piece(args: argparse.Namespace) -> int:
+    if args.command != "api":
+        _say("starting: loading the software (zenoh, the measuring code)")
     from service import line
 
     cfg = _config(args, mode="client")
