@@ -696,18 +696,22 @@ class PartRegistry:
             )
             return
         if self.alignment:
-            self._update_job(
-                job_id,
-                progress=0.98,
-                message="warming up: kernels load or compile, one measurement",
-            )
             from inspection.deviations import warmup as deviations_warmup
             from inspection.grid import warmup
 
             # Readiness means the first real part is not the one paying for compilation.
-            log.info("grid kernels ready in %.1f s", warmup())
-            deviations_warmup()
-            log.info("part %s: measured once in %.1f s (warm-up)", name, warm_up(loaded))
+            # Each step is a job message: on a first start they compile for minutes.
+            steps: list[tuple[str, Callable[[], object]]] = [
+                ("warm-up 1/3: the grid's kernels load or compile", warmup),
+                ("warm-up 2/3: the deviations' kernels load or compile", deviations_warmup),
+                ("warm-up 3/3: measuring the part once (fit and search kernels)",
+                 lambda: warm_up(loaded)),
+            ]  # fmt: skip
+            for k, (message, step) in enumerate(steps):
+                self._update_job(job_id, progress=0.97 + 0.01 * k, message=message)
+                t0 = time.perf_counter()
+                step()
+                log.info("part %s: %s in %.1f s", name, message, time.perf_counter() - t0)
         with self._lock:
             entry.loaded = loaded
             entry.state = PartState.ready

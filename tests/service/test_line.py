@@ -256,6 +256,8 @@ def test_cli_run_stops_by_itself_after_n_parts(tmp_path, trees, store, request):
     # Start-up names its phases, and tells a first start (no cached tree) from a later one.
     assert "kernels: " in out and "part demo-panel: loading CAD" in out
     assert "warm-up: measured in " in out
+    for k in (1, 2, 3):  # the kernels' warm-up, step by step: minutes on a first start
+        assert f"part demo-panel: warm-up {k}/3: " in out, out
     ready = re.search(r"station \S+: parts ready in [\d.]+ s; (.*)", out)
     assert ready is not None, out
     if first_start:
