@@ -685,7 +685,11 @@ class PartRegistry:
                 models=self._alignment_models,
             )
         except Exception as exc:
-            log.exception("part %s: tree build failed", name)
+            if isinstance(exc, (InspectionError, OSError)):
+                # A bad CAD file or an unusable cache folder: the message says it all.
+                log.error("part %s: tree build failed: %s", name, exc)
+            else:
+                log.exception("part %s: tree build failed", name)
             # The message reaches clients (the job, 409s): the server's folders stay in the log.
             folders = {entry.base_dir: "<part folder>", self.trees_dir: "<tree cache>"}
             with self._lock:
