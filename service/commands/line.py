@@ -59,16 +59,21 @@ def _config(args: argparse.Namespace, *, mode: str | None = None) -> Any:
     except (ConfigError, AccessError) as exc:
         print(f"inspection: {exc}", file=sys.stderr)
         return None
+    # Said now, not after minutes of building trees that could not be saved there.
+    for what, path in (("data_dir", cfg.storage.data_path()), ("trees", cfg.storage.trees_path())):
+        if path.exists() and not path.is_dir():
+            print(f"inspection: {what} {path} is a file, not a directory", file=sys.stderr)
+            return None
     return cfg
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    _say("starting: loading the software (zenoh, the API, the measuring code)")
-    from service.line import run_line
-
     cfg = _config(args)
     if cfg is None:
         return EXIT_BAD_INPUT
+    _say("starting: loading the software (zenoh, the API, the measuring code)")
+    from service.line import run_line
+
     stop = _stop_on_signals()
     return _on_bus(lambda: run_line(cfg, stop, parts_limit=args.parts, out=_say))
 
@@ -124,13 +129,13 @@ def cmd_router(args: argparse.Namespace) -> int:
 
 
 def cmd_piece(args: argparse.Namespace) -> int:
+    cfg = _config(args, mode="client")
+    if cfg is None:
+        return EXIT_BAD_INPUT
     if args.command != "api":
         _say("starting: loading the software (zenoh, the measuring code)")
     from service import line
 
-    cfg = _config(args, mode="client")
-    if cfg is None:
-        return EXIT_BAD_INPUT
     stop = _stop_on_signals()
     if args.command == "ingest":
         return _on_bus(lambda: line.run_ingest(cfg, stop, count=args.count, talk=_say))

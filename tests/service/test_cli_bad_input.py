@@ -108,6 +108,7 @@ def cases(f: dict[str, Path]) -> list[tuple[str, list[str], str]]:
         ("calibrate", ["calibrate", "--images", s["junk.npy"]], "not a directory"),
         ("run", ["run", "--config", s["corrupt.toml"]], "not valid TOML"),
         ("run", ["run", "--config", s["dir"]], "a-directory"),
+        ("run", ["run", "--data-dir", s["junk.npy"]], "is a file, not a directory"),
         ("router", ["router", "--zenoh-listen", "nonsense"], "endpoint"),
         ("router", ["router", "--config", s["corrupt.toml"]], "not valid TOML"),
         ("ingest", ["ingest", "--config", s["empty.json"], "--zenoh-connect", "tcp/127.0.0.1:9"],
