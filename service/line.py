@@ -106,6 +106,19 @@ class Station:
         """
         say = talk if talk is not None else (lambda line: log.info("start-up: %s", line))
         say(startup.kernels_line())
+        with startup.kernel_compiles(say):
+            return cls._load(cfg, stages, say, build_trees=build_trees, warm_up=warm_up)
+
+    @classmethod
+    def _load(
+        cls,
+        cfg: LineConfig,
+        stages: Stages | None,
+        say: Callable[[str], None],
+        *,
+        build_trees: bool,
+        warm_up: bool,
+    ) -> Station:
         if stages is None:
             t0 = time.perf_counter()
             say("rig: loading its calibration and preparing the measuring stages")

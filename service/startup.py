@@ -11,10 +11,14 @@ tree matches), the kernel cache is numba's (``NUMBA_CACHE_DIR``, else the
 
 from __future__ import annotations
 
+import contextlib
 import os
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
+
+from numba.core import event
 
 from .models import Job, JobState
 from .parts import PartRegistry
@@ -52,6 +56,57 @@ def kernels_line(root: Path | None = None) -> str:
             "warm-up (minutes on two cores)"
         )
     return f"kernels: {n} compiled kernels cached in {base} (loaded during the warm-up)"
+
+
+class _KernelCompiles(event.Listener):
+    """Counts our kernels as numba compiles them (a kernel loaded from the cache
+    compiles nothing) and tells the count at most every ``every_s`` seconds."""
+
+    def __init__(self, talk: Talk, every_s: float, ours: tuple[str, ...]) -> None:
+        self.talk, self.every_s, self.ours = talk, every_s, ours
+        self.compiled = 0
+        self._lock = threading.Lock()
+        self._t0 = self._told = time.monotonic()
+
+    def on_start(self, ev: event.Event) -> None:
+        pass
+
+    def on_end(self, ev: event.Event) -> None:
+        func = ev.data["dispatcher"].py_func
+        if not func.__module__.startswith(self.ours):  # numba's own overloads compile too
+            return
+        with self._lock:
+            self.compiled += 1
+            now = time.monotonic()
+            if now - self._told < self.every_s:
+                return
+            self._told = now
+            n = self.compiled
+        self.talk(
+            f"kernels: compiling, {n} done in {now - self._t0:.0f} s "
+            f"(latest {func.__module__.removeprefix('inspection.')}.{func.__qualname__})"
+        )
+
+
+_OURS = ("inspection.", "service.")
+
+
+@contextlib.contextmanager
+def kernel_compiles(
+    talk: Talk, *, every_s: float = 5.0, ours: tuple[str, ...] = _OURS
+) -> Iterator[_KernelCompiles]:
+    """Tell the kernels numba compiles meanwhile (a first start's long phase): their
+    count every ``every_s`` seconds, and the total at the end if any compiled.
+    ``ours``: the module prefixes whose kernels count."""
+    listener = _KernelCompiles(talk, every_s, ours)
+    t0 = time.monotonic()
+    with event.install_listener("numba:compile", listener):
+        yield listener
+    if listener.compiled:
+        talk(
+            f"kernels: {listener.compiled} compiled in {time.monotonic() - t0:.0f} s "
+            "(cached for the next start)"
+        )
 
 
 def phase(job: Job) -> str:

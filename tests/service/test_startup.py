@@ -61,3 +61,28 @@ def test_the_kernel_cache_is_read_not_assumed(tmp_path):
     (empty / "x" / "kernels.fit-12.py311.nbi").write_bytes(b"")
     assert cached_kernels(empty) == 1
     assert "1 compiled kernels cached" in kernels_line(empty)
+
+
+def test_compiling_kernels_are_counted_and_told():
+    """numba's own compile events: two specialisations of a new kernel compile (and
+    are told), a third call of a known one compiles nothing."""
+    import numba
+
+    from service.startup import kernel_compiles
+
+    @numba.njit
+    def plus_one(x):
+        return x + 1
+
+    lines: list[str] = []
+    with kernel_compiles(lines.append, every_s=0.0, ours=(plus_one.py_func.__module__,)) as k:
+        plus_one(1)
+        plus_one(1.5)
+        plus_one(2)
+    assert k.compiled == 2
+    assert lines[0].startswith("kernels: compiling, 1 done in ") and "plus_one" in lines[0]
+    assert lines[-1].startswith("kernels: 2 compiled in ")
+    quiet: list[str] = []
+    with kernel_compiles(quiet.append, ours=(plus_one.py_func.__module__,)) as k:
+        plus_one(3)
+    assert k.compiled == 0 and quiet == []
