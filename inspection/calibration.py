@@ -428,6 +428,7 @@ def _calibrate(
         text,
         tuple(round(r, 4) for r in rms),
     )
+    report(1.0, "calibrated")
     return Calibration(
         rig,
         tuple(rms),
