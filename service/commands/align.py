@@ -74,11 +74,10 @@ log = logging.getLogger(__name__)
 
 BUILTIN_PANEL = "builtin:panel"
 TREE_SUFFIXES = (".npz",)
-EXIT_BAD_FIT = EXIT_FAILED
 MATCH_RESIDUAL_RATIO = 5.0
 """A cloud matches its CAD when the fit's RMS residual stays within this many
-times the cloud's own noise: a right CAD leaves about 1x (the noise itself),
-a wrong one tens to hundreds of times."""
+times the cloud's own noise: the right CAD leaves the noise itself, a wrong
+one a residual of the shapes' difference."""
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -283,9 +282,8 @@ class Match:
         return dataclasses.asdict(self)
 
     def line(self, reg: Registration | None) -> str:
-        if not self.matches:
+        if not self.matches or reg is None:
             return f"match: the cloud DOES NOT MATCH the CAD: {self.reason}"
-        assert reg is not None and self.residual_ratio is not None
         return (
             f"match: the cloud matches the CAD (residual {reg.rms_mm:.4f} mm, "
             f"{self.residual_ratio:.1f}x the cloud's own noise of {self.noise_mm:.4f} mm; "
@@ -447,7 +445,7 @@ def cmd_align(args: argparse.Namespace) -> int:
         _print_measurement(m)
         print(match.line(m.registration))
         print(_timings_line(timings))
-    return EXIT_OK if _usable(m) and match.matches else EXIT_BAD_FIT
+    return EXIT_OK if _usable(m) and match.matches else EXIT_FAILED
 
 
 def cmd_check(args: argparse.Namespace) -> int:
