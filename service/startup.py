@@ -60,32 +60,54 @@ def kernels_line(root: Path | None = None) -> str:
 
 class _KernelCompiles(event.Listener):
     """Counts our kernels as numba compiles them (a kernel loaded from the cache
-    compiles nothing) and tells the count at most every ``every_s`` seconds."""
+    compiles nothing) and tells the count at most every ``every_s`` seconds;
+    :meth:`tick` tells a kernel that is still compiling after ``every_s``
+    (one alone can take minutes on a loaded machine)."""
 
     def __init__(self, talk: Talk, every_s: float, ours: tuple[str, ...]) -> None:
         self.talk, self.every_s, self.ours = talk, every_s, ours
         self.compiled = 0
         self._lock = threading.Lock()
         self._t0 = self._told = time.monotonic()
+        self._compiling: list[tuple[str, float]] = []  # nested: a kernel calls kernels
 
-    def on_start(self, ev: event.Event) -> None:
-        pass
-
-    def on_end(self, ev: event.Event) -> None:
+    def _name(self, ev: event.Event) -> str | None:
         func = ev.data["dispatcher"].py_func
         if not func.__module__.startswith(self.ours):  # numba's own overloads compile too
+            return None
+        return f"{func.__module__.removeprefix('inspection.')}.{func.__qualname__}"
+
+    def on_start(self, ev: event.Event) -> None:
+        name = self._name(ev)
+        if name is not None:
+            with self._lock:
+                self._compiling.append((name, time.monotonic()))
+
+    def on_end(self, ev: event.Event) -> None:
+        name = self._name(ev)
+        if name is None:
             return
         with self._lock:
+            if self._compiling:
+                self._compiling.pop()
             self.compiled += 1
             now = time.monotonic()
             if now - self._told < self.every_s:
                 return
             self._told = now
             n = self.compiled
-        self.talk(
-            f"kernels: compiling, {n} done in {now - self._t0:.0f} s "
-            f"(latest {func.__module__.removeprefix('inspection.')}.{func.__qualname__})"
-        )
+        self.talk(f"kernels: compiling, {n} done in {now - self._t0:.0f} s (latest {name})")
+
+    def tick(self) -> None:
+        """Tell the kernel compiling now if nothing was told for ``every_s``."""
+        with self._lock:
+            now = time.monotonic()
+            if not self._compiling or now - self._told < self.every_s:
+                return
+            self._told = now
+            name, since = self._compiling[-1]
+            n = self.compiled
+        self.talk(f"kernels: compiling {name} for {now - since:.0f} s ({n} done)")
 
 
 _OURS = ("inspection.", "service.")
@@ -96,12 +118,24 @@ def kernel_compiles(
     talk: Talk, *, every_s: float = 5.0, ours: tuple[str, ...] = _OURS
 ) -> Iterator[_KernelCompiles]:
     """Tell the kernels numba compiles meanwhile (a first start's long phase): their
-    count every ``every_s`` seconds, and the total at the end if any compiled.
-    ``ours``: the module prefixes whose kernels count."""
+    count, or the one still compiling, every ``every_s`` seconds, and the total at
+    the end if any compiled. ``ours``: the module prefixes whose kernels count."""
     listener = _KernelCompiles(talk, every_s, ours)
+    done = threading.Event()
+
+    def ticking() -> None:
+        while not done.wait(min(1.0, every_s) or 0.1):
+            listener.tick()
+
+    ticker = threading.Thread(target=ticking, name="kernel-talk", daemon=True)
     t0 = time.monotonic()
     with event.install_listener("numba:compile", listener):
-        yield listener
+        ticker.start()
+        try:
+            yield listener
+        finally:
+            done.set()
+            ticker.join()
     if listener.compiled:
         talk(
             f"kernels: {listener.compiled} compiled in {time.monotonic() - t0:.0f} s "

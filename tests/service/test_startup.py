@@ -80,9 +80,29 @@ def test_compiling_kernels_are_counted_and_told():
         plus_one(1.5)
         plus_one(2)
     assert k.compiled == 2
-    assert lines[0].startswith("kernels: compiling, 1 done in ") and "plus_one" in lines[0]
+    counts = [ln for ln in lines if ln.startswith("kernels: compiling, ")]
+    assert counts[0].startswith("kernels: compiling, 1 done in ") and "plus_one" in counts[0]
     assert lines[-1].startswith("kernels: 2 compiled in ")
     quiet: list[str] = []
     with kernel_compiles(quiet.append, ours=(plus_one.py_func.__module__,)) as k:
         plus_one(3)
     assert k.compiled == 0 and quiet == []
+
+
+def test_a_kernel_compiling_long_is_told_while_it_compiles():
+    """One kernel can compile for minutes: the ticker names it, with its time so far."""
+    import numba
+    from numba.core import event
+
+    from service.startup import kernel_compiles
+
+    @numba.njit
+    def slow(x):
+        return x * 2
+
+    lines: list[str] = []
+    with kernel_compiles(lines.append, every_s=0.0, ours=(slow.py_func.__module__,)) as k:
+        # numba's own start event, as its dispatcher sends it when a compile begins.
+        k.on_start(event.Event("numba:compile", event.EventStatus.START, {"dispatcher": slow}))
+        k.tick()
+    assert any(ln.startswith("kernels: compiling ") and ".slow for " in ln for ln in lines)
