@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -53,7 +53,6 @@ class PartModel:
         spacing_mm: float | None = None,
         band_mm: float | None = None,
         alignment: bool = True,
-        progress: Callable[[float], None] | None = None,
     ) -> PartModel:
         """Build the tree (``GridTree.build``) and the alignment model of ``cad``.
 
@@ -66,16 +65,13 @@ class PartModel:
         alignment : bool
             Compute the global search's model (seconds; needed for clouds
             anywhere in the rig).
-        progress : callable, optional
-            Given the tree build's fraction done (``GridTree.build``'s).
         """
         if not isinstance(cad, CadModel):
             raise InvalidInput(f"cad must be a CadModel, got {type(cad).__name__}")
         tree = GridTree.build(
             cad,
-            **({} if spacing_mm is None else {"spacing_mm": spacing_mm}),
-            **({} if band_mm is None else {"band_mm": band_mm}),
-            progress=progress,
+            **({} if spacing_mm is None else {"spacing_mm": spacing_mm}),  # type: ignore[arg-type]
+            **({} if band_mm is None else {"band_mm": band_mm}),  # type: ignore[arg-type]
         )
         model = alignment_model(cad) if alignment else None
         return cls(cad, tree, model, check_comparison_points(comparison_points))

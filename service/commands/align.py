@@ -213,6 +213,7 @@ def load_model(
     """
     from inspection.alignment import alignment_model
     from inspection.cad import CadModel, load_cad
+    from inspection.deviations import check_comparison_points
     from inspection.errors import InvalidInput, TreeMismatch
     from inspection.grid import GridTree
     from inspection.measure import PartModel
@@ -241,8 +242,11 @@ def load_model(
     )
     from .progress import FractionBar
 
+    # The tree built here with its bar, then the part as PartModel.build makes it.
     with FractionBar(f"building the tree of {cad.name}", quiet=quiet) as progress:
-        return PartModel.build(cad, points, alignment=alignment, progress=progress)
+        tree = GridTree.build(cad, progress=progress)
+    model = alignment_model(cad) if alignment else None
+    return PartModel(cad, tree, model, check_comparison_points(points))
 
 
 def _measure(
