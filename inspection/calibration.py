@@ -34,7 +34,7 @@ it left out.
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -230,10 +230,12 @@ def render_calibration_views(
     board: CharucoSpec | None = None,
     reference: Transform | None = None,
     supersample: int = 5,
+    progress: Callable[[float, str], None] | None = None,
 ) -> tuple[list[list[Image]], list[Transform]]:
     """Render the board in :func:`calibration_poses` with the simulator.
 
-    ``supersample`` is passed to :func:`inspection.simulate.simulate_board`.
+    ``supersample`` is passed to :func:`inspection.simulate.simulate_board`;
+    ``progress(fraction, stage)`` is called after each view.
 
     Returns
     -------
@@ -244,10 +246,11 @@ def render_calibration_views(
 
     spec = board if board is not None else CharucoSpec()
     poses = calibration_poses(n_views, seed=seed, board=spec, reference=reference)
-    views = [
-        simulate_board(rig, T, spec, seed=seed * 1000 + k, supersample=supersample)
-        for k, T in enumerate(poses)
-    ]
+    views = []
+    for k, T in enumerate(poses):
+        views.append(simulate_board(rig, T, spec, seed=seed * 1000 + k, supersample=supersample))
+        if progress is not None:
+            progress((k + 1) / len(poses), "rendering the board")
     return views, poses
 
 
@@ -259,6 +262,7 @@ def calibrate(
     reference_view: int = 0,
     template: Rig | None = None,
     source: str | None = None,
+    progress: Callable[[float, str], None] | None = None,
 ) -> Calibration:
     """Calibrate the four cameras of the rig from ChArUco board images.
 
@@ -279,6 +283,9 @@ def calibrate(
         pairs (default :meth:`Rig.nominal`; boards do not observe them).
     source : str, optional
         Recorded in the rig file (default: a summary of the calibration).
+    progress : callable, optional
+        ``progress(fraction, stage)``, called as the board is detected in
+        each view, each camera is calibrated and the rig is refined.
 
     Returns
     -------
@@ -296,12 +303,15 @@ def calibrate(
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)
     try:
-        return _calibrate(views, board, T_rig_board_ref, reference_view, template, source)
+        return _calibrate(views, board, T_rig_board_ref, reference_view, template, source, progress)
     finally:
         cv2.setNumThreads(threads)
 
 
-def _calibrate(views, board, T_rig_board_ref, reference_view, template, source) -> Calibration:
+def _calibrate(
+    views, board, T_rig_board_ref, reference_view, template, source, progress
+) -> Calibration:
+    report = progress if progress is not None else (lambda fraction, stage: None)
     spec = board if board is not None else CharucoSpec()
     tmpl = template if template is not None else Rig.nominal()
     n_cams = len(tmpl.cameras)
@@ -333,6 +343,7 @@ def _calibrate(views, board, T_rig_board_ref, reference_view, template, source) 
                 )
             row.append(detect_board(img, spec, detector))
         dets.append(row)
+        report(0.6 * (v + 1) / len(views), "detecting the board")
 
     # 2. intrinsics per camera
     intr = []
@@ -378,6 +389,7 @@ def _calibrate(views, board, T_rig_board_ref, reference_view, template, source) 
         poses_cam.append(poses)
         log.debug("camera %s: calibrateCamera RMS %.3f px over %d views", cam.name, rms, len(used))
 
+    report(0.8, "placing the cameras")
     # 3. the rig frame from the reference board: T_cam_rig = T_cam_board @ T_board_rig
     T_cam_rig = [poses_cam[c][reference_view] @ np.linalg.inv(T_ref) for c in range(n_cams)]
     T_rig_board = np.full((len(views), 4, 4), np.nan)
@@ -391,6 +403,7 @@ def _calibrate(views, board, T_rig_board_ref, reference_view, template, source) 
             T_rig_board[v] = np.linalg.inv(T_cam_rig[c]) @ poses_cam[c][v]
 
     # 4. joint refinement
+    report(0.85, "refining the rig jointly")
     cams, T_rig_board, rms, view_rms, counts = _bundle_adjust(
         tmpl, intr, T_cam_rig, T_rig_board, dets, reference_view
     )
@@ -415,6 +428,7 @@ def _calibrate(views, board, T_rig_board_ref, reference_view, template, source) 
         text,
         tuple(round(r, 4) for r in rms),
     )
+    report(1.0, "calibrated")
     return Calibration(
         rig,
         tuple(rms),

@@ -71,20 +71,51 @@ def read_cloud(path: str | Path) -> Points:
             f"{p}: unknown cloud format {suffix or '(no suffix)'!r}; "
             f"expected one of {', '.join(CLOUD_SUFFIXES)}"
         )
+    if p.is_dir():
+        raise InvalidInput(f"{p}: a directory, not a cloud file")
     if not p.is_file():
         raise InvalidInput(f"{p}: no such file")
     try:
         if suffix == ".npy":
-            arr = np.load(p, allow_pickle=False)
+            arr = _read_npy(p)
         elif suffix == ".ply":
             arr = _read_ply(p)
         else:
             arr = _read_text(p)
     except InvalidInput:
         raise
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, EOFError) as exc:
         raise InvalidInput(f"{p}: cannot read as {suffix[1:].upper()}: {exc}") from exc
     return _validated(arr, p)
+
+
+def _read_npy(p: Path) -> np.ndarray:
+    """The array of an ``.npy`` file, its header checked before any data is read.
+
+    Never unpickled: an object array would run code from the file, so it is
+    refused from its header, with a message of ours rather than numpy's
+    advice to load it unsafely.
+    """
+    fmt = np.lib.format
+    with p.open("rb") as fh:
+        if fh.read(len(fmt.MAGIC_PREFIX)) != fmt.MAGIC_PREFIX:
+            raise InvalidInput(f"{p}: not a NumPy .npy file (no NPY magic)")
+        fh.seek(0)
+        version = fmt.read_magic(fh)
+        if version not in ((1, 0), (2, 0), (3, 0)):
+            raise InvalidInput(f"{p}: unknown .npy format version {version}")
+        # Version 3 differs from 2 only in allowing UTF-8 field names.
+        read_header = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
+        shape, _, dtype = read_header(fh)
+        if dtype.hasobject:
+            raise InvalidInput(
+                f"{p}: holds Python objects, not numbers; a cloud is an (N, 3) array of "
+                "numbers (object arrays are never loaded: unpickling runs code from the file)"
+            )
+        if len(shape) != 2 or shape[1] < 3:
+            raise InvalidInput(f"{p}: expected an (N, 3) array of points, got shape {shape}")
+        fh.seek(0)
+        return np.asarray(np.load(fh, allow_pickle=False))
 
 
 def _validated(arr: np.ndarray, p: Path) -> Points:

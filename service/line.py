@@ -32,7 +32,7 @@ from inspection.rig import Rig
 from inspection.simulate import RenderOptions
 from inspection.transforms import apply
 
-from . import bus
+from . import bus, startup
 from .api import ResultHub, create_app
 from .config import ConfigError, LineConfig, PartSpec, Sensor, load_part_spec
 from .executor import Executor, InProcessExecutor
@@ -95,54 +95,89 @@ class Station:
         *,
         build_trees: bool = True,
         warm_up: bool = True,
+        talk: Callable[[str], None] | None = None,
     ) -> Station:
         """Load every part of the station (tree, alignment model, spec) and warm the kernels up.
 
         Returns only once the station can measure at full speed. ``build_trees=False``
-        loads the CAD only (enough for the ingest's simulator).
+        loads the CAD only (enough for the ingest's simulator). ``talk`` is told
+        each phase as it starts, with its progress and whether it is a first
+        start (:mod:`service.startup`); without it the phases are logged.
 
         Raises
         ------
         service.parts.PartError
             A part of the station could not be loaded.
         """
-        stages = stages or stages_for(cfg)
+        say = talk if talk is not None else (lambda line: log.info("start-up: %s", line))
+        say(startup.kernels_line())
+        with startup.kernel_compiles(say):
+            return cls._load(cfg, stages, say, build_trees=build_trees, warm_up=warm_up)
+
+    @classmethod
+    def _load(
+        cls,
+        cfg: LineConfig,
+        stages: Stages | None,
+        say: Callable[[str], None],
+        *,
+        build_trees: bool,
+        warm_up: bool,
+    ) -> Station:
+        if stages is None:
+            t0 = time.perf_counter()
+            say("rig: loading its calibration and preparing the measuring stages")
+            stages = stages_for(cfg)
+            say(f"rig: ready in {time.perf_counter() - t0:.1f} s")
         if not build_trees:
             cads = {}
             for path in cfg.part_spec_paths():
                 spec = load_part_spec(path)
+                say(f"part {spec.name}: loading CAD")
                 cads[spec.name] = (spec, load_part_cad(spec, path.parent))
             station = cls(cfg, stages, {}, cads=cads)
             if warm_up:
-                station.warm_up(measure=False)
+                station.warm_up(measure=False, talk=say)
             return station
         registry = PartRegistry.from_config(cfg)
         try:
             t0 = time.perf_counter()
-            registry.preload()
+            say(f"station {cfg.station.name}: loading its parts (tree cache {registry.trees_dir})")
+            built = startup.preload(registry, say)
             parts = registry.loaded(list(cfg.station.parts))
-            log.info("station %s: parts loaded in %.1f s", cfg.station.name,
-                     time.perf_counter() - t0)  # fmt: skip
+            loaded_s = time.perf_counter() - t0
+            new = sorted(n for n, b in built.items() if b)
+            say(
+                f"station {cfg.station.name}: parts ready in {loaded_s:.1f} s; "
+                + (f"trees built for {', '.join(new)} (first start)" if new
+                   else "every tree loaded from the cache")
+            )  # fmt: skip
             station = cls(cfg, stages, parts, registry)
             if warm_up:
-                station.warm_up()
+                station.warm_up(talk=say)
         except BaseException:
             registry.close()
             raise
         return station
 
-    def warm_up(self, *, measure: bool = True) -> None:
+    def warm_up(self, *, measure: bool = True, talk: Callable[[str], None] | None = None) -> None:
         """Render one FrameSet (and measure it): the simulator's and the reconstruction's
         kernels compile here, not on the first part of the shift."""
+        say = talk if talk is not None else (lambda line: log.info("start-up: %s", line))
+        say("warm-up: rendering one frame set (the simulator's kernels load or compile)")
         t0 = time.perf_counter()
         fs = self.simulated_rig().capture(0, time.time_ns())
         t1 = time.perf_counter()
         if not measure:
-            log.info("warm-up: rendered in %.1f s", t1 - t0)
+            say(f"warm-up: rendered in {t1 - t0:.1f} s")
             return
+        say(
+            f"warm-up: rendered in {t1 - t0:.1f} s; measuring it "
+            "(the reconstruction's kernels load or compile)"
+        )
         r = self.pipeline().run(fs).result
-        log.info("warm-up: rendered in %.1f s, measured in %.1f s (%s; %s)", t1 - t0,
-                 time.perf_counter() - t1, r.status.value, r.timings_ms)  # fmt: skip
+        say(f"warm-up: measured in {time.perf_counter() - t1:.1f} s ({r.status.value})")
+        log.info("warm-up timings: %s", r.timings_ms)
         if r.status.value == "error":
             log.warning("warm-up measurement gave an error: %s", r.reason)
 
@@ -602,11 +637,12 @@ def start_line(
     stages: Stages | None = None,
     http: bool = True,
     extra_sinks: tuple[Callable[[Outcome, FrameSet | None], None], ...] = (),
+    talk: Callable[[str], None] | None = None,
 ) -> LineHandles:
     """Start the whole line in this process; see :func:`run_line`."""
     log.info("line config %s: %s", cfg.hash()[:12], json.dumps(cfg.effective()))
     # Measuring here warms the kernels up; a station measured on Dask warms its workers.
-    station = Station.load(cfg, stages, warm_up=cfg.station.dask_address() is None)
+    station = Station.load(cfg, stages, warm_up=cfg.station.dask_address() is None, talk=talk)
     try:
         executor = make_executor(cfg, station)
     except BaseException:
@@ -693,8 +729,7 @@ def run_line(
     out: Callable[[str], None] = print,
 ) -> int:
     """Run the whole simulated line until ``stop`` is set or ``parts_limit`` results arrived."""
-    out(f"loading the parts of station {cfg.station.name} (first start: trees are built)...")
-    h = start_line(cfg, parts_limit=parts_limit)
+    h = start_line(cfg, parts_limit=parts_limit, talk=out)
     try:
         where = [f"zenoh: listening on {', '.join(cfg.zenoh.listen) or 'nothing'}"]
         if h.api is not None:
@@ -723,9 +758,15 @@ def run_router(
     return 0
 
 
-def run_ingest(cfg: LineConfig, stop: threading.Event, *, count: int | None = None) -> int:
+def run_ingest(
+    cfg: LineConfig,
+    stop: threading.Event,
+    *,
+    count: int | None = None,
+    talk: Callable[[str], None] | None = None,
+) -> int:
     """The ingest adapter alone, publishing to the bus until ``stop`` (or ``count`` triggers)."""
-    station = Station.load(cfg, build_trees=False)
+    station = Station.load(cfg, build_trees=False, talk=talk)
     with contextlib.closing(bus.open_session(bus_settings(cfg))) as session:
         publisher = bus.frame_publisher(session, station.keys.frames(station.name))
         ingest = make_ingest(cfg, station, publisher.put)
@@ -737,10 +778,12 @@ def run_ingest(cfg: LineConfig, stop: threading.Event, *, count: int | None = No
     return 0
 
 
-def run_worker(cfg: LineConfig, stop: threading.Event) -> int:
+def run_worker(
+    cfg: LineConfig, stop: threading.Event, *, talk: Callable[[str], None] | None = None
+) -> int:
     """A worker alone: measures (or has its executor measure), publishes, stores and
     records until ``stop``."""
-    station = Station.load(cfg, warm_up=cfg.station.dask_address() is None)
+    station = Station.load(cfg, warm_up=cfg.station.dask_address() is None, talk=talk)
     with (
         contextlib.closing(station),
         contextlib.closing(make_executor(cfg, station)) as executor,

@@ -257,10 +257,12 @@ def build_or_load_tree(
             expected = _expected_params(spec)
             if {k: tree.params.to_dict()[k] for k in expected} == expected:
                 log.info("part %s: tree %s loaded from %s", spec.name, tree.hash[:12], path)
+                report(0.9, "tree loaded from the cache")
                 return tree
             log.warning("part %s: cached tree %s has other parameters; rebuilding", spec.name, path)
         except (TreeMismatch, InvalidInput, OSError, ValueError, KeyError) as exc:
             log.warning("part %s: cached tree %s unusable (%s); rebuilding", spec.name, path, exc)
+    # The message is what start-up tells: building a tree is the slow part of a first start.
     report(0.1, "building tree")
     t0 = time.perf_counter()
     tree = GridTree.build(
@@ -318,7 +320,8 @@ def part_from_cad(
     tree = build_or_load_tree(cad, spec, trees_dir, report)
     model = None
     if alignment:
-        report(0.95, "computing resting poses")
+        cached = alignment_model_path(trees_dir, cad).is_file()
+        report(0.95, "loading resting poses" if cached else "computing resting poses")
         model = models.get(cad.hash) if models is not None else None
         if model is None:
             model = load_alignment_model(cad, trees_dir)
@@ -439,6 +442,7 @@ class PartRegistry:
         # geometry, reuse the model. Only the build thread (the pool's one worker) touches it.
         self._alignment_models: dict[str, AlignmentModel] = {}
         self._job_counter = 0
+        self._watchers: list[Callable[[Job], None]] = []
 
     @classmethod
     def from_config(cls, cfg: Any) -> PartRegistry:
@@ -655,7 +659,22 @@ class PartRegistry:
 
     def _update_job(self, job_id: str, **changes: Any) -> None:
         with self._lock:
-            self._jobs[job_id] = self._jobs[job_id].model_copy(update=changes)
+            job = self._jobs[job_id] = self._jobs[job_id].model_copy(update=changes)
+            watchers = list(self._watchers)
+        for watch in watchers:  # outside the lock: a watcher may query the registry
+            watch(job)
+
+    def watch(self, watcher: Callable[[Job], None]) -> Callable[[], None]:
+        """Call ``watcher`` with every change of a job (from the build thread); returns
+        the function that stops it."""
+        with self._lock:
+            self._watchers.append(watcher)
+
+        def unwatch() -> None:
+            with self._lock:
+                self._watchers.remove(watcher)
+
+        return unwatch
 
     def _build(self, name: str, job_id: str) -> None:
         with self._lock:
@@ -678,7 +697,11 @@ class PartRegistry:
                 models=self._alignment_models,
             )
         except Exception as exc:
-            log.exception("part %s: tree build failed", name)
+            if isinstance(exc, (InspectionError, OSError)):
+                # A bad CAD file or an unusable cache folder: the message says it all.
+                log.error("part %s: tree build failed: %s", name, exc)
+            else:
+                log.exception("part %s: tree build failed", name)
             # The message reaches clients (the job, 409s): the server's folders stay in the log.
             folders = {entry.base_dir: "<part folder>", self.trees_dir: "<tree cache>"}
             with self._lock:
@@ -689,14 +712,22 @@ class PartRegistry:
             )
             return
         if self.alignment:
-            self._update_job(job_id, progress=0.98, message="warming up")
             from inspection.deviations import warmup as deviations_warmup
             from inspection.grid import warmup
 
             # Readiness means the first real part is not the one paying for compilation.
-            log.info("grid kernels ready in %.1f s", warmup())
-            deviations_warmup()
-            log.info("part %s: measured once in %.1f s (warm-up)", name, warm_up(loaded))
+            # Each step is a job message: on a first start they compile for minutes.
+            steps: list[tuple[str, Callable[[], object]]] = [
+                ("warm-up 1/3: the grid's kernels load or compile", warmup),
+                ("warm-up 2/3: the deviations' kernels load or compile", deviations_warmup),
+                ("warm-up 3/3: measuring the part once (fit and search kernels)",
+                 lambda: warm_up(loaded)),
+            ]  # fmt: skip
+            for k, (message, step) in enumerate(steps):
+                self._update_job(job_id, progress=0.97 + 0.01 * k, message=message)
+                t0 = time.perf_counter()
+                step()
+                log.info("part %s: %s in %.1f s", name, message, time.perf_counter() - t0)
         with self._lock:
             entry.loaded = loaded
             entry.state = PartState.ready

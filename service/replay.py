@@ -215,8 +215,13 @@ def replay(
     trees_dir: str | Path = "runs/trees",
     tolerances: Tolerances | None = None,
     on_result: Callable[[InspectionResult, InspectionResult], None] | None = None,
+    progress: Callable[[int, int], None] | None = None,
 ) -> ReplayReport:
-    """Re-run every recorded FrameSet and compare with the logged results."""
+    """Re-run every recorded FrameSet and compare with the logged results.
+
+    ``progress(done, total)`` is called once the recording is read (``done``
+    0) and after each recorded trigger.
+    """
     tol = tolerances or Tolerances()
     metadata, triggers = read_recording(paths)
     if stages is None:
@@ -224,7 +229,11 @@ def replay(
     parts = parts_from_metadata(metadata, stages, Path(parts_dir), Path(trees_dir))
     pipeline = Pipeline(stages, parts)
     report = ReplayReport(triggers=len(triggers))
-    for t in triggers:
+    if progress is not None:
+        progress(0, len(triggers))
+    for k, t in enumerate(triggers, 1):
+        if progress is not None and k > 1:
+            progress(k - 1, len(triggers))
         if t.frameset is None:
             report.not_replayable += 1
             continue
@@ -239,6 +248,8 @@ def replay(
             report.same += 1
         if on_result is not None:
             on_result(new, t.result)
+    if progress is not None:
+        progress(len(triggers), len(triggers))
     return report
 
 

@@ -95,8 +95,13 @@ def read_tree(path: Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     InvalidInput
         The file is missing or not a saved tree.
     """
+    if path.is_dir():
+        raise InvalidInput(f"{path}: a directory, not a tree file")
     if not path.is_file():
         raise InvalidInput(f"{path}: no such tree file")
+    # numpy would read a lone .npy too, or pickles; a tree is an .npz archive.
+    if not zipfile.is_zipfile(path):
+        raise InvalidInput(f"{path}: not a saved GridTree (not an .npz archive)")
     try:
         with np.load(path, allow_pickle=False) as z:
             meta = json.loads(z["meta"].tobytes().decode())
@@ -104,7 +109,19 @@ def read_tree(path: Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
                 raise ValueError("meta is not a JSON object")
             _check_layout(path, meta, set(z.files) - {"meta"})
             a = {k: z[k] for k in z.files if k != "meta"}
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile, json.JSONDecodeError) as exc:
+    except (
+        OSError,
+        ValueError,
+        KeyError,
+        EOFError,
+        zipfile.BadZipFile,
+        json.JSONDecodeError,
+    ) as exc:
+        if "allow_pickle" in str(exc):
+            # numpy's advice is to unpickle, which runs code from the file: never.
+            raise InvalidInput(
+                f"{path}: not a saved GridTree (it holds Python objects, which are never loaded)"
+            ) from exc
         raise InvalidInput(f"{path}: not a saved GridTree ({exc})") from exc
     for arr in a.values():
         arr.setflags(write=False)

@@ -35,10 +35,17 @@ taken from the vertices and faces it stores). CLOUD is a PLY, XYZ/TXT/CSV or
 NPY file of points in mm. POINTS.json is a list of comparison points (name,
 position, normal, lower_mm, upper_mm, radius_mm).
 
-Exit codes: 0 a usable, unambiguous fit (align) or a part that passes
-(check); 1 a fit that is not usable (did not converge, too few inliers, too
-high a residual) or is ambiguous, or a part that fails; 3 a part that cannot
-be judged (not measurable); 2 bad input (message on stderr).
+``align`` also says whether the cloud matches the CAD at all: a fit that
+keeps too few of the points, or whose residual is far above the cloud's own
+noise (estimated from local planes, without the CAD), does not match,
+whatever its optimiser says of its convergence.
+
+Exit codes: 0 a usable, unambiguous fit of a cloud that matches the CAD
+(align) or a part that passes (check); 1 a cloud that does not match the CAD,
+a fit that is not usable (did not converge, too few inliers, too high a
+residual) or is ambiguous, or a part that fails or cannot be judged (not
+measurable); 2 bad input (message on stderr): also a POINTS.json without
+comparison points, which leaves check nothing to judge; 3 an internal error.
 """
 
 from __future__ import annotations
@@ -47,6 +54,7 @@ import argparse
 import dataclasses
 import json
 import logging
+import math
 import sys
 import time
 from collections.abc import Sequence
@@ -54,6 +62,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+from .exits import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK
 
 if TYPE_CHECKING:
     from inspection.deviations import ComparisonPoint
@@ -64,7 +74,10 @@ log = logging.getLogger(__name__)
 
 BUILTIN_PANEL = "builtin:panel"
 TREE_SUFFIXES = (".npz",)
-EXIT_OK, EXIT_BAD_FIT, EXIT_ERROR, EXIT_NOT_MEASURABLE = 0, 1, 2, 3
+MATCH_RESIDUAL_RATIO = 5.0
+"""A cloud matches its CAD when the fit's RMS residual stays within this many
+times the cloud's own noise: the right CAD leaves the noise itself, a wrong
+one a residual of the shapes' difference."""
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -98,6 +111,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         )
         p.add_argument("--seed", type=int, default=0, help="seed of the random subsets (0)")
         p.add_argument("--json", action="store_true", help="print JSON instead of text")
+        p.add_argument("--quiet", action="store_true", help="no progress bar of the tree build")
 
     a = subparsers.add_parser(
         "align",
@@ -166,7 +180,12 @@ def measure_params(args: argparse.Namespace) -> MeasureParams:
 
 
 def load_model(
-    spec: str, scale: float, points: Sequence[ComparisonPoint] = (), *, alignment: bool
+    spec: str,
+    scale: float,
+    points: Sequence[ComparisonPoint] = (),
+    *,
+    alignment: bool,
+    quiet: bool = True,
 ) -> PartModel:
     """The part model of a CAD file, ``builtin:panel`` or a saved tree.
 
@@ -180,6 +199,8 @@ def load_model(
     alignment : bool
         Compute the global search's model (needed unless the cloud is given
         in the CAD frame).
+    quiet : bool
+        No progress bar of the tree build (there is none off a terminal).
 
     Raises
     ------
@@ -192,6 +213,7 @@ def load_model(
     """
     from inspection.alignment import alignment_model
     from inspection.cad import CadModel, load_cad
+    from inspection.deviations import check_comparison_points
     from inspection.errors import InvalidInput, TreeMismatch
     from inspection.grid import GridTree
     from inspection.measure import PartModel
@@ -218,12 +240,18 @@ def load_model(
         cad.name,
         len(cad.faces),
     )
-    return PartModel.build(cad, points, alignment=alignment)
+    from .progress import FractionBar
+
+    # The tree built here with its bar, then the part as PartModel.build makes it.
+    with FractionBar(f"building the tree of {cad.name}", quiet=quiet) as progress:
+        tree = GridTree.build(cad, progress=progress)
+    model = alignment_model(cad) if alignment else None
+    return PartModel(cad, tree, model, check_comparison_points(points))
 
 
 def _measure(
     args: argparse.Namespace, points: Sequence[ComparisonPoint] = ()
-) -> tuple[PartModel, Measurement, dict[str, float]]:
+) -> tuple[PartModel, Measurement, dict[str, float], np.ndarray]:
     """Read the inputs and measure the cloud; the timings of reading added."""
     from inspection.cloud_io import read_cloud
     from inspection.measure import measure_cloud
@@ -234,15 +262,67 @@ def _measure(
     cloud = read_cloud(args.cloud)
     read_ms = (time.perf_counter() - t0) * 1e3
     t0 = time.perf_counter()
-    part = load_model(args.model, args.scale, points, alignment=frame != "cad")
+    part = load_model(args.model, args.scale, points, alignment=frame != "cad", quiet=args.quiet)
     part_ms = (time.perf_counter() - t0) * 1e3
     m = measure_cloud(part, cloud, params, frame=frame)
-    return part, m, {"read": read_ms, "part": part_ms, **m.timings_ms}
+    return part, m, {"read": read_ms, "part": part_ms, **m.timings_ms}, cloud
 
 
 def _bad_input(command: str, exc: Exception) -> int:
     print(f"inspection {command}: {exc}", file=sys.stderr)
-    return EXIT_ERROR
+    return EXIT_BAD_INPUT
+
+
+@dataclasses.dataclass(frozen=True)
+class Match:
+    """Whether a cloud matches the CAD it was fitted to, by the fit's own diagnostics."""
+
+    matches: bool
+    noise_mm: float
+    residual_ratio: float | None
+    reason: str | None
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def line(self, reg: Registration | None) -> str:
+        if not self.matches or reg is None:
+            return f"match: the cloud DOES NOT MATCH the CAD: {self.reason}"
+        return (
+            f"match: the cloud matches the CAD (residual {reg.rms_mm:.4f} mm, "
+            f"{self.residual_ratio:.1f}x the cloud's own noise of {self.noise_mm:.4f} mm; "
+            f"{100 * reg.inlier_fraction:.1f} % of the points kept)"
+        )
+
+
+def cloud_match(reg: Registration | None, points: np.ndarray, min_inlier_fraction: float) -> Match:
+    """Does the fit ``reg`` of ``points`` say the cloud is of this CAD?
+
+    It does not when the fit keeps fewer than ``min_inlier_fraction`` of the
+    points, or when its RMS residual exceeds :data:`MATCH_RESIDUAL_RATIO`
+    times the cloud's own noise (:func:`inspection.noise.surface_noise_mm`):
+    a fit of the wrong CAD can converge, at millimetres where the right one
+    leaves the sensor's noise.
+    """
+    from inspection.noise import surface_noise_mm
+
+    noise = surface_noise_mm(points)
+    if reg is None:
+        return Match(False, noise, None, "nothing was fitted")
+    ratio = float(reg.rms_mm / noise) if noise > 0 else math.inf
+    if not reg.inlier_fraction >= min_inlier_fraction:
+        why = (
+            f"the fit keeps {100 * reg.inlier_fraction:.1f} % of the points, "
+            f"below the {100 * min_inlier_fraction:.0f} % a match keeps"
+        )
+        return Match(False, noise, ratio, why)
+    if not ratio <= MATCH_RESIDUAL_RATIO:
+        why = (
+            f"the fit's residual {reg.rms_mm:.3f} mm is {ratio:.0f}x the cloud's own noise "
+            f"({noise:.4f} mm); a match stays within {MATCH_RESIDUAL_RATIO:.0f}x"
+        )
+        return Match(False, noise, ratio, why)
+    return Match(True, noise, ratio, None)
 
 
 # --------------------------------------------------------------------------- output
@@ -357,26 +437,38 @@ def cmd_align(args: argparse.Namespace) -> int:
     from inspection.errors import InspectionError
 
     try:
-        _, m, timings = _measure(args)
+        _, m, timings, cloud = _measure(args)
     except (InspectionError, OSError) as exc:
         return _bad_input("align", exc)
+    match = cloud_match(m.registration, cloud, measure_params(args).min_inlier_fraction)
     if args.json:
         fit = registration_dict(m.registration) if m.registration is not None else {}
-        print(json.dumps({**fit, **measurement_dict(m), "timings_ms": timings}, indent=2))
+        doc = {**fit, **measurement_dict(m), "match": match.to_dict(), "timings_ms": timings}
+        print(json.dumps(doc, indent=2))
     else:
         _print_measurement(m)
+        print(match.line(m.registration))
         print(_timings_line(timings))
-    return EXIT_OK if _usable(m) else EXIT_BAD_FIT
+    return EXIT_OK if _usable(m) and match.matches else EXIT_FAILED
 
 
 def cmd_check(args: argparse.Namespace) -> int:
     from inspection.cloud_io import write_ply
-    from inspection.deviations import Verdict, load_comparison_points
-    from inspection.errors import InspectionError
+    from inspection.deviations import load_comparison_points
+    from inspection.errors import InspectionError, InvalidInput
 
     try:
         points = load_comparison_points(args.points)
-        _, m, timings = _measure(args, points)
+        if not points:
+            # A verdict over no comparison point would pass any part.
+            return _bad_input(
+                "check",
+                InvalidInput(
+                    f"{args.points}: no comparison points, so nothing to judge the part by "
+                    "(give at least one; align fits a cloud without them)"
+                ),
+            )
+        _, m, timings, _ = _measure(args, points)
         points_cad = m.points_cad()
         if args.write_ply is not None:
             if m.deviations is None or points_cad is None:
@@ -418,10 +510,7 @@ def cmd_check(args: argparse.Namespace) -> int:
                 )
         print(f"part: {'NO VERDICT' if m.verdict is None else m.verdict.value.upper()}")
         print(_timings_line(timings))
-    if m.verdict is None or not _usable(m):
-        return EXIT_BAD_FIT
-    return {
-        Verdict.PASS: EXIT_OK,
-        Verdict.FAIL: EXIT_BAD_FIT,
-        Verdict.NOT_MEASURABLE: EXIT_NOT_MEASURABLE,
-    }[m.verdict]
+    from inspection.deviations import Verdict
+
+    # Fails and not measurable alike: measured, and the part did not pass.
+    return EXIT_OK if _usable(m) and m.verdict is Verdict.PASS else EXIT_FAILED

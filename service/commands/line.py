@@ -9,6 +9,8 @@ import sys
 import threading
 from typing import Any
 
+from .exits import EXIT_BAD_INPUT
+
 log = logging.getLogger(__name__)
 
 DEFAULT_CONFIG = "configs/line.toml"
@@ -57,18 +59,28 @@ def _config(args: argparse.Namespace, *, mode: str | None = None) -> Any:
     except (ConfigError, AccessError) as exc:
         print(f"inspection: {exc}", file=sys.stderr)
         return None
+    # Said now, not after minutes of building trees that could not be saved there.
+    for what, path in (("data_dir", cfg.storage.data_path()), ("trees", cfg.storage.trees_path())):
+        if path.exists() and not path.is_dir():
+            print(f"inspection: {what} {path} is a file, not a directory", file=sys.stderr)
+            return None
     return cfg
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from service.line import run_line
-
     cfg = _config(args)
     if cfg is None:
-        return 2
+        return EXIT_BAD_INPUT
+    _say("starting: loading the software (zenoh, the API, the measuring code)")
+    from service.line import run_line
+
     stop = _stop_on_signals()
-    return _on_bus(lambda: run_line(cfg, stop, parts_limit=args.parts,
-                                    out=lambda s: print(s, flush=True)))  # fmt: skip
+    return _on_bus(lambda: run_line(cfg, stop, parts_limit=args.parts, out=_say))
+
+
+def _say(line: str) -> None:
+    """A start-up or status line, on stdout at once (a pipe would hold it back)."""
+    print(line, flush=True)
 
 
 def _on_bus(run: Any) -> int:
@@ -82,7 +94,7 @@ def _on_bus(run: Any) -> int:
         return int(run())
     except (BusError, ExecutorError, StoreError) as exc:
         print(f"inspection: {exc}", file=sys.stderr)
-        return 1
+        return EXIT_BAD_INPUT
 
 
 def _dask_address(text: str) -> Any:
@@ -101,28 +113,34 @@ def cmd_router(args: argparse.Namespace) -> int:
     if args.config is None:
         if not args.zenoh_listen:
             print("inspection router: --zenoh-listen or --config is needed", file=sys.stderr)
-            return 2
-        settings = BusSettings(mode="router", listen=tuple(args.zenoh_listen))
+            return EXIT_BAD_INPUT
+        try:
+            settings = BusSettings(mode="router", listen=tuple(args.zenoh_listen))
+        except ValueError as exc:
+            print(f"inspection router: --zenoh-listen: {exc}", file=sys.stderr)
+            return EXIT_BAD_INPUT
     else:
         cfg = _config(args, mode="router")
         if cfg is None:
-            return 2
+            return EXIT_BAD_INPUT
         settings = bus_settings(cfg)
     stop = _stop_on_signals()
     return _on_bus(lambda: run_router(settings, stop, out=lambda text: print(text, flush=True)))
 
 
 def cmd_piece(args: argparse.Namespace) -> int:
-    from service import line
-
     cfg = _config(args, mode="client")
     if cfg is None:
-        return 2
+        return EXIT_BAD_INPUT
+    if args.command != "api":
+        _say("starting: loading the software (zenoh, the measuring code)")
+    from service import line
+
     stop = _stop_on_signals()
     if args.command == "ingest":
-        return _on_bus(lambda: line.run_ingest(cfg, stop, count=args.count))
+        return _on_bus(lambda: line.run_ingest(cfg, stop, count=args.count, talk=_say))
     if args.command == "worker":
-        return _on_bus(lambda: line.run_worker(cfg, stop))
+        return _on_bus(lambda: line.run_worker(cfg, stop, talk=_say))
     return _on_bus(lambda: line.run_api(cfg, stop))
 
 

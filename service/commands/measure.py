@@ -26,10 +26,10 @@ images are measured as line ``cli``, station ``cli``, serial ``cli``.
 A FrameSet of another part than ``--part``, or taken for another calibration
 than the rig's, is refused, as the worker refuses it.
 
-Exit codes: 0 the part passes; 1 it fails, or could not be measured (status
-``error``); 3 it cannot be judged (``not_measurable``); 2 bad input
+Exit codes: 0 the part passes; 1 it fails, cannot be judged
+(``not_measurable``) or could not be measured (status ``error``); 2 bad input
 (unreadable or malformed frames, frames that do not fit the rig, a bad part
-spec or rig file): a message on stderr.
+spec or rig file): a message on stderr; 3 an internal error.
 """
 
 from __future__ import annotations
@@ -51,6 +51,7 @@ import numpy as np
 from inspection.errors import InspectionError, InvalidInput
 
 from .align import quality_line
+from .exits import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK
 
 if TYPE_CHECKING:
     from inspection.rig import Rig
@@ -61,7 +62,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-EXIT_OK, EXIT_FAIL, EXIT_BAD_INPUT, EXIT_NOT_MEASURABLE = 0, 1, 2, 3
 CLI_NAME = "cli"
 """Line, station and serial of images measured outside a FrameSet."""
 
@@ -103,6 +103,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="skip the CAD-guided second matching pass",
     )
     m.add_argument("--json", action="store_true", help="print the InspectionResult JSON")
+    m.add_argument("--quiet", action="store_true", help="no progress bar of a tree build")
     m.set_defaults(func=cmd_measure)
 
 
@@ -285,11 +286,7 @@ def print_result(r: InspectionResult, part_ms: float) -> None:
 def exit_code(r: InspectionResult) -> int:
     from service.models import Status
 
-    if r.status is Status.passed:
-        return EXIT_OK
-    if r.status is Status.not_measurable:
-        return EXIT_NOT_MEASURABLE
-    return EXIT_FAIL
+    return EXIT_OK if r.status is Status.passed else EXIT_FAILED
 
 
 # --------------------------------------------------------------------------- the command
@@ -302,6 +299,8 @@ def cmd_measure(args: argparse.Namespace) -> int:
     from service.config import load_part_spec
     from service.parts import load_part
     from service.results import outcome
+
+    from .progress import FractionBar
 
     def bad(message: object) -> int:
         print(f"inspection measure: {message}", file=sys.stderr)
@@ -317,7 +316,8 @@ def cmd_measure(args: argparse.Namespace) -> int:
             check_frameset(frames.frameset, spec.name, rig)
         trees = args.trees if args.trees is not None else default_trees_dir()
         t0 = time.perf_counter()
-        part = load_part(spec, args.part.parent, trees)
+        with FractionBar(f"loading part {spec.name}", quiet=args.quiet) as progress:
+            part = load_part(spec, args.part.parent, trees, progress)
         part_ms = (time.perf_counter() - t0) * 1e3
     except (InspectionError, ValueError, OSError) as exc:
         # ValueError: a part spec that does not validate (service.config.ConfigError).
@@ -329,7 +329,7 @@ def cmd_measure(args: argparse.Namespace) -> int:
         return bad(exc)
     except InspectionError as exc:
         print(f"inspection measure: the frames could not be measured: {exc}", file=sys.stderr)
-        return EXIT_FAIL
+        return EXIT_FAILED
     result = outcome(measured, trigger_of(frames, part, rig)).result
     if args.json:
         print(result.model_dump_json(indent=2))

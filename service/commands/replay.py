@@ -1,4 +1,12 @@
-"""``inspection replay FILE.mcap [--compare] [--publish]``: re-measure or re-publish a run."""
+"""``inspection replay FILE.mcap [--compare] [--publish]``: re-measure or re-publish a run.
+
+Every file is checked to be an MCAP file (its magic) before any part is
+loaded. Re-measuring shows a progress bar on a terminal (``--quiet``: none).
+
+Exit codes: 0 replayed (and, with ``--compare``, every result the same); 1
+a result differs (``--compare``); 2 bad input (no such recording, a file
+that is not MCAP, a recording that cannot be replayed); 3 an internal error.
+"""
 
 from __future__ import annotations
 
@@ -7,23 +15,49 @@ import logging
 import signal
 import sys
 import threading
+from pathlib import Path
 from typing import Any
 
+from .exits import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK
+
 log = logging.getLogger(__name__)
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+def not_mcap(path: Path) -> str | None:
+    """Why ``path`` is not an MCAP file, or None."""
+    try:
+        with path.open("rb") as fh:
+            head = fh.read(len(MCAP_MAGIC))
+    except OSError as exc:
+        return f"{path}: cannot read: {exc.strerror or exc}"
+    if not head:
+        return f"{path}: empty file, not an MCAP recording"
+    if head != MCAP_MAGIC:
+        return f"{path}: not an MCAP recording (no MCAP magic)"
+    return None
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
     from service.recorder import recover
     from service.replay import ReplayError, Tolerances, recording_files, replay
 
+    from .progress import bar
+
     files = [f for p in args.files for f in recording_files(p)]
     missing = [str(f) for f in files if not f.is_file()]
     if not files or missing:
         print(
-            f"inspection replay: no such recording: {', '.join(missing) or args.files}",
+            f"inspection replay: no such recording: {', '.join(missing) or ' '.join(args.files)}",
             file=sys.stderr,
         )
-        return 2
+        return EXIT_BAD_INPUT
+    for f in files:
+        why = not_mcap(f)
+        if why is not None:
+            print(f"inspection replay: {why}", file=sys.stderr)
+            return EXIT_BAD_INPUT
     if args.recover:
         for f in files:
             r = recover(f)
@@ -31,20 +65,28 @@ def cmd_replay(args: argparse.Namespace) -> int:
         return 0
     if args.publish:
         return _publish(args, files)
-    try:
-        report = replay(
-            files,
-            parts_dir=args.parts_dir,
-            trees_dir=args.trees_dir,
-            tolerances=Tolerances(args.transform_tol, args.deviation_tol),
-        )
-    except ReplayError as exc:
-        print(f"inspection replay: {exc}", file=sys.stderr)
-        return 2
+    with bar("replaying", None, quiet=args.quiet, unit="part") as progress:
+
+        def advance(done: int, total: int) -> None:
+            progress.total = total
+            progress.update(done - progress.n)
+
+        try:
+            report = replay(
+                files,
+                parts_dir=args.parts_dir,
+                trees_dir=args.trees_dir,
+                tolerances=Tolerances(args.transform_tol, args.deviation_tol),
+                progress=advance,
+            )
+        except ReplayError as exc:
+            progress.close()
+            print(f"inspection replay: {exc}", file=sys.stderr)
+            return EXIT_BAD_INPUT
     print(report.summary())
     if args.compare and not report.ok:
-        return 1
-    return 0
+        return EXIT_FAILED
+    return EXIT_OK
 
 
 def _publish(args: argparse.Namespace, files: list[Any]) -> int:
@@ -95,6 +137,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("files", nargs="+", metavar="FILE.mcap")
     p.add_argument("--compare", action="store_true", help="exit 1 if a result differs")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--publish", action="store_true", help="publish the frames on zenoh instead")
     p.add_argument(
         "--recover", action="store_true", help="repair unfinished files (a killed recorder)"

@@ -5,6 +5,9 @@
 closest-point grid and saves it as one file that the line preloads.
 ``info TREE`` prints what a saved tree holds: format version, CAD hash,
 build parameters, sizes and memory.
+
+Exit codes: 0 done; 2 bad input (an unreadable, empty or malformed CAD or
+tree file, a tree of another CAD); 3 an internal error.
 """
 
 from __future__ import annotations
@@ -15,7 +18,9 @@ import logging
 import sys
 import time
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any
+
+from .exits import EXIT_BAD_INPUT, EXIT_OK, BadInput
 
 log = logging.getLogger(__name__)
 
@@ -41,7 +46,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=None,
         help="distance from the surface answered by the fast path, mm (default 4)",
     )
-    b.add_argument("--quiet", action="store_true", help="no progress line")
+    b.add_argument("--quiet", action="store_true", help="no progress bar")
     b.set_defaults(func=cmd_build_tree)
 
     i = subparsers.add_parser(
@@ -56,28 +61,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     i.set_defaults(func=cmd_info)
 
 
-class _Progress:
-    """A one-line progress bar on a terminal stream, redrawn at most every 0.1 s."""
-
-    def __init__(self, label: str, stream: TextIO, width: int = 30) -> None:
-        self.label, self.stream, self.width = label, stream, width
-        self.start = time.perf_counter()
-        self._last = -1.0
-
-    def __call__(self, fraction: float) -> None:
-        now = time.perf_counter()
-        if fraction < 1.0 and now - self._last < 0.1:
-            return
-        self._last = now
-        filled = int(round(self.width * fraction))
-        bar = "#" * filled + "-" * (self.width - filled)
-        elapsed = now - self.start
-        self.stream.write(f"\r{self.label} [{bar}] {100 * fraction:5.1f}% {elapsed:5.1f} s")
-        if fraction >= 1.0:
-            self.stream.write("\n")
-        self.stream.flush()
-
-
 def _load_cad(spec: str, scale: float) -> Any:
     from inspection.cad import load_cad
 
@@ -85,7 +68,7 @@ def _load_cad(spec: str, scale: float) -> Any:
         from inspection.panel import sheet_metal_panel
 
         if scale != 1.0:
-            raise SystemExit(f"--scale does not apply to {BUILTIN_PANEL}")
+            raise BadInput(f"--scale does not apply to {BUILTIN_PANEL}")
         return sheet_metal_panel()
     return load_cad(spec, scale=scale)
 
@@ -104,6 +87,8 @@ def cmd_build_tree(args: argparse.Namespace) -> int:
     from inspection.errors import InspectionError
     from inspection.grid import GridTree
 
+    from .progress import FractionBar
+
     kwargs: dict[str, float] = {}
     if args.spacing_mm is not None:
         kwargs["spacing_mm"] = args.spacing_mm
@@ -117,22 +102,21 @@ def cmd_build_tree(args: argparse.Namespace) -> int:
             f"CAD {cad.name}: {len(cad.faces)} faces, {cad.extents.round(1).tolist()} mm, "
             f"hash {cad.hash[:16]} (read in {t_load:.2f} s)"
         )
-        show = not args.quiet and sys.stderr.isatty()
-        progress = _Progress("building", sys.stderr) if show else None
         t0 = time.perf_counter()
-        tree = GridTree.build(cad, progress=progress, **kwargs)
+        with FractionBar(f"building the tree of {cad.name}", quiet=args.quiet) as progress:
+            tree = GridTree.build(cad, progress=progress, **kwargs)
         t_build = time.perf_counter() - t0
         out = tree.save(args.out)
     except InspectionError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
+        print(f"inspection build-tree: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
     rss = _peak_rss_mb()
     print(
         f"built in {t_build:.2f} s: {tree.n_blocks} blocks, {tree.nbytes / 1e6:.1f} MB"
         + (f", peak RSS {rss:.0f} MB" if rss is not None else "")
     )
     print(f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB), tree hash {tree.hash[:16]}")
-    return 0
+    return EXIT_OK
 
 
 def cmd_info(args: argparse.Namespace) -> int:
@@ -145,8 +129,8 @@ def cmd_info(args: argparse.Namespace) -> int:
         tree = GridTree.load(args.tree, cad=cad)
         t_load = time.perf_counter() - t0
     except InspectionError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
+        print(f"inspection info: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
     info = tree.info()
     info["file"] = str(args.tree)
     info["file_bytes"] = args.tree.stat().st_size
@@ -155,7 +139,7 @@ def cmd_info(args: argparse.Namespace) -> int:
         info["cad_check"] = "matches"
     if args.json:
         print(json.dumps(info, indent=2))
-        return 0
+        return EXIT_OK
     p = info["params"]
     lines = [
         f"tree          {info['file']} ({info['file_bytes'] / 1e6:.1f} MB, "
@@ -174,4 +158,4 @@ def cmd_info(args: argparse.Namespace) -> int:
         f"memory        {info['nbytes'] / 1e6:.1f} MB in arrays",
     ]
     print("\n".join(lines))
-    return 0
+    return EXIT_OK

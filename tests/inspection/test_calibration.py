@@ -28,8 +28,23 @@ def views(truth):
 
 
 @pytest.fixture(scope="module")
-def result(views):
-    return calibrate(views[0])
+def progress() -> list[tuple[float, str]]:
+    return []
+
+
+@pytest.fixture(scope="module")
+def result(views, progress):
+    return calibrate(views[0], progress=lambda f, stage: progress.append((f, stage)))
+
+
+def test_progress_rises_through_the_stages(result, progress) -> None:
+    fractions = [f for f, _ in progress]
+    assert fractions == sorted(fractions) and 0 < fractions[0] and fractions[-1] == 1.0
+    stages = list(dict.fromkeys(stage for _, stage in progress))
+    assert stages == [
+        "detecting the board", "placing the cameras", "refining the rig jointly", "calibrated",
+    ]  # fmt: skip
+    assert sum(stage == "detecting the board" for _, stage in progress) == 8  # one per view
 
 
 def test_reprojection_error_is_small(result) -> None:

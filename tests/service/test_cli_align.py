@@ -1,9 +1,9 @@
 """``inspection align`` and ``inspection check`` end to end, in process.
 
 Both measure through ``inspection.measure.measure_cloud``; these tests hold the
-command line to its options, its outputs and its exit codes (0 a usable fit or
-a passing part, 1 an unusable fit or a failing part, 2 bad input, 3 not
-measurable).
+command line to its options, its outputs and its exit codes (0 a usable fit of
+a cloud that matches the CAD, or a passing part; 1 a cloud that does not
+match, an unusable fit, or a part that fails or cannot be judged; 2 bad input).
 """
 
 from __future__ import annotations
@@ -82,6 +82,61 @@ def test_align_prints_the_transform_as_json(files, capsys):
     assert {"read", "part", "align", "total"} <= set(out["timings_ms"])
 
 
+def test_the_right_cad_matches(files, capsys):
+    """The fit's residual against the cloud's own noise: about 1x for the right CAD."""
+    code = main(["align", str(files["stl"]), str(files["cloud"]), "--json"])
+    out = json.loads(capsys.readouterr().out)
+    assert code == 0
+    match = out["match"]
+    assert match["matches"] is True and match["reason"] is None
+    # The cloud's noise is 0.02 mm, estimated without the CAD.
+    assert 0.015 < match["noise_mm"] < 0.025
+    assert 0.8 < match["residual_ratio"] < 1.5
+
+
+def test_a_cloud_of_another_shape_does_not_match(files, capsys):
+    """A CAD with a 0.3 mm ripple over the whole top: the fit converges, keeps every
+    point, stays far under the 1 mm residual a measurement allows, and judges the
+    part, yet its residual is ten times the cloud's own noise: align says the
+    cloud does not match the CAD, and exits 1."""
+    mesh = trimesh.load(files["stl"])
+    v, f = trimesh.remesh.subdivide_to_size(mesh.vertices, mesh.faces, max_edge=2.5)
+    v = np.array(v)
+    v[:, 2] += 0.3 * np.sin(v[:, 0] / 8.0)
+    rippled = files["dir"] / "rippled.stl"
+    trimesh.Trimesh(v, f, process=False).export(rippled)
+    code = main(["align", str(rippled), str(files["cloud"]), "--json"])
+    out = json.loads(capsys.readouterr().out)
+    assert code == 1
+    assert out["converged"] and out["rms_mm"] < 1.0 and out["inlier_fraction"] > 0.9
+    assert out["verdict"] is not None  # the sequence alone would measure from it
+    match = out["match"]
+    assert match["matches"] is False and match["residual_ratio"] > 5
+    assert "the cloud's own noise" in match["reason"]
+    code = main(["align", str(rippled), str(files["cloud"])])
+    text = capsys.readouterr().out
+    assert code == 1
+    assert "match: the cloud DOES NOT MATCH the CAD: the fit's residual" in text
+
+
+def test_too_few_points_kept_do_not_match(files, capsys):
+    code = main(["align", str(files["stl"]), str(files["junk"]), "--no-global"])
+    text = capsys.readouterr().out
+    assert code == 1
+    assert "match: the cloud DOES NOT MATCH the CAD: the fit keeps" in text
+
+
+def test_check_refuses_an_empty_list_of_points(files, capsys):
+    """No comparison point leaves nothing to judge the part by: bad input, not a pass."""
+    empty = files["dir"] / "none.json"
+    empty.write_text("[]")
+    code = main(["check", str(files["stl"]), str(files["cloud"]), "--points", str(empty)])
+    captured = capsys.readouterr()
+    assert code == 2
+    assert "PASS" not in captured.out
+    assert "no comparison points" in captured.err
+
+
 def test_align_human_output(files, capsys):
     code = main(
         ["align", str(files["stl"]), str(files["cloud"]), "--no-global", "--loss", "welsch"]
@@ -143,13 +198,14 @@ def test_check_reports_verdicts_and_writes_ply(files, capsys):
     assert len(top) > 1000 and abs(np.median(top[:, 2]) - 10.0) < 0.01
 
 
-def test_not_measurable_exits_3(files, capsys):
+def test_not_measurable_exits_1(files, capsys):
+    """Measured, and not passed: the part cannot be judged, which is not a pass."""
     code = main(
         ["check", str(files["stl"]), str(files["cloud"]), "--points", str(files["points"]),
          "--no-global", "--min-support", "100000"]
     )  # fmt: skip
     text = capsys.readouterr().out
-    assert code == 3
+    assert code == 1
     assert "part: NOT_MEASURABLE" in text
     assert "reason: not measurable at base" in text
 

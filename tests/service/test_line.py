@@ -250,6 +250,7 @@ def test_cli_run_stops_by_itself_after_n_parts(tmp_path, trees, store, request):
     data = tmp_path / "data"
     config = line_file(tmp_path, trees, period_s=1.0, queue_size=1)
     url = request.getfixturevalue("pg_server").new_database() if store == "postgresql" else None
+    first_start = not [p for p in trees.glob("*.npz") if "-align-" not in p.name]
     run = cli("run", "--config", str(config), "--data-dir", str(data), "--parts", "2",
               "--http-port", str(http_port), "--zenoh-listen", f"tcp/127.0.0.1:{port}",
               env={"INSPECTION_STORAGE_URL": url} if url else None)  # fmt: skip
@@ -259,6 +260,19 @@ def test_cli_run_stops_by_itself_after_n_parts(tmp_path, trees, store, request):
         if run.poll() is None:
             run.kill()
     assert run.returncode == 0, err[-3000:]
+    # Start-up names its phases, and tells a first start (no cached tree) from a later one.
+    assert "kernels: " in out and "part demo-panel: loading CAD" in out
+    assert "warm-up: measured in " in out
+    for k in (1, 2, 3):  # the kernels' warm-up, step by step: minutes on a first start
+        assert f"part demo-panel: warm-up {k}/3: " in out, out
+    ready = re.search(r"station \S+: parts ready in [\d.]+ s; (.*)", out)
+    assert ready is not None, out
+    if first_start:
+        assert ready.group(1) == "trees built for demo-panel (first start)", out
+        assert "part demo-panel: no cached tree: building it (a first start" in out
+    else:
+        assert ready.group(1) == "every tree loaded from the cache", out
+        assert "part demo-panel: tree loaded from the cache" in out and "building it" not in out
     counted = re.search(r"stopped after (\d+) results", out)
     assert counted is not None, out
     n = int(counted.group(1))

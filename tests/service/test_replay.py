@@ -74,8 +74,13 @@ def recording(recordings):
 
 
 def test_replay_reproduces_every_result(recording, trees):
-    report = replay(recording, parts_dir=PARTS_DIR, trees_dir=trees)
+    seen: list[tuple[int, int]] = []
+    report = replay(
+        recording, parts_dir=PARTS_DIR, trees_dir=trees, progress=lambda *a: seen.append(a)
+    )
     assert report.ok, report.summary()
+    # The progress the CLI's bar draws: the count once read, then after each trigger.
+    assert seen == [(0, 3), (1, 3), (2, 3), (3, 3)]
     assert report.triggers == 3 and report.replayed == 2 and report.not_replayable == 1
     assert report.same == 2
     assert report.max_transform_diff <= 1e-9 and report.max_deviation_diff_mm <= 1e-6

@@ -39,10 +39,61 @@ def test_info_refuses_another_cad_and_bad_files(tmp_path, capsys):
     out = tmp_path / "ball.npz"
     assert main(["build-tree", ball, str(out), "--quiet"]) == 0
     capsys.readouterr()
-    assert main(["info", str(out), "--cad", box]) == 1
+    # Bad input, as every command exits on it: 2.
+    assert main(["info", str(out), "--cad", box]) == 2
     assert "built for CAD" in capsys.readouterr().err
     junk = tmp_path / "junk.npz"
     junk.write_bytes(b"junk")
-    assert main(["info", str(junk)]) == 1
-    assert main(["build-tree", str(tmp_path / "missing.stl"), str(out)]) == 1
-    assert "error:" in capsys.readouterr().err
+    assert main(["info", str(junk)]) == 2
+    assert "not an .npz archive" in capsys.readouterr().err
+    assert main(["build-tree", str(tmp_path / "missing.stl"), str(out)]) == 2
+    assert capsys.readouterr().err.startswith("inspection build-tree: ")
+
+
+def _build_tree_on(stderr_tty: bool, tmp_path, *extra: str) -> str:
+    """Run build-tree in a process whose stderr is a terminal (a pty) or a pipe; its stderr."""
+    import fcntl
+    import os
+    import pty
+    import struct
+    import subprocess
+    import sys
+    import termios
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    cad = _stl(tmp_path / "ball.stl", trimesh.creation.icosphere(subdivisions=2, radius=30.0))
+    cmd = [sys.executable, "-m", "service.cli", "build-tree", cad, str(tmp_path / "b.npz"), *extra]
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
+    if not stderr_tty:
+        r = subprocess.run(cmd, cwd=root, env=env, capture_output=True, text=True, timeout=120)
+        assert r.returncode == 0, r.stderr
+        return r.stderr
+    leader, follower = pty.openpty()
+    # A terminal of 24 x 100 characters (a new pty has none, and a bar fits in no width).
+    fcntl.ioctl(follower, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 100, 0, 0))
+    try:
+        proc = subprocess.Popen(cmd, cwd=root, env=env, stdout=subprocess.DEVNULL, stderr=follower)
+        os.close(follower)
+        chunks = []
+        while True:
+            try:
+                data = os.read(leader, 4096)
+            except OSError:  # the pty closes with the process
+                break
+            if not data:
+                break
+            chunks.append(data)
+        assert proc.wait(120) == 0
+    finally:
+        os.close(leader)
+    return b"".join(chunks).decode(errors="replace")
+
+
+def test_tree_build_progress_bar_only_on_a_terminal(tmp_path):
+    """tqdm draws the bar where someone watches (stderr a terminal), never into a pipe or
+    a log, and not with --quiet."""
+    on_tty = _build_tree_on(True, tmp_path)
+    assert "building the tree of ball" in on_tty and "100%" in on_tty
+    assert "building the tree" not in _build_tree_on(False, tmp_path)
+    assert "building the tree" not in _build_tree_on(True, tmp_path, "--quiet")
