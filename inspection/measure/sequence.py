@@ -18,7 +18,9 @@ the four-camera flash rig:
    surface for defects;
 7. hold each comparison point's verdict against the pose's own uncertainty
    along its normal, and give the part its verdict (a surface defect fails
-   it when the spec says so).
+   it when the spec says so);
+8. measure the features of the outline (holes, trim edges, gap and flush)
+   in the frames at the fit's pose, one entry per characteristic.
 
 Invalid input raises :class:`~inspection.errors.InvalidInput`; a valid
 input that cannot be measured (no surface seen, no fit) gives a
@@ -37,11 +39,12 @@ import numpy as np
 import numpy.typing as npt
 
 from ..alignment import align
-from ..deviations import deviations
+from ..deviations import FEATURE_KINDS, deviations
 from ..errors import InspectionError, InvalidInput
+from ..feature_checks import check_features
 from ..reconstruct import Cloud, Guide, Matching, Reconstructor
 from ..registration import LOSSES, Registration, register
-from ..rig import Rig
+from ..rig import Camera, Rig
 from ..transforms import apply
 from .judging import _fit_problem, _held_to_the_pose, _reason, fit_quality
 from .params import Frame, MeasureParams
@@ -146,7 +149,7 @@ def _measure_frames(
     cameras = np.array([cam.centre for cam in rec.rig.cameras], dtype=np.float64)
     return _judge(
         part, last.points, final, p, "rig", timings, t_start, tuple(passes), search,
-        cameras=cameras,
+        cameras=cameras, views=(tuple(rec.rig.cameras), tuple(frames)),
     )  # fmt: skip
 
 
@@ -362,12 +365,15 @@ def _judge(
     search: Registration | None = None,
     *,
     cameras: np.ndarray | None = None,
+    views: tuple[tuple[Camera, ...], tuple[npt.NDArray[np.uint8], ...]] = ((), ()),
 ) -> Measurement:
     """5.-7.: the fit's quality, the deviations over the cloud and the surface, and the verdict.
 
     ``search`` is the global search's fit when the final fit started from
     it (the guided passes): its ambiguity is the part's. ``cameras`` are the
-    rig's camera centres (rig frame), whose view of the CAD has its occlusion edges."""
+    rig's camera centres (rig frame), whose view of the CAD has its occlusion edges;
+    ``views`` the calibrated cameras and their frames, in which the features'
+    outlines are measured."""
     T = np.asarray(fit.transform, dtype=np.float64)
     quality = fit_quality(fit, search)
     if not np.isfinite(T).all():
@@ -406,6 +412,10 @@ def _judge(
     )
     devs = _held_to_the_pose(devs, part.comparison_points, fit, p)
     _lap(timings, "deviations", t)
+    if any(cp.kind in FEATURE_KINDS for cp in part.comparison_points):
+        t = _mark()
+        devs = check_features(devs, part.comparison_points, part.cad, apply(T, points), T, *views)
+        _lap(timings, "features", t)
     _lap(timings, "total", t_start)
     return Measurement(
         verdict=devs.verdict,
