@@ -240,7 +240,7 @@ class ComparisonPoint:
         args = dict(d)
         tol = args.get("tolerances")
         if isinstance(tol, Mapping):
-            args["tolerances"] = tuple((k, *v) for k, v in tol.items())  # type: ignore[misc]
+            args["tolerances"] = tuple((k, *v) for k, v in tol.items())
         elif isinstance(tol, list):
             args["tolerances"] = tuple(tuple(t) for t in tol)
         return cls(**args)  # type: ignore[arg-type]

@@ -317,7 +317,7 @@ def edge_points(
         The camera that saw it.
     """
     p = params if params is not None else EdgeParams()
-    T_rig_cad = np.linalg.inv(T_cad_rig)
+    T_rig_cad = np.linalg.inv(T_cad_rig).astype(np.float64)
     R = T_rig_cad[:3, :3]
     q_rig = apply(T_rig_cad, samples + surface_offset_mm * normals)
     e_rig = into_material @ R.T

@@ -15,6 +15,7 @@ rests on the plane z = 0 (on its flange) when placed flat on the conveyor.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
@@ -140,6 +141,55 @@ class PanelSpec:
             thickness_mm=self.thickness_mm,
             hole_spacing_mm=self.hole_spacing_mm,
         )
+
+
+@dataclass(frozen=True)
+class HoleShift:
+    """How far a made part's hole lies from its drawn one: its centre's shift and its radius's
+    change, mm (panel frame)."""
+
+    dx_mm: float
+    dy_mm: float
+    dr_mm: float
+
+
+def vary_holes(
+    spec: PanelSpec,
+    rng: np.random.Generator,
+    *,
+    shift_mm: float = 0.5,
+    radius_mm: float = 0.1,
+) -> tuple[PanelSpec, tuple[HoleShift, ...]]:
+    """The panel as made: each hole shifted by up to ``shift_mm`` in x and y and its radius
+    changed by up to ``radius_mm`` (uniform), and the shifts (the truth)."""
+    shifts = tuple(
+        HoleShift(*(float(v) for v in rng.uniform(-1, 1, 3) * [shift_mm, shift_mm, radius_mm]))
+        for _ in spec.holes
+    )
+    holes = tuple(
+        Hole(
+            h.x_mm + s.dx_mm,
+            h.y_mm + s.dy_mm,
+            h.radius_mm + s.dr_mm,
+            h.length_mm + 2 * s.dr_mm,
+            h.angle_deg,
+        )  # fmt: skip
+        for h, s in zip(spec.holes, shifts, strict=True)
+    )
+    return dataclasses.replace(spec, holes=holes), shifts
+
+
+def surface_point(
+    spec: PanelSpec, x: float, y: float
+) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+    """The top surface's point and unit normal (up) at panel coordinates (x, y), mm."""
+    e = 1e-3
+    z = float(panel_height(spec, np.array([x]), np.array([y]))[0])
+    gx = (float(panel_height(spec, np.array([x + e]), np.array([y]))[0]) - z) / e
+    gy = (float(panel_height(spec, np.array([x]), np.array([y + e]))[0]) - z) / e
+    n = np.array([-gx, -gy, 1.0])
+    n /= np.linalg.norm(n)
+    return (x, y, z), (float(n[0]), float(n[1]), float(n[2]))
 
 
 def sheet_metal_panel(spec: PanelSpec | None = None, *, name: str = "panel") -> CadModel:
