@@ -8,7 +8,9 @@ measured as the line measures (``measure_frames``, ``Rig.default()``)
 against the drawn panel. Per hole: the centre's error along the hole's x and
 y and the diameter's (and a slot's length), from the images (the measuring
 sequence) and, as the peer, from the cloud's rim alone
-(``hole_from_cloud``), whose bias at edges the images are there to avoid.
+(``hole_from_cloud``), whose bias at edges the images are there to avoid;
+and from the images at the true pose with the rig as built (what the edge
+search alone leaves, without the fit's and the calibration's errors).
 Trim edges: points on the round holes' rims, whose true offset follows from
 the hole's shift and radius. RPS: a hole fixing x and y, the slot fixing y,
 three surface points fixing z, and a second hole's x (seven directions, so
@@ -106,7 +108,7 @@ def scene():
 def main() -> int:
     from inspection.alignment.rps import rps_align
     from inspection.feature_checks import hole_spec
-    from inspection.features import hole_frame, hole_from_cloud
+    from inspection.features import hole_frame, hole_from_cloud, measure_hole
     from inspection.measure import PartModel, measure_frames
     from inspection.panel import sheet_metal_panel, vary_holes
     from inspection.reconstruct import Reconstructor
@@ -123,6 +125,7 @@ def main() -> int:
     by_name = {cp.name: cp for cp in cps}
     img_err: dict[str, list[float]] = {"x": [], "y": [], "d": [], "len": []}
     cloud_err: dict[str, list[float]] = {"x": [], "y": [], "d": []}
+    oracle_err: dict[str, list[float]] = {"x": [], "y": [], "d": []}
     trim_err: list[float] = []
     rps_res: list[float] = []
     bf_res: list[float] = []
@@ -171,6 +174,12 @@ def main() -> int:
                           cm.diameter_mm - cp.diameter_mm - true["d"]]  # fmt: skip
                     for key, v in zip(("x", "y", "d"), cl, strict=True):
                         cloud_err[key].append(v)
+                om, _ = measure_hole(hole_spec(cp), truth_rig.cameras, frames,
+                                     np.linalg.inv(T_rig_part))  # fmt: skip
+                if om is not None:
+                    oracle_err["x"].append(om.offset_mm[0] - true["x"])
+                    oracle_err["y"].append(om.offset_mm[1] - true["y"])
+                    oracle_err["d"].append(om.diameter_mm - cp.diameter_mm - true["d"])
                 print(f"{pi}/{seed:>7} {name:>4} " + " ".join(f"{v:8.3f}" for v in row[:3])
                       + " " + " ".join(f"{v:8.3f}" for v in cl))  # fmt: skip
             for name, hi, u in trims:
@@ -217,6 +226,7 @@ def main() -> int:
         print(
             f"  hole {key:>3}  images {stats(img_err[key])}   cloud (peer) {stats(cloud_err[key])}"
         )
+        print(f"            images at the true pose, rig as built {stats(oracle_err[key])}")
     print(f"  slot len  images {stats(img_err['len'])}")
     print(f"  trim      images {stats(trim_err)}")
     print(

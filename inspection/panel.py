@@ -171,7 +171,7 @@ def vary_holes(
             h.x_mm + s.dx_mm,
             h.y_mm + s.dy_mm,
             h.radius_mm + s.dr_mm,
-            h.length_mm + 2 * s.dr_mm,
+            h.length_mm + 2 * s.dr_mm if h.length_mm > 0 else 0.0,
             h.angle_deg,
         )  # fmt: skip
         for h, s in zip(spec.holes, shifts, strict=True)
@@ -282,8 +282,12 @@ def _validate(spec: PanelSpec) -> None:
         if not (np.isfinite(h.length_mm) and h.length_mm >= 0 and np.isfinite(h.angle_deg)):
             raise InvalidInput(f"hole at ({h.x_mm}, {h.y_mm}): bad length_mm or angle_deg")
         margin = h.reach_mm + 2 * spec.spacing_mm
-        if h.radius_mm < 1.5 * spec.spacing_mm:
-            raise InvalidInput(f"hole radius {h.radius_mm} mm is below 1.5 x spacing_mm")
+        # The rim is drawn by the grid's lines across the hole: too few, and it folds.
+        rim_spacing = spec.hole_spacing_mm if spec.hole_spacing_mm > 0 else spec.spacing_mm
+        if h.radius_mm < 1.5 * rim_spacing:
+            raise InvalidInput(
+                f"hole radius {h.radius_mm} mm is below 1.5 x the spacing across holes"
+            )
         if abs(h.x_mm) + margin > L / 2 or abs(h.y_mm) + margin > W / 2:
             raise InvalidInput(f"hole at ({h.x_mm}, {h.y_mm}) is too close to the panel edge")
 

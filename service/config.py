@@ -60,11 +60,13 @@ class _Strict(BaseModel):
 
 
 class PointKind(StrEnum):
-    """What a comparison point measures. Only ``surface`` is measured today."""
+    """What a comparison point measures: the surface along its normal, or a feature of the
+    outline (measured in the images after the fit, one entry per characteristic)."""
 
     surface = "surface"
     hole = "hole"
     trim_edge = "trim_edge"
+    gap_flush = "gap_flush"
 
 
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
@@ -89,6 +91,25 @@ class ComparisonPointSpec(_Strict):
         default=10, ge=1, le=100_000, description="Points needed for a verdict."
     )
     kind: PointKind = PointKind.surface
+    diameter_mm: float | None = Field(
+        default=None, gt=0, le=1000, description="A hole's nominal diameter, mm (holes only)."
+    )
+    length_mm: float = Field(
+        default=0.0, ge=0, le=2000, description="A slot's nominal overall length, mm (0: round)."
+    )
+    axis: Vec3 | None = Field(
+        default=None,
+        description="A hole's in-plane x (a slot's long axis), CAD frame; unset: the CAD's x.",
+    )
+    mate_mm: Vec3 | None = Field(
+        default=None,
+        description="gap_flush: the mating part's nominal edge point, this part's CAD frame, mm.",
+    )
+    tolerances: dict[str, Annotated[list[float], Field(min_length=2, max_length=2)]] = Field(
+        default_factory=dict,
+        description="Limits [lower_mm, upper_mm] of single characteristics (d, len, trim, gap, "
+        "flush, x, y); the others take lower_mm and upper_mm.",
+    )
 
     @field_validator("normal")
     @classmethod
@@ -708,6 +729,16 @@ class SimulatorSection(_Strict):
         default=180.0, ge=0, le=180, description="Half-range of the in-plane rotation, degrees."
     )
     flip: bool = Field(default=False, description="Half of the parts arrive turned by 180 deg.")
+    hole_shift_mm: float = Field(
+        default=0.0,
+        ge=0,
+        le=2,
+        description="A generated part's holes lie off their drawn place by up to this in x and "
+        "y, mm (drawn per part; the truth goes into the FrameSet).",
+    )
+    hole_radius_mm: float = Field(
+        default=0.0, ge=0, le=1, description="... and their radius differs by up to this, mm."
+    )
     seed: int = Field(default=0, ge=0)
     drift_point: Name | None = Field(
         default=None,

@@ -46,7 +46,7 @@ from .ingest import (
 from .journal import Journal
 from .metrics import Metrics
 from .models import Alarm, software_version
-from .parts import LoadedPart, PartRegistry, load_part_cad
+from .parts import LoadedPart, PartRegistry, load_part_cad, panel_spec
 from .pipeline import Outcome, Pipeline, Stages, flash_stages
 from .protocol import FrameSet, Keys
 from .recorder import Recorder, Retention
@@ -160,7 +160,12 @@ class Station:
         return SimulatedRig(
             self.stages,
             [
-                SimPart.from_cad(n, cad, flat=spec.is_generated)
+                SimPart.from_cad(
+                    n,
+                    cad,
+                    flat=spec.is_generated,
+                    panel=panel_spec(spec.panel) if spec.is_generated else None,
+                )  # fmt: skip
                 for n, (spec, cad) in self.cads.items()
             ],
             line=self.cfg.line.name,
@@ -174,6 +179,8 @@ class Station:
                 position_range_mm=(sim.position_range_x_mm, sim.position_range_y_mm),
                 yaw_range_deg=sim.yaw_range_deg,
                 flip=sim.flip,
+                hole_shift_mm=sim.hole_shift_mm,
+                hole_radius_mm=sim.hole_radius_mm,
                 seed=sim.seed,
                 drift=self._drift(),
             ),
