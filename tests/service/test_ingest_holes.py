@@ -27,8 +27,8 @@ def setup():
 
 def capture(setup, seq: int, **settings):
     stages, part = setup
-    sim = SimulatedRig(stages, [part], line="l", station="s",
-                       settings=SimulationSettings(defect_rate=0.0, seed=4, **settings))  # fmt: skip
+    settings_ = SimulationSettings(defect_rate=0.0, seed=4, **settings)
+    sim = SimulatedRig(stages, [part], line="l", station="s", settings=settings_)
     return sim.capture(seq, 1_700_000_000_000_000_000)
 
 
