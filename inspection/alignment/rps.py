@@ -30,7 +30,12 @@ import numpy.typing as npt
 from ..arrays import Transform
 from ..errors import InvalidInput
 
-__all__ = ["Datum", "DatumResidual", "RpsAlignment", "rps_align"]
+__all__ = ["ALIGNMENTS", "Datum", "DatumResidual", "RpsAlignment", "RpsScheme", "rps_align"]
+
+ALIGNMENTS = ("best_fit", "rps", "best_fit_rps")
+"""A part's alignment: the best fit to the whole cloud; the RPS alone (the datums fix
+every direction); the best fit with the datums held (they fix what they fix, the
+best fit the rest)."""
 
 _AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
 _NAMES = (
@@ -124,6 +129,43 @@ class RpsAlignment:
     exact: bool
     free_directions: tuple[str, ...]
     iterations: int
+
+
+@dataclass(frozen=True)
+class RpsScheme:
+    """A part's datum scheme and how it aligns the part.
+
+    Attributes
+    ----------
+    datums : tuple of Datum
+        Each named as the comparison point that measures it (a hole: its
+        centre; a surface point: its point moved by its deviation).
+    mode : {"rps", "best_fit_rps"}
+        ``rps``: the datums alone (they must fix every direction);
+        ``best_fit_rps``: the best fit with the datums held.
+
+    Raises
+    ------
+    InvalidInput
+        An unknown mode, no datums, a name used twice, or (``rps``) a scheme
+        that leaves a direction free (named).
+    """
+
+    datums: tuple[Datum, ...]
+    mode: str = "rps"
+
+    def __post_init__(self) -> None:
+        if self.mode not in ALIGNMENTS[1:]:
+            raise InvalidInput(f"RPS mode must be one of {ALIGNMENTS[1:]}, got {self.mode!r}")
+        ds = tuple(self.datums)
+        if not ds:
+            raise InvalidInput("an RPS scheme needs datums")
+        names = [d.name for d in ds]
+        if len(set(names)) != len(names):
+            raise InvalidInput(f"an RPS scheme names a datum twice: {names}")
+        object.__setattr__(self, "datums", ds)
+        # The scheme's own rank, at its nominals: a free direction is a spec error.
+        rps_align(ds, np.array([d.position for d in ds]), hold=self.mode == "best_fit_rps")
 
 
 def rps_align(

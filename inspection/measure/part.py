@@ -8,6 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..alignment import AlignmentModel, alignment_model
+from ..alignment.rps import RpsScheme
 from ..cad import CadModel
 from ..deviations import ComparisonPoint, check_comparison_points, load_comparison_points
 from ..errors import InvalidInput
@@ -35,6 +36,8 @@ class PartModel:
     surface : SurfaceModel
         The CAD's surface as the defect search samples it (built from ``cad``
         when not given).
+    rps : RpsScheme or None
+        The part's datum scheme; None: the best fit alone aligns it.
     """
 
     cad: CadModel
@@ -43,6 +46,7 @@ class PartModel:
     comparison_points: tuple[ComparisonPoint, ...] = ()
     faces: CadFaces | None = None
     surface: SurfaceModel | None = None
+    rps: RpsScheme | None = None
 
     @classmethod
     def build(
@@ -53,6 +57,7 @@ class PartModel:
         spacing_mm: float | None = None,
         band_mm: float | None = None,
         alignment: bool = True,
+        rps: RpsScheme | None = None,
     ) -> PartModel:
         """Build the tree (``GridTree.build``) and the alignment model of ``cad``.
 
@@ -65,6 +70,8 @@ class PartModel:
         alignment : bool
             Compute the global search's model (seconds; needed for clouds
             anywhere in the rig).
+        rps : RpsScheme, optional
+            Align by the datums (see :class:`~inspection.alignment.rps.RpsScheme`).
         """
         if not isinstance(cad, CadModel):
             raise InvalidInput(f"cad must be a CadModel, got {type(cad).__name__}")
@@ -74,12 +81,22 @@ class PartModel:
             **({} if band_mm is None else {"band_mm": band_mm}),  # type: ignore[arg-type]
         )
         model = alignment_model(cad) if alignment else None
-        return cls(cad, tree, model, check_comparison_points(comparison_points))
+        return cls(cad, tree, model, check_comparison_points(comparison_points), rps=rps)
 
     def __post_init__(self) -> None:
         object.__setattr__(
             self, "comparison_points", check_comparison_points(self.comparison_points)
         )
+        if self.rps is not None:
+            if not isinstance(self.rps, RpsScheme):
+                raise InvalidInput(f"rps must be an RpsScheme, got {type(self.rps).__name__}")
+            named = {cp.name: cp for cp in self.comparison_points}
+            for d in self.rps.datums:
+                cp = named.get(d.name)
+                if cp is None or cp.kind not in ("surface", "hole"):
+                    raise InvalidInput(
+                        f"RPS datum {d.name!r} must name a surface or hole comparison point"
+                    )
         if self.faces is None:
             object.__setattr__(self, "faces", CadFaces.of(self.tree))
         if self.surface is None:

@@ -16,6 +16,7 @@ import math
 import numpy as np
 import pytest
 
+from inspection.alignment.rps import Datum, RpsScheme
 from inspection.deviations import ComparisonPoint, Verdict
 from inspection.errors import InvalidInput
 from inspection.measure import MeasureParams, PartModel, measure_frames
@@ -57,11 +58,11 @@ def hole_point(name: str, spec: PanelSpec, h: Hole, **kw) -> ComparisonPoint:
 def rim_point(name: str, spec: PanelSpec, h: Hole, kind: str, **kw) -> ComparisonPoint:
     """A point on a round hole's rim at +x: its edge's out-of-material normal is -x."""
     pos, _ = surface_point(spec, h.x_mm + h.radius_mm, h.y_mm)
-    return ComparisonPoint(name, pos, (-1.0, 0.0, 0.0), -0.5, 0.5, 3.0, kind=kind, **kw)
+    return ComparisonPoint(name, pos, (-1.0, 0.0, 0.0), -0.5, 0.5, 5.0, kind=kind, **kw)
 
 
 @pytest.fixture(scope="module")
-def measured():
+def scene():
     spec = spec_with(NOMINAL)
     cps = [
         hole_point("H1", spec, NOMINAL[0], tolerances=(("d", -0.1, 0.1),)),
@@ -76,14 +77,27 @@ def measured():
             "gap_flush",
             mate=tuple(np.array(surface_point(spec, NOMINAL[0].x_mm + 7.4, NOMINAL[0].y_mm)[0])),
         ),  # fmt: skip
-        ComparisonPoint("centre", surface_point(spec, 0.0, 0.0)[0], (0, 0, 1), -0.5, 0.5, 8.0),
+        *(
+            ComparisonPoint(name, *surface_point(spec, x, y), -0.5, 0.5, 8.0)
+            for name, x, y in (("Z1", -150.0, -90.0), ("Z2", 150.0, 0.0), ("Z3", -60.0, 100.0))
+        ),
     ]
     part = PartModel.build(sheet_metal_panel(spec), cps)
     truth = sheet_metal_panel(spec_with(truth_holes()))
     frames = simulate(Rig.nominal(), truth, belt_pose(30.0, -20.0, 25.0), seed=3)
-    m = measure_frames(
-        part, Reconstructor.build(Rig.default()), frames, MeasureParams(guided=False)
-    )
+    return part, Reconstructor.build(Rig.default()), frames
+
+
+def measure(scene, rps: RpsScheme | None = None):
+    part, rec, frames = scene
+    if rps is not None:
+        part = dataclasses.replace(part, rps=rps)
+    return measure_frames(part, rec, frames, MeasureParams(guided=False))
+
+
+@pytest.fixture(scope="module")
+def measured(scene):
+    m = measure(scene)
     assert m.deviations is not None, m.reason
     return {c.name: c for c in m.deviations.comparison}, m
 
@@ -93,7 +107,7 @@ def test_every_characteristic_is_its_own_entry_with_the_kind(measured):
     assert {"H1.x", "H1.y", "H1.d", "S2.len", "E1.trim", "G1.gap", "G1.flush"} <= set(entries)
     assert "H1" not in entries and "H3.len" not in entries
     assert entries["H1.x"].kind == "hole" and entries["E1.trim"].kind == "trim_edge"
-    assert entries["centre"].kind == "surface"
+    assert entries["Z1"].kind == "surface"
     assert "features" in m.timings_ms
 
 
@@ -154,3 +168,49 @@ def test_feature_points_are_checked_on_construction():
     assert cp.characteristics() == ("x", "y", "d", "len")
     assert cp.limits("len") == (-0.2, 0.3) and cp.limits("x") == (-1.0, 1.0)
     assert ComparisonPoint.from_dict(cp.to_dict()) == cp
+
+
+def scheme(part: PartModel, *, slot: bool = True, mode: str = "rps", below: bool = False):
+    """H1 fixes x and y, the slot S2 the direction across its axis, Z1-Z3 fix z."""
+    at = {cp.name: cp.position for cp in part.comparison_points}
+    a = math.radians(NOMINAL[1].angle_deg)
+    datums = [Datum("H1-below" if below else "H1", at["H1"], ("x", "y"))]
+    if slot:
+        datums.append(Datum("S2", at["S2"], ((-math.sin(a), math.cos(a), 0.0),)))
+    datums += [Datum(n, at[n], ("z",)) for n in ("Z1", "Z2", "Z3")]
+    return RpsScheme(tuple(datums), mode)
+
+
+def test_rps_holds_the_datum_hole_on_its_nominal(scene, measured):
+    best = measured[0]
+    m = measure(scene, scheme(scene[0]))
+    assert m.rps is not None and m.rps.exact and m.deviations is not None, m.reason
+    assert max(r.max_abs_mm for r in m.rps.residuals) < 1e-6
+    after = {c.name: c for c in m.deviations.comparison}
+    # Measured again at the RPS pose (other rim samples, so within the measurement's own
+    # uncertainty), the datum hole sits on its nominal, where the best fit had it off.
+    for key in ("x", "y"):
+        e = after[f"H1.{key}"]
+        assert abs(e.deviation_mm) < 3 * e.sigma_mm, (key, e.deviation_mm, e.sigma_mm)
+    off = math.hypot(best["H1.x"].deviation_mm, best["H1.y"].deviation_mm)
+    assert off > 3 * max(after["H1.x"].sigma_mm, after["H1.y"].sigma_mm)
+    assert not np.allclose(m.transform, measured[1].transform, atol=1e-3)
+    assert "rps" in m.timings_ms
+
+
+def test_best_fit_held_to_an_incomplete_scheme_keeps_the_free_turn(scene, measured):
+    m = measure(scene, scheme(scene[0], slot=False, mode="best_fit_rps"))
+    assert m.rps is not None and not m.rps.exact, m.reason
+    assert any("rotation about z" in f for f in m.rps.free_directions)
+    assert max(r.max_abs_mm for r in m.rps.residuals) < 1e-6
+
+
+def test_an_under_determined_scheme_names_its_free_direction(scene):
+    with pytest.raises(InvalidInput, match="rotation about z"):
+        scheme(scene[0], slot=False)
+
+
+def test_an_unseen_datum_leaves_the_part_unmeasured_with_the_reason(scene):
+    m = measure(scene, scheme(scene[0], below=True))
+    assert m.verdict is None
+    assert m.reason == "RPS datum H1-below not measurable: no camera sees its rim"
