@@ -125,6 +125,22 @@ class ComparisonPointSpec(_Strict):
             raise ValueError(f"lower_mm ({self.lower_mm}) must be below upper_mm ({self.upper_mm})")
         return self
 
+    @model_validator(mode="after")
+    def _a_whole_feature(self) -> ComparisonPointSpec:
+        # The measuring side's own rules (a hole's diameter, a gap's mate, tolerances of
+        # the kind's characteristics), checked when the spec loads.
+        from inspection.deviations import ComparisonPoint
+
+        ComparisonPoint(
+            self.name, tuple(self.position_mm), tuple(self.normal),  # type: ignore[arg-type]
+            self.lower_mm, self.upper_mm, self.radius_mm, kind=self.kind.value,
+            diameter_mm=self.diameter_mm, length_mm=self.length_mm,
+            axis=None if self.axis is None else tuple(self.axis),  # type: ignore[arg-type]
+            mate=None if self.mate_mm is None else tuple(self.mate_mm),  # type: ignore[arg-type]
+            tolerances=tuple((k, lo, hi) for k, (lo, hi) in self.tolerances.items()),
+        )  # fmt: skip
+        return self
+
 
 class Loss(StrEnum):
     """Robust loss of the fine registration (IRLS weight function)."""
@@ -190,6 +206,54 @@ class RegistrationSettings(_Strict):
 _SURFACE = SurfaceParams()
 
 
+class AlignmentMethod(StrEnum):
+    """How a part is aligned to its CAD (``inspection.alignment.rps.ALIGNMENTS``)."""
+
+    best_fit = "best_fit"
+    rps = "rps"
+    best_fit_rps = "best_fit_rps"
+
+
+class DatumSpec(_Strict):
+    """One datum of the part's reference point system (RPS)."""
+
+    point: Name = Field(description="The hole or surface comparison point that measures it.")
+    fixes: list[Annotated[str, Field(pattern="^[xyz]$")] | Vec3] = Field(
+        min_length=1,
+        max_length=3,
+        description='Directions it fixes, CAD frame: "x", "y", "z" or a vector.',
+    )
+    weight: float = Field(default=1.0, gt=0, le=1e6, description="Relative weight.")
+
+
+class AlignmentSettings(_Strict):
+    """The part's alignment: the best fit, its RPS alone, or the best fit with the RPS held."""
+
+    method: AlignmentMethod = AlignmentMethod.best_fit
+    datums: list[DatumSpec] = Field(default_factory=list, max_length=32)
+
+    def scheme(self, positions: dict[str, list[float]]) -> Any:
+        """The ``inspection.alignment.rps.RpsScheme`` of these datums at the points'
+        ``positions`` (None for a best fit); raises InvalidInput for a free direction."""
+        if self.method is AlignmentMethod.best_fit:
+            return None
+        from inspection.alignment.rps import Datum, RpsScheme
+
+        datums = tuple(
+            Datum(d.point, tuple(positions[d.point]), tuple(d.fixes), d.weight)  # type: ignore[arg-type]
+            for d in self.datums
+        )
+        return RpsScheme(datums, self.method.value)
+
+    @model_validator(mode="after")
+    def _datums_with_rps(self) -> AlignmentSettings:
+        if self.method is not AlignmentMethod.best_fit and not self.datums:
+            raise ValueError(f"alignment method {self.method.value!r} needs datums")
+        if self.method is AlignmentMethod.best_fit and self.datums:
+            raise ValueError("datums are given but the alignment method is 'best_fit'")
+        return self
+
+
 class SurfaceSettings(_Strict):
     """How the surface between the comparison points is judged; ``inspection.SurfaceParams``.
 
@@ -242,6 +306,7 @@ class PartSpecBase(_Strict):
     registration: RegistrationSettings = Field(default_factory=RegistrationSettings)
     surface: SurfaceSettings = Field(default_factory=SurfaceSettings)
     tree: TreeSettings = Field(default_factory=TreeSettings)
+    alignment: AlignmentSettings = Field(default_factory=AlignmentSettings)
     subgroup_size: int = Field(
         default=1,
         ge=1,
@@ -259,6 +324,17 @@ class PartSpecBase(_Strict):
                 raise ValueError(f"comparison point name {p.name!r} is used twice")
             seen.add(p.name)
         return v
+
+    @model_validator(mode="after")
+    def _datums_name_points(self) -> PartSpecBase:
+        kinds = {p.name: p.kind for p in self.points}
+        for d in self.alignment.datums:
+            if kinds.get(d.point) not in (PointKind.surface, PointKind.hole):
+                raise ValueError(f"datum {d.point!r} must name a surface or hole point")
+        # Refused here, not when the part loads: a free direction is a spec error
+        # (InvalidInput is a ValueError, reported with the spec's other errors).
+        self.alignment.scheme({p.name: p.position_mm for p in self.points})
+        return self
 
 
 class PartSpec(PartSpecBase):

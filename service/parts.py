@@ -40,6 +40,7 @@ from inspection.alignment import (
     alignment_model,
     sample_facing,
 )
+from inspection.alignment.rps import RpsScheme
 from inspection.cad import CadModel, load_cad
 from inspection.deviations import ComparisonPoint
 from inspection.errors import CadLoadError, InspectionError, InvalidInput, TreeMismatch
@@ -132,6 +133,12 @@ def comparison_points(spec: PartSpec) -> tuple[ComparisonPoint, ...]:
         )
         for p in spec.points
     )
+
+
+def rps_scheme(spec: PartSpecBase) -> RpsScheme | None:
+    """The spec's datum scheme (None for a best fit)."""
+    scheme: RpsScheme | None = spec.alignment.scheme({p.name: p.position_mm for p in spec.points})
+    return scheme
 
 
 def check_point_offsets(cad: CadModel, spec: PartSpecBase, max_mm: float) -> None:
@@ -325,7 +332,7 @@ def part_from_cad(
     report(1.0, "ready")
     return LoadedPart(
         spec=spec,
-        model=PartModel(cad, tree, model, comparison_points(spec)),
+        model=PartModel(cad, tree, model, comparison_points(spec), rps=rps_scheme(spec)),
         tree_hash=tree.hash,
         params=measure_params(spec),
     )
