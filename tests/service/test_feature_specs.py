@@ -89,3 +89,24 @@ def test_best_fit_held_to_an_incomplete_scheme_is_allowed(tmp_path):
     text = HEAD + RPS.format(method="best_fit_rps", slot="") + POINTS
     scheme = rps_scheme(load_part_spec(write(tmp_path, text)))
     assert scheme is not None and scheme.mode == "best_fit_rps"
+
+
+def test_the_features_demo_line_loads_its_part_with_checks_and_rps():
+    from service.config import load_line_config
+
+    root = Path(__file__).resolve().parents[2] / "configs"
+    cfg = load_line_config(root / "line-features.toml")
+    assert cfg.simulator.hole_shift_mm > 0
+    (path,) = cfg.part_spec_paths()
+    spec = load_part_spec(path)
+    kinds = {cp.name: cp.kind for cp in comparison_points(spec)}
+    assert {kinds[n] for n in ("H1", "S2", "H3")} == {"hole"} and kinds["E1"] == "trim_edge"
+    scheme = rps_scheme(spec)
+    assert scheme is not None and scheme.mode == "rps"
+    # The line file is line.toml but for its part and the holes made off their place.
+    base = (root / "line.toml").read_text().splitlines()
+    other = (root / "line-features.toml").read_text().splitlines()
+    changed = {b for b, o in zip(base[1:], other[3:], strict=True) if b != o}
+    assert {c.split("=")[0].strip() for c in changed} == {
+        "parts", "hole_shift_mm", "hole_radius_mm",
+    }  # fmt: skip
