@@ -227,6 +227,12 @@ def main() -> int:
             f"  hole {key:>3}  images {stats(img_err[key])}   cloud (peer) {stats(cloud_err[key])}"
         )
         print(f"            images at the true pose, rig as built {stats(oracle_err[key])}")
+    ratio = [
+        float(np.median(np.abs(img_err[k])) / np.median(np.abs(cloud_err[k])))
+        for k in ("x", "y", "d")
+        if img_err[k] and cloud_err[k]
+    ]
+    print("  images / cloud, median |e| (x, y, d): " + ", ".join(f"{r:.2f}" for r in ratio))
     print(f"  slot len  images {stats(img_err['len'])}")
     print(f"  trim      images {stats(trim_err)}")
     print(
