@@ -11,6 +11,7 @@ export NUMBA_CACHE_DIR ?= $(CURDIR)/.cache/numba
 HTTP_PORT   ?= 8000
 ZENOH_LISTEN ?= tcp/127.0.0.1:7447
 DATA_DIR    ?= runs
+LINE        ?= configs/line.toml
 
 .PHONY: install test run bench lint clean
 
@@ -36,7 +37,7 @@ test: $(VENV)/.installed-dev
 	$(BIN)/python -m pytest -q
 
 run: $(VENV)/.installed-dev
-	$(BIN)/inspection run --config configs/line.toml --http-port $(HTTP_PORT) \
+	$(BIN)/inspection run --config $(LINE) --http-port $(HTTP_PORT) \
 		--zenoh-listen $(ZENOH_LISTEN) --data-dir $(DATA_DIR)
 
 bench: $(VENV)/.installed-bench

@@ -37,6 +37,8 @@ from .validate import validate_points
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "CHARACTERISTICS",
+    "FEATURE_KINDS",
     "ComparisonPoint",
     "ComparisonResult",
     "Deviations",
@@ -50,10 +52,20 @@ __all__ = [
     "warmup",
 ]
 
-KINDS = ("surface", "hole", "trim_edge")
+KINDS = ("surface", "hole", "trim_edge", "gap_flush")
 """Kinds of comparison point a spec may name."""
 MEASURED_KINDS = ("surface",)
-"""Kinds measured today; the others are reported as not measurable."""
+"""Kinds measured from the cloud's signed distances here; the others are features of
+the outline (:data:`FEATURE_KINDS`), measured after the fit (:mod:`inspection.feature_checks`)."""
+FEATURE_KINDS = ("hole", "trim_edge", "gap_flush")
+CHARACTERISTICS = {
+    "surface": (),
+    "hole": ("x", "y", "d"),
+    "trim_edge": ("trim",),
+    "gap_flush": ("gap", "flush"),
+}
+"""Each feature kind's characteristics: one comparison entry ``<point>.<characteristic>`` each
+(a slot adds ``len``)."""
 
 # Points whose CAD normal turns more than ~60 degrees away from the
 # comparison point's normal lie on another surface (a flange, the far side
@@ -88,11 +100,27 @@ class ComparisonPoint:
     radius_mm : float
         Measured points within this distance of ``position`` are pooled.
     kind : str
-        ``"surface"``. ``"hole"`` and ``"trim_edge"`` are accepted in specs
-        but not measured yet (reported as not measurable).
+        ``"surface"``; or a feature of the outline: ``"hole"`` (``position``
+        its centre on the surface, ``normal`` its axis towards the cameras),
+        ``"trim_edge"`` and ``"gap_flush"`` (``position`` on the CAD's edge,
+        ``normal`` in the surface's plane, normal to the edge, out of the
+        material).
     min_support : int or None
         Points needed for a verdict at this point; None: the ``min_support``
         given to :func:`deviations`.
+    diameter_mm : float or None
+        A hole's nominal diameter (needed for ``kind="hole"``).
+    length_mm : float
+        A slot's nominal overall length (0: a round hole).
+    axis : (3,) tuple of float or None
+        A hole's in-plane x (a slot's long axis); None: the CAD's x made normal
+        to the hole's axis.
+    mate : (3,) tuple of float or None
+        For ``gap_flush``: the mating part's nominal edge point, in this part's
+        CAD frame (the gap along ``normal``, the flush along the surface normal).
+    tolerances : tuple of (characteristic, lower_mm, upper_mm)
+        Limits of single characteristics (``d``, ``flush``, ...); the others
+        take ``lower_mm`` and ``upper_mm``.
     """
 
     name: str
@@ -103,6 +131,11 @@ class ComparisonPoint:
     radius_mm: float
     kind: str = "surface"
     min_support: int | None = None
+    diameter_mm: float | None = None
+    length_mm: float = 0.0
+    axis: tuple[float, float, float] | None = None
+    mate: tuple[float, float, float] | None = None
+    tolerances: tuple[tuple[str, float, float], ...] = ()
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name:
@@ -129,11 +162,64 @@ class ComparisonPoint:
             isinstance(ms, bool) or not isinstance(ms, int | np.integer) or ms < 1
         ):
             raise InvalidInput(f"{self.name}: min_support must be an integer >= 1, got {ms!r}")
+        self._check_feature()
         object.__setattr__(self, "position", pos)
         object.__setattr__(self, "normal", tuple(c / length for c in nrm))
         object.__setattr__(self, "lower_mm", float(self.lower_mm))
         object.__setattr__(self, "upper_mm", float(self.upper_mm))
         object.__setattr__(self, "radius_mm", float(r))
+
+    def _check_feature(self) -> None:
+        name = self.name
+        if self.kind == "hole":
+            d = self.diameter_mm
+            if not isinstance(d, int | float) or not math.isfinite(d) or d <= 0:
+                raise InvalidInput(f"{name}: a hole needs a positive diameter_mm, got {d!r}")
+        elif self.diameter_mm is not None:
+            raise InvalidInput(f"{name}: diameter_mm applies to holes only")
+        ln = self.length_mm
+        if not isinstance(ln, int | float) or not math.isfinite(ln) or ln < 0:
+            raise InvalidInput(f"{name}: length_mm must be >= 0, got {ln!r}")
+        if self.axis is not None:
+            object.__setattr__(self, "axis", _vec3(self.axis, f"{name}: axis"))
+        if self.kind == "gap_flush":
+            if self.mate is None:
+                raise InvalidInput(f"{name}: a gap_flush point needs the mating edge point 'mate'")
+            object.__setattr__(self, "mate", _vec3(self.mate, f"{name}: mate"))
+        elif self.mate is not None:
+            raise InvalidInput(f"{name}: mate applies to gap_flush points only")
+        known = set(self.characteristics())
+        tol = []
+        for item in self.tolerances:
+            try:
+                key, lo, hi = item
+            except (TypeError, ValueError) as exc:
+                raise InvalidInput(
+                    f"{name}: a tolerance is (characteristic, lower, upper)"
+                ) from exc
+            if key not in known:
+                raise InvalidInput(
+                    f"{name}: no characteristic {key!r} for kind {self.kind!r}; "
+                    f"expected one of {sorted(known)}"
+                )
+            if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
+                raise InvalidInput(f"{name}.{key}: limits must be finite and ordered")
+            tol.append((str(key), float(lo), float(hi)))
+        object.__setattr__(self, "tolerances", tuple(tol))
+
+    def characteristics(self) -> tuple[str, ...]:
+        """The characteristics this point is checked by (empty for a surface point)."""
+        base = CHARACTERISTICS[self.kind]
+        if self.kind == "hole" and self.length_mm > (self.diameter_mm or 0.0):
+            return (*base, "len")
+        return base
+
+    def limits(self, characteristic: str) -> tuple[float, float]:
+        """The tolerance of one characteristic."""
+        for key, lo, hi in self.tolerances:
+            if key == characteristic:
+                return lo, hi
+        return self.lower_mm, self.upper_mm
 
     @classmethod
     def from_dict(cls, d: Mapping[str, object]) -> ComparisonPoint:
@@ -144,12 +230,20 @@ class ComparisonPoint:
         extra = set(d) - known
         if extra:
             raise InvalidInput(f"comparison point: unknown keys {sorted(extra)}")
-        missing = known - set(d) - {"kind", "min_support"}
+        missing = known - set(d) - {
+            "kind", "min_support", "diameter_mm", "length_mm", "axis", "mate", "tolerances"
+        }  # fmt: skip
         if missing:
             raise InvalidInput(
                 f"comparison point {d.get('name', '?')!r}: missing {sorted(missing)}"
             )
-        return cls(**d)  # type: ignore[arg-type]
+        args = dict(d)
+        tol = args.get("tolerances")
+        if isinstance(tol, Mapping):
+            args["tolerances"] = tuple((k, *v) for k, v in tol.items())
+        elif isinstance(tol, list):
+            args["tolerances"] = tuple(tuple(t) for t in tol)
+        return cls(**args)  # type: ignore[arg-type]
 
     def to_dict(self) -> dict[str, object]:
         return {
@@ -161,6 +255,11 @@ class ComparisonPoint:
             "radius_mm": self.radius_mm,
             "kind": self.kind,
             "min_support": self.min_support,
+            "diameter_mm": self.diameter_mm,
+            "length_mm": self.length_mm,
+            "axis": None if self.axis is None else list(self.axis),
+            "mate": None if self.mate is None else list(self.mate),
+            "tolerances": {k: [lo, hi] for k, lo, hi in self.tolerances},
         }
 
 
@@ -240,6 +339,11 @@ class ComparisonResult:
         NaN when not measurable.
     reason : str or None
         Why the point is not measurable.
+    kind : str
+        The comparison point's kind (a feature's entries are named
+        ``<point>.<characteristic>``).
+    sigma_mm : float
+        1 sigma of ``deviation_mm`` where the measurement gives it (features), else NaN.
     """
 
     name: str
@@ -250,6 +354,8 @@ class ComparisonResult:
     upper_mm: float
     spread_mm: float
     reason: str | None = None
+    kind: str = "surface"
+    sigma_mm: float = math.nan
 
     def to_dict(self) -> dict[str, object]:
         return {
@@ -261,6 +367,8 @@ class ComparisonResult:
             "verdict": self.verdict.value,
             "spread_mm": None if math.isnan(self.spread_mm) else self.spread_mm,
             "reason": self.reason,
+            "kind": self.kind,
+            "sigma_mm": None if math.isnan(self.sigma_mm) else self.sigma_mm,
         }
 
 
@@ -601,11 +709,12 @@ def _at_comparison_points(
     for cp in cps:
         need = cp.min_support if cp.min_support is not None else min_support
         if cp.kind not in MEASURED_KINDS:
-            log.warning("comparison point %s: kind %r is not measured yet", cp.name, cp.kind)
+            # A feature of the outline: its entries come from the images after the fit.
             results.append(
                 ComparisonResult(
                     cp.name, math.nan, 0, Verdict.NOT_MEASURABLE, cp.lower_mm, cp.upper_mm,
-                    math.nan, f"kind {cp.kind!r} is not measured",
+                    math.nan, f"a {cp.kind} is measured from the images after the fit",
+                    cp.kind,
                 )
             )  # fmt: skip
             continue

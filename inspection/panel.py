@@ -15,6 +15,8 @@ rests on the plane z = 0 (on its flange) when placed flat on the conveyor.
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -29,11 +31,41 @@ if TYPE_CHECKING:
 
 @dataclass(frozen=True)
 class Hole:
-    """A round hole through the panel: centre (x, y) in mm from the panel centre, radius in mm."""
+    """A hole through the panel: centre (x, y) in mm from the panel centre, radius in mm.
+
+    With ``length_mm`` above the diameter it is a slot of that overall length,
+    its long axis turned ``angle_deg`` from the panel's x axis.
+    """
 
     x_mm: float
     y_mm: float
     radius_mm: float
+    length_mm: float = 0.0
+    angle_deg: float = 0.0
+
+    @property
+    def half_axis_mm(self) -> float:
+        """Half the distance between a slot's two half circles' centres (0: round)."""
+        return max(self.length_mm / 2 - self.radius_mm, 0.0)
+
+    @property
+    def reach_mm(self) -> float:
+        """How far the hole reaches from its centre."""
+        return self.half_axis_mm + self.radius_mm
+
+    def snap(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Which points lie inside, and every point inside moved onto the rim along the
+        direction from the nearest point of the slot's axis."""
+        c, s = np.cos(np.deg2rad(self.angle_deg)), np.sin(np.deg2rad(self.angle_deg))
+        dx, dy = x - self.x_mm, y - self.y_mm
+        along = c * dx + s * dy
+        a = self.half_axis_mm
+        foot = np.clip(along, -a, a)
+        fx, fy = self.x_mm + c * foot, self.y_mm + s * foot
+        r = np.hypot(x - fx, y - fy)
+        inside = r < self.radius_mm
+        scale = np.where(inside, self.radius_mm / np.maximum(r, 1e-9), 1.0)
+        return inside, fx + (x - fx) * scale, fy + (y - fy) * scale
 
 
 @dataclass(frozen=True)
@@ -72,6 +104,9 @@ class PanelSpec:
     """Mesh spacing across rounded feature edges."""
     thickness_mm: float = 0.0
     """Sheet thickness: 0 for the outer skin only, else a closed solid (see the module notes)."""
+    hole_spacing_mm: float = 0.0
+    """Mesh spacing across the holes, so that their rims are drawn by short chords (0: the
+    smooth regions' spacing, whose chords cut a 10 mm hole's outline by tenths of a mm)."""
 
     def scaled(self, length_mm: float, width_mm: float) -> PanelSpec:
         """The same design at another size: features move and shrink with the footprint."""
@@ -92,13 +127,69 @@ class PanelSpec:
             emboss_height_mm=self.emboss_height_mm,
             emboss_radius_mm=self.emboss_radius_mm,
             holes=tuple(
-                Hole(h.x_mm * sx, h.y_mm * sy, max(h.radius_mm * s, 1.5 * self.spacing_mm))
+                Hole(
+                    h.x_mm * sx,
+                    h.y_mm * sy,
+                    max(h.radius_mm * s, 1.5 * self.spacing_mm),
+                    h.length_mm * s,
+                    h.angle_deg,
+                )  # fmt: skip
                 for h in self.holes
             ),
             spacing_mm=self.spacing_mm,
             feature_spacing_mm=self.feature_spacing_mm,
             thickness_mm=self.thickness_mm,
+            hole_spacing_mm=self.hole_spacing_mm,
         )
+
+
+@dataclass(frozen=True)
+class HoleShift:
+    """How far a made part's hole lies from its drawn one: its centre's shift and its radius's
+    change, mm (panel frame)."""
+
+    dx_mm: float
+    dy_mm: float
+    dr_mm: float
+
+
+def vary_holes(
+    spec: PanelSpec,
+    rng: np.random.Generator,
+    *,
+    shift_mm: float = 0.5,
+    radius_mm: float = 0.1,
+) -> tuple[PanelSpec, tuple[HoleShift, ...]]:
+    """The panel as made: each hole shifted by up to ``shift_mm`` in x and y and its radius
+    changed by up to ``radius_mm`` (uniform), and the shifts (the truth)."""
+    shifts = tuple(
+        HoleShift(*(float(v) for v in rng.uniform(-1, 1, 3) * [shift_mm, shift_mm, radius_mm]))
+        for _ in spec.holes
+    )
+    holes = tuple(
+        Hole(
+            h.x_mm + s.dx_mm,
+            h.y_mm + s.dy_mm,
+            h.radius_mm + s.dr_mm,
+            h.length_mm + 2 * s.dr_mm if h.length_mm > 0 else 0.0,
+            h.angle_deg,
+        )  # fmt: skip
+        for h, s in zip(spec.holes, shifts, strict=True)
+    )
+    return dataclasses.replace(spec, holes=holes), shifts
+
+
+def surface_point(
+    spec: PanelSpec, x: float, y: float
+) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+    """The top surface's point and unit normal (up) at panel coordinates (x, y), mm."""
+    e = 1e-3
+    z = float(panel_height(spec, np.array([x]), np.array([y]))[0])
+    gx = (float(panel_height(spec, np.array([x + e]), np.array([y]))[0]) - z) / e
+    gy = (float(panel_height(spec, np.array([x]), np.array([y + e]))[0]) - z) / e
+    n = np.array([-gx, -gy, 1.0])
+    n /= np.linalg.norm(n)
+    return (x, y, z), (float(n[0]), float(n[1]), float(n[2]))
 
 
 def sheet_metal_panel(spec: PanelSpec | None = None, *, name: str = "panel") -> CadModel:
@@ -176,6 +267,8 @@ def _validate(spec: PanelSpec) -> None:
     for key, value in positive.items():
         if not np.isfinite(value) or value <= 0:
             raise InvalidInput(f"PanelSpec.{key} must be positive, got {value!r}")
+    if not (np.isfinite(spec.hole_spacing_mm) and spec.hole_spacing_mm >= 0):
+        raise InvalidInput(f"PanelSpec.hole_spacing_mm must be >= 0, got {spec.hole_spacing_mm!r}")
     t = spec.thickness_mm
     if not np.isfinite(t) or not 0.0 <= t < spec.bend_radius_mm:
         raise InvalidInput(
@@ -186,9 +279,15 @@ def _validate(spec: PanelSpec) -> None:
     if spec.feature_spacing_mm > spec.spacing_mm:
         raise InvalidInput("PanelSpec.feature_spacing_mm must not exceed spacing_mm")
     for h in spec.holes:
-        margin = h.radius_mm + 2 * spec.spacing_mm
-        if h.radius_mm < 1.5 * spec.spacing_mm:
-            raise InvalidInput(f"hole radius {h.radius_mm} mm is below 1.5 x spacing_mm")
+        if not (np.isfinite(h.length_mm) and h.length_mm >= 0 and np.isfinite(h.angle_deg)):
+            raise InvalidInput(f"hole at ({h.x_mm}, {h.y_mm}): bad length_mm or angle_deg")
+        margin = h.reach_mm + 2 * spec.spacing_mm
+        # The rim is drawn by the grid's lines across the hole: too few, and it folds.
+        rim_spacing = spec.hole_spacing_mm if spec.hole_spacing_mm > 0 else spec.spacing_mm
+        if h.radius_mm < 1.5 * rim_spacing:
+            raise InvalidInput(
+                f"hole radius {h.radius_mm} mm is below 1.5 x the spacing across holes"
+            )
         if abs(h.x_mm) + margin > L / 2 or abs(h.y_mm) + margin > W / 2:
             raise InvalidInput(f"hole at ({h.x_mm}, {h.y_mm}) is too close to the panel edge")
 
@@ -246,18 +345,26 @@ def _solid_sheet(
 
 
 def _axis(
-    half: float, spacing: float, fine: float, features: list[tuple[float, float]]
+    half: float,
+    spacing: float,
+    fine: float,
+    features: list[tuple[float, float]],
+    holes: Sequence[tuple[float, float]] = (),
+    hole_spacing: float = 0.0,
 ) -> np.ndarray:
-    """Grid coordinates on [-half, half]: ``spacing`` apart, ``fine`` apart inside feature bands."""
+    """Grid coordinates on [-half, half]: ``spacing`` apart, ``fine`` apart inside feature
+    bands, ``hole_spacing`` apart across the holes."""
     n = max(int(np.ceil(2 * half / spacing)), 2)
     coords = [np.linspace(-half, half, n + 1)]
-    for lo, hi in features:
+    bands = [(lo, hi, fine) for lo, hi in features] + [(lo, hi, hole_spacing) for lo, hi in holes]
+    for lo, hi, step in bands:
         lo, hi = max(lo, -half), min(hi, half)
         if hi > lo:
-            coords.append(np.linspace(lo, hi, int(np.ceil((hi - lo) / fine)) + 1))
+            coords.append(np.linspace(lo, hi, int(np.ceil((hi - lo) / step)) + 1))
     c = np.unique(np.concatenate(coords))
-    # Merge coordinates closer than a fraction of the fine spacing.
-    keep = np.concatenate([[True], np.diff(c) > 0.3 * fine])
+    # Merge coordinates closer than a fraction of the finest spacing.
+    finest = min(fine, hole_spacing) if hole_spacing > 0 else fine
+    keep = np.concatenate([[True], np.diff(c) > 0.3 * finest])
     c = c[keep]
     c[0], c[-1] = -half, half
     return c
@@ -268,11 +375,18 @@ def _panel_mesh(spec: PanelSpec) -> tuple[np.ndarray, np.ndarray]:
     ex, ey = spec.emboss_center_mm
     sx, sy = spec.emboss_size_mm
     re, rc = 1.3 * spec.emboss_radius_mm, 1.3 * spec.character_line_radius_mm
+    hole_x: list[tuple[float, float]] = []
+    hole_y: list[tuple[float, float]] = []
+    if spec.hole_spacing_mm > 0:
+        hole_x = [(h.x_mm - h.reach_mm - 1.5, h.x_mm + h.reach_mm + 1.5) for h in spec.holes]
+        hole_y = [(h.y_mm - h.reach_mm - 1.5, h.y_mm + h.reach_mm + 1.5) for h in spec.holes]
     xs = _axis(
         L / 2,
         spec.spacing_mm,
         spec.feature_spacing_mm,
         [(ex - sx / 2 - re, ex - sx / 2 + re), (ex + sx / 2 - re, ex + sx / 2 + re)],
+        hole_x,
+        spec.hole_spacing_mm,
     )
     ys = _axis(
         W / 2,
@@ -283,6 +397,8 @@ def _panel_mesh(spec: PanelSpec) -> tuple[np.ndarray, np.ndarray]:
             (ey - sy / 2 - re, ey - sy / 2 + re),
             (ey + sy / 2 - re, ey + sy / 2 + re),
         ],
+        hole_y,
+        spec.hole_spacing_mm,
     )
     nx, ny = len(xs), len(ys)
     gx, gy = np.meshgrid(xs, ys, indexing="ij")
@@ -295,12 +411,8 @@ def _panel_mesh(spec: PanelSpec) -> tuple[np.ndarray, np.ndarray]:
     c, d = idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
     quads = np.stack([a, b, c, d], axis=1)
     for h in spec.holes:
-        r = np.hypot(px - h.x_mm, py - h.y_mm)
-        inside = r < h.radius_mm
+        inside, px, py = h.snap(px, py)
         quads = quads[~inside[quads].all(axis=1)]
-        scale = np.where(inside, h.radius_mm / np.maximum(r, 1e-9), 1.0)
-        px = h.x_mm + (px - h.x_mm) * scale
-        py = h.y_mm + (py - h.y_mm) * scale
     pz = panel_height(spec, px, py)
     top = np.stack([px, py, pz], axis=1)
     tris = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])

@@ -65,11 +65,13 @@ class _Strict(BaseModel):
 
 
 class PointKind(StrEnum):
-    """What a comparison point measures. Only ``surface`` is measured today."""
+    """What a comparison point measures: the surface along its normal, or a feature of the
+    outline (measured in the images after the fit, one entry per characteristic)."""
 
     surface = "surface"
     hole = "hole"
     trim_edge = "trim_edge"
+    gap_flush = "gap_flush"
 
 
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
@@ -94,6 +96,25 @@ class ComparisonPointSpec(_Strict):
         default=10, ge=1, le=100_000, description="Points needed for a verdict."
     )
     kind: PointKind = PointKind.surface
+    diameter_mm: float | None = Field(
+        default=None, gt=0, le=1000, description="A hole's nominal diameter, mm (holes only)."
+    )
+    length_mm: float = Field(
+        default=0.0, ge=0, le=2000, description="A slot's nominal overall length, mm (0: round)."
+    )
+    axis: Vec3 | None = Field(
+        default=None,
+        description="A hole's in-plane x (a slot's long axis), CAD frame; unset: the CAD's x.",
+    )
+    mate_mm: Vec3 | None = Field(
+        default=None,
+        description="gap_flush: the mating part's nominal edge point, this part's CAD frame, mm.",
+    )
+    tolerances: dict[str, Annotated[list[float], Field(min_length=2, max_length=2)]] = Field(
+        default_factory=dict,
+        description="Limits [lower_mm, upper_mm] of single characteristics (d, len, trim, gap, "
+        "flush, x, y); the others take lower_mm and upper_mm.",
+    )
 
     @field_validator("normal")
     @classmethod
@@ -107,6 +128,22 @@ class ComparisonPointSpec(_Strict):
     def _ordered_limits(self) -> ComparisonPointSpec:
         if not self.lower_mm < self.upper_mm:
             raise ValueError(f"lower_mm ({self.lower_mm}) must be below upper_mm ({self.upper_mm})")
+        return self
+
+    @model_validator(mode="after")
+    def _a_whole_feature(self) -> ComparisonPointSpec:
+        # The measuring side's own rules (a hole's diameter, a gap's mate, tolerances of
+        # the kind's characteristics), checked when the spec loads.
+        from inspection.deviations import ComparisonPoint
+
+        ComparisonPoint(
+            self.name, tuple(self.position_mm), tuple(self.normal),  # type: ignore[arg-type]
+            self.lower_mm, self.upper_mm, self.radius_mm, kind=self.kind.value,
+            diameter_mm=self.diameter_mm, length_mm=self.length_mm,
+            axis=None if self.axis is None else tuple(self.axis),  # type: ignore[arg-type]
+            mate=None if self.mate_mm is None else tuple(self.mate_mm),  # type: ignore[arg-type]
+            tolerances=tuple((k, lo, hi) for k, (lo, hi) in self.tolerances.items()),
+        )  # fmt: skip
         return self
 
 
@@ -174,6 +211,54 @@ class RegistrationSettings(_Strict):
 _SURFACE = SurfaceParams()
 
 
+class AlignmentMethod(StrEnum):
+    """How a part is aligned to its CAD (``inspection.alignment.rps.ALIGNMENTS``)."""
+
+    best_fit = "best_fit"
+    rps = "rps"
+    best_fit_rps = "best_fit_rps"
+
+
+class DatumSpec(_Strict):
+    """One datum of the part's reference point system (RPS)."""
+
+    point: Name = Field(description="The hole or surface comparison point that measures it.")
+    fixes: list[Annotated[str, Field(pattern="^[xyz]$")] | Vec3] = Field(
+        min_length=1,
+        max_length=3,
+        description='Directions it fixes, CAD frame: "x", "y", "z" or a vector.',
+    )
+    weight: float = Field(default=1.0, gt=0, le=1e6, description="Relative weight.")
+
+
+class AlignmentSettings(_Strict):
+    """The part's alignment: the best fit, its RPS alone, or the best fit with the RPS held."""
+
+    method: AlignmentMethod = AlignmentMethod.best_fit
+    datums: list[DatumSpec] = Field(default_factory=list, max_length=32)
+
+    def scheme(self, positions: dict[str, list[float]]) -> Any:
+        """The ``inspection.alignment.rps.RpsScheme`` of these datums at the points'
+        ``positions`` (None for a best fit); raises InvalidInput for a free direction."""
+        if self.method is AlignmentMethod.best_fit:
+            return None
+        from inspection.alignment.rps import Datum, RpsScheme
+
+        datums = tuple(
+            Datum(d.point, tuple(positions[d.point]), tuple(d.fixes), d.weight)  # type: ignore[arg-type]
+            for d in self.datums
+        )
+        return RpsScheme(datums, self.method.value)
+
+    @model_validator(mode="after")
+    def _datums_with_rps(self) -> AlignmentSettings:
+        if self.method is not AlignmentMethod.best_fit and not self.datums:
+            raise ValueError(f"alignment method {self.method.value!r} needs datums")
+        if self.method is AlignmentMethod.best_fit and self.datums:
+            raise ValueError("datums are given but the alignment method is 'best_fit'")
+        return self
+
+
 class SurfaceSettings(_Strict):
     """How the surface between the comparison points is judged; ``inspection.SurfaceParams``.
 
@@ -234,6 +319,7 @@ class PartSpecBase(_Strict):
     registration: RegistrationSettings = Field(default_factory=RegistrationSettings)
     surface: SurfaceSettings = Field(default_factory=SurfaceSettings)
     tree: TreeSettings = Field(default_factory=TreeSettings)
+    alignment: AlignmentSettings = Field(default_factory=AlignmentSettings)
     subgroup_size: int = Field(
         default=1,
         ge=1,
@@ -251,6 +337,17 @@ class PartSpecBase(_Strict):
                 raise ValueError(f"comparison point name {p.name!r} is used twice")
             seen.add(p.name)
         return v
+
+    @model_validator(mode="after")
+    def _datums_name_points(self) -> PartSpecBase:
+        kinds = {p.name: p.kind for p in self.points}
+        for d in self.alignment.datums:
+            if kinds.get(d.point) not in (PointKind.surface, PointKind.hole):
+                raise ValueError(f"datum {d.point!r} must name a surface or hole point")
+        # Refused here, not when the part loads: a free direction is a spec error
+        # (InvalidInput is a ValueError, reported with the spec's other errors).
+        self.alignment.scheme({p.name: p.position_mm for p in self.points})
+        return self
 
 
 class PartSpec(PartSpecBase):
@@ -805,6 +902,16 @@ class SimulatorSection(_Strict):
         default=180.0, ge=0, le=180, description="Half-range of the in-plane rotation, degrees."
     )
     flip: bool = Field(default=False, description="Half of the parts arrive turned by 180 deg.")
+    hole_shift_mm: float = Field(
+        default=0.0,
+        ge=0,
+        le=2,
+        description="A generated part's holes lie off their drawn place by up to this in x and "
+        "y, mm (drawn per part; the truth goes into the FrameSet).",
+    )
+    hole_radius_mm: float = Field(
+        default=0.0, ge=0, le=1, description="... and their radius differs by up to this, mm."
+    )
     seed: int = Field(default=0, ge=0)
     drift_point: Name | None = Field(
         default=None,

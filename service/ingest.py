@@ -33,6 +33,7 @@ import trimesh
 
 from inspection.cad import CadModel
 from inspection.defects import Dent, press, random_dent
+from inspection.panel import HoleShift, PanelSpec, sheet_metal_panel, vary_holes
 from inspection.rig import Rig
 from inspection.transforms import apply
 
@@ -93,6 +94,10 @@ class SimulationSettings:
         when its centre stays within 10 mm of the belt's middle across it.
     flip : bool
         Also turn half of the parts by a half turn (arriving either way round).
+    hole_shift_mm, hole_radius_mm : float
+        A generated panel's holes are made off their drawn place by up to
+        ``hole_shift_mm`` in x and y and with radii off by up to
+        ``hole_radius_mm`` (:func:`inspection.panel.vary_holes`); 0: as drawn.
     seed : int
         With ``seq``, fixes everything about a part: the same (seed, seq)
         gives the same part, pose, serial and images.
@@ -108,6 +113,8 @@ class SimulationSettings:
     position_range_mm: tuple[float, float] = (60.0, 10.0)
     yaw_range_deg: float = 180.0
     flip: bool = False
+    hole_shift_mm: float = 0.0
+    hole_radius_mm: float = 0.0
     seed: int = 0
     drift: Drift | None = None
 
@@ -119,6 +126,8 @@ class SimulationSettings:
             raise ValueError("a dent needs 0 < depth lo <= hi and 0 <= flat < radius lo <= hi")
         if not 0 <= self.dent_bump_fraction <= 1:
             raise ValueError("dent_bump_fraction must lie in [0, 1]")
+        if not (self.hole_shift_mm >= 0 and self.hole_radius_mm >= 0):
+            raise ValueError("hole_shift_mm and hole_radius_mm must be >= 0")
 
 
 def line_rig(rig: Rig, *, conveyor_speed_mm_s: float, pattern_seed: int) -> Rig:
@@ -139,12 +148,17 @@ class SimPart:
     resting_poses: np.ndarray
     """(K, 4, 4): T_conveyor_part of each stable resting pose (part centre above the origin)."""
     probabilities: np.ndarray
+    panel: PanelSpec | None = None
+    """The generated panel's design, whose holes the simulator can make off their place."""
 
     @classmethod
-    def from_cad(cls, name: str, cad: CadModel, *, flat: bool = True) -> SimPart:
+    def from_cad(
+        cls, name: str, cad: CadModel, *, flat: bool = True, panel: PanelSpec | None = None
+    ) -> SimPart:
         """``flat``: the part rests as modelled (z up, lowest point on z = 0), e.g. the panel.
 
-        Otherwise trimesh's stable poses of the convex hull are used.
+        Otherwise trimesh's stable poses of the convex hull are used. ``panel``: the
+        design ``cad`` was generated from.
         """
         mesh = trimesh.Trimesh(cad.vertices, cad.faces, process=False)
         if flat:
@@ -159,7 +173,7 @@ class SimPart:
                 v = apply(T, cad.vertices)
                 centre = (v.min(axis=0) + v.max(axis=0)) / 2
                 T[:2, 3] -= centre[:2]
-        return cls(name, cad, mesh, poses, probs / probs.sum())
+        return cls(name, cad, mesh, poses, probs / probs.sum(), panel)
 
 
 class SimulatedRig:
@@ -208,13 +222,22 @@ class SimulatedRig:
         serial = f"{part.name[:8].upper()}-{seq:06d}-{rng.integers(16**4):04x}"
         defects: tuple[Dent, ...] = ()
         mesh = part.mesh
+        holes: tuple[HoleShift, ...] = ()
+        if part.panel is not None and part.panel.holes and (s.hole_shift_mm or s.hole_radius_mm):
+            # Its own stream, so that turning this on changes nothing else about a part.
+            made, holes = vary_holes(
+                part.panel, np.random.default_rng([s.seed, seq, 1]),
+                shift_mm=s.hole_shift_mm, radius_mm=s.hole_radius_mm,
+            )  # fmt: skip
+            m = sheet_metal_panel(made)
+            mesh = trimesh.Trimesh(m.vertices, m.faces, process=False)
         if rng.random() < s.defect_rate:
             defects = (self._random_dent(part, T_rig_part, rng),)
         drifted = s.drift.dent(seq) if s.drift is not None and part is self.parts[0] else None
         if drifted is not None:
             defects = (*defects, drifted)
         if defects:
-            mesh = press(part.mesh, defects)
+            mesh = press(mesh, defects)
         images = self.stages.render(self.stages.rig, mesh, T_rig_part, int(rng.integers(2**31)))
         return FrameSet(
             line=self.line,
@@ -226,7 +249,7 @@ class SimulatedRig:
             calibration_id=self.stages.calibration_id,
             images=images,
             cameras=[f"cam{i}" for i in range(len(images))],
-            truth=Truth(T_rig_part, defects),
+            truth=Truth(T_rig_part, defects, holes),
         )
 
     def _random_dent(self, part: SimPart, T_rig_part: np.ndarray, rng: np.random.Generator) -> Dent:

@@ -34,7 +34,7 @@ from inspection.transforms import apply
 
 from . import bus, startup
 from .api import ResultHub, create_app
-from .config import ConfigError, LineConfig, PartSpec, Sensor, load_part_spec
+from .config import GENERATED_PANEL, ConfigError, LineConfig, PartSpec, Sensor, load_part_spec
 from .executor import Executor, InProcessExecutor
 from .ingest import (
     Drift,
@@ -51,7 +51,7 @@ from .ingest import (
 from .journal import Journal
 from .metrics import Metrics
 from .models import Alarm, software_version
-from .parts import LoadedPart, PartRegistry, load_part_cad
+from .parts import LoadedPart, PartRegistry, load_part_cad, panel_spec
 from .pipeline import HoloRig, Outcome, Pipeline, Stages, flash_stages, holography_stages
 from .protocol import FrameSet, Keys
 from .recorder import PartScene, Recorder, Retention
@@ -198,8 +198,15 @@ class Station:
     def simulated_rig(self) -> FrameSource:
         """The station's simulated sensor: the flash rig, or the holographic head."""
         sim = self.cfg.simulator
+        # The generated panel's own design, so that the simulator can move its holes.
         parts = [
-            SimPart.from_cad(n, cad, flat=spec.is_generated) for n, (spec, cad) in self.cads.items()
+            SimPart.from_cad(
+                n,
+                cad,
+                flat=spec.is_generated,
+                panel=panel_spec(spec.panel) if spec.cad == GENERATED_PANEL else None,
+            )  # fmt: skip
+            for n, (spec, cad) in self.cads.items()
         ]
         if self.cfg.station.sensor is Sensor.holography:
             head = self.cfg.head()
@@ -232,6 +239,8 @@ class Station:
                 position_range_mm=(sim.position_range_x_mm, sim.position_range_y_mm),
                 yaw_range_deg=sim.yaw_range_deg,
                 flip=sim.flip,
+                hole_shift_mm=sim.hole_shift_mm,
+                hole_radius_mm=sim.hole_radius_mm,
                 seed=sim.seed,
                 drift=self._drift(),
             ),

@@ -66,6 +66,11 @@ class PointResult(_Model):
     support: int = Field(ge=0, description="Measured points pooled within the support radius.")
     verdict: Verdict
     reason: str | None = Field(default=None, description="Why the point is not measurable.")
+    kind: str = Field(
+        default="surface",
+        description="The comparison point's kind; a feature's entries (hole, trim_edge, "
+        "gap_flush) are named <point>.<characteristic>.",
+    )
 
 
 class FieldStats(_Model):

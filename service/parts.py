@@ -40,6 +40,7 @@ from inspection.alignment import (
     alignment_model,
     sample_facing,
 )
+from inspection.alignment.rps import RpsScheme
 from inspection.cad import CadModel, load_cad
 from inspection.deviations import ComparisonPoint
 from inspection.errors import CadLoadError, InspectionError, InvalidInput, TreeMismatch
@@ -130,9 +131,20 @@ def comparison_points(spec: PartSpec) -> tuple[ComparisonPoint, ...]:
             radius_mm=p.radius_mm,
             kind=p.kind.value,
             min_support=p.min_support,
+            diameter_mm=p.diameter_mm,
+            length_mm=p.length_mm,
+            axis=None if p.axis is None else tuple(p.axis),  # type: ignore[arg-type]
+            mate=None if p.mate_mm is None else tuple(p.mate_mm),  # type: ignore[arg-type]
+            tolerances=tuple((k, lo, hi) for k, (lo, hi) in p.tolerances.items()),
         )
         for p in spec.points
     )
+
+
+def rps_scheme(spec: PartSpecBase) -> RpsScheme | None:
+    """The spec's datum scheme (None for a best fit)."""
+    scheme: RpsScheme | None = spec.alignment.scheme({p.name: p.position_mm for p in spec.points})
+    return scheme
 
 
 def check_point_offsets(cad: CadModel, spec: PartSpecBase, max_mm: float) -> None:
@@ -141,12 +153,15 @@ def check_point_offsets(cad: CadModel, spec: PartSpecBase, max_mm: float) -> Non
     A point off the surface measures the distance to where it was put, not a
     deviation: a typo in a coordinate would pass as a process offset.
     """
-    if not spec.points:
+    # A hole's centre lies in the hole, off the material: it is checked by its rim's
+    # measurement (no rim seen: not measurable), not here.
+    points = [p for p in spec.points if p.kind.value != "hole"]
+    if not points:
         return
     mesh = trimesh.Trimesh(cad.vertices, cad.faces, process=False)
-    where = np.array([p.position_mm for p in spec.points], dtype=np.float64)
+    where = np.array([p.position_mm for p in points], dtype=np.float64)
     _, dist, _ = trimesh.proximity.closest_point(mesh, where)
-    far = [(p.name, float(d)) for p, d in zip(spec.points, dist, strict=True) if d > max_mm]
+    far = [(p.name, float(d)) for p, d in zip(points, dist, strict=True) if d > max_mm]
     if far:
         listed = ", ".join(f"{n!r} at {d:.3f} mm" for n, d in far[:10])
         raise PointOffSurface(
@@ -331,7 +346,12 @@ def part_from_cad(
     return LoadedPart(
         spec=spec,
         model=PartModel(
-            cad, tree, model, comparison_points(spec), surface_node_mm=spec.surface.node_mm
+            cad,
+            tree,
+            model,
+            comparison_points(spec),
+            surface_node_mm=spec.surface.node_mm,
+            rps=rps_scheme(spec),
         ),  # fmt: skip
         tree_hash=tree.hash,
         params=measure_params(spec),

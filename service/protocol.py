@@ -30,6 +30,7 @@ match as a wildcard, or name a parent folder.
 from __future__ import annotations
 
 import json
+import math
 import struct
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -39,6 +40,7 @@ import cv2
 import numpy as np
 
 from inspection.defects import Defect, Dent
+from inspection.panel import HoleShift
 
 from .names import NAME_MAX_LEN, NAME_RULE, is_valid_name
 
@@ -224,15 +226,20 @@ class Truth:
     defects : tuple of inspection.defects.Defect
         Every defect injected into the part (part frame), in the order pressed;
         empty for a good part. Later kinds extend this list.
+    holes : tuple of inspection.panel.HoleShift
+        How far each of a generated panel's holes was made off its drawn one, in
+        the design's order (empty: as drawn, or not a generated panel).
     """
 
     T_rig_part: np.ndarray
     defects: tuple[Defect, ...] = ()
+    holes: tuple[HoleShift, ...] = ()
 
     def to_json(self) -> dict[str, Any]:
         return {
             "T_rig_part": np.asarray(self.T_rig_part, dtype=np.float64).tolist(),
             "defects": [_defect_to_json(d) for d in self.defects],
+            "holes": [{"dx_mm": h.dx_mm, "dy_mm": h.dy_mm, "dr_mm": h.dr_mm} for h in self.holes],
         }
 
     @classmethod
@@ -265,7 +272,18 @@ class Truth:
                 defects.append(reader(rec))
             except (KeyError, TypeError, ValueError) as exc:
                 raise ProtocolError(f"bad truth.defects[{i}]: {exc}") from exc
-        return cls(T, tuple(defects))
+        holes = obj.get("holes", [])
+        if not isinstance(holes, list):
+            raise ProtocolError("truth.holes must be a list")
+        try:
+            shifts = tuple(
+                HoleShift(float(h["dx_mm"]), float(h["dy_mm"]), float(h["dr_mm"])) for h in holes
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ProtocolError(f"bad truth.holes: {exc}") from exc
+        if not all(math.isfinite(v) for h in shifts for v in (h.dx_mm, h.dy_mm, h.dr_mm)):
+            raise ProtocolError("truth.holes must hold finite numbers")
+        return cls(T, tuple(defects), shifts)
 
 
 @dataclass(frozen=True, eq=False)

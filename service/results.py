@@ -167,6 +167,7 @@ def point_results(devs: Deviations) -> list[PointResult]:
             support=int(c.support),
             verdict=c.verdict,
             reason=c.reason,
+            kind=c.kind,
         )
         for c in devs.comparison
     ]

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..alignment import AlignmentModel, alignment_model
+from ..alignment.rps import RpsScheme
 from ..cad import CadModel
 from ..deviations import ComparisonPoint, check_comparison_points, load_comparison_points
 from ..errors import InvalidInput
@@ -42,6 +43,8 @@ class PartModel:
     surface_node_mm : float
         Cell of the defect search's node grid, which every length of the
         search scales with (see :class:`SurfaceModel`).
+    rps : RpsScheme or None
+        The part's datum scheme; None: the best fit alone aligns it.
     """
 
     cad: CadModel
@@ -52,6 +55,7 @@ class PartModel:
     surface: SurfaceModel | None = None
     caster: RayCaster | None = None
     surface_node_mm: float = NODE_MM
+    rps: RpsScheme | None = None
 
     @classmethod
     def build(
@@ -63,6 +67,7 @@ class PartModel:
         band_mm: float | None = None,
         alignment: bool = True,
         surface_node_mm: float = NODE_MM,
+        rps: RpsScheme | None = None,
     ) -> PartModel:
         """Build the tree (``GridTree.build``) and the alignment model of ``cad``.
 
@@ -77,6 +82,8 @@ class PartModel:
             anywhere in the rig).
         surface_node_mm : float
             The defect search's node grid (finer for a sensor of a small field).
+        rps : RpsScheme, optional
+            Align by the datums (see :class:`~inspection.alignment.rps.RpsScheme`).
         """
         if not isinstance(cad, CadModel):
             raise InvalidInput(f"cad must be a CadModel, got {type(cad).__name__}")
@@ -87,12 +94,22 @@ class PartModel:
         )
         model = alignment_model(cad) if alignment else None
         return cls(cad, tree, model, check_comparison_points(comparison_points),
-                   surface_node_mm=surface_node_mm)  # fmt: skip
+                   surface_node_mm=surface_node_mm, rps=rps)  # fmt: skip
 
     def __post_init__(self) -> None:
         object.__setattr__(
             self, "comparison_points", check_comparison_points(self.comparison_points)
         )
+        if self.rps is not None:
+            if not isinstance(self.rps, RpsScheme):
+                raise InvalidInput(f"rps must be an RpsScheme, got {type(self.rps).__name__}")
+            named = {cp.name: cp for cp in self.comparison_points}
+            for d in self.rps.datums:
+                cp = named.get(d.name)
+                if cp is None or cp.kind not in ("surface", "hole"):
+                    raise InvalidInput(
+                        f"RPS datum {d.name!r} must name a surface or hole comparison point"
+                    )
         if self.faces is None:
             object.__setattr__(self, "faces", CadFaces.of(self.tree))
         if self.surface is None:

@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..alignment.rps import RpsAlignment
 from ..cadpoints import PointMeasurement
 from ..deviations import Deviations, Verdict
 from ..registration import Registration
@@ -96,6 +97,10 @@ class Measurement:
         Each matching pass's cloud and fit, in order (frames only).
     timings_ms : dict of str to float
         Per stage: ``reconstruct``, ``guide``, ``align``, ``deviations``, ``total``.
+    rps : RpsAlignment or None
+        The datum alignment, where the part has one: ``transform`` is then its
+        pose, ``registration`` the best fit it started from, and each datum's
+        residual is in it.
     cpu_ms : dict of str to float
         The same stages' CPU time, ms: the whole process's, every thread (the
         reconstruction's pool included), so the sequence's own in a process
@@ -126,6 +131,7 @@ class Measurement:
     path: str = "cloud"
     local: tuple[PointMeasurement, ...] = field(default=(), repr=False)
     maps: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
+    rps: RpsAlignment | None = field(default=None, repr=False)
 
     def points_cad(self) -> np.ndarray | None:
         """``points`` mapped into the CAD frame (None without a transform)."""

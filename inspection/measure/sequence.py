@@ -18,7 +18,11 @@ the four-camera flash rig:
    surface for defects;
 7. hold each comparison point's verdict against the pose's own uncertainty
    along its normal, and give the part its verdict (a surface defect fails
-   it when the spec says so).
+   it when the spec says so);
+   and measure the features of the outline (holes, trim edges, gap and flush)
+   in the frames at the fit's pose, one entry per characteristic;
+8. where the part has a datum scheme (RPS), align it by its measured datums
+   (alone, or holding them on the best fit) and measure it again at that pose.
 
 The comparison-point path (``path="comparison_points"``,
 :func:`_measure_at_points`) is a branch of the same sequence: step 1 as a
@@ -44,12 +48,15 @@ import numpy as np
 import numpy.typing as npt
 
 from ..alignment import align
+from ..alignment.rps import rps_align
 from ..cadpoints import LocalModel, measure_points
-from ..deviations import deviations
+from ..deviations import FEATURE_KINDS, Deviations, Verdict, deviations
 from ..errors import InspectionError, InvalidInput
+from ..feature_checks import check_features, hole_spec
+from ..features import hole_frame
 from ..reconstruct import Cloud, Guide, Matching, Reconstructor
 from ..registration import LOSSES, Registration, register
-from ..rig import Rig
+from ..rig import Camera, Rig
 from ..transforms import apply
 from .judging import _fit_problem, _held_to_the_pose, _reason, fit_quality, judge_points
 from .params import Frame, MeasureParams
@@ -156,7 +163,7 @@ def _measure_frames(
     cameras = np.array([cam.centre for cam in rec.rig.cameras], dtype=np.float64)
     return _judge(
         part, last.points, final, p, "rig", timings, t_start, tuple(passes), search,
-        cameras=cameras,
+        cameras=cameras, views=(tuple(rec.rig.cameras), tuple(frames)),
     )  # fmt: skip
 
 
@@ -449,12 +456,16 @@ def _judge(
     search: Registration | None = None,
     *,
     cameras: np.ndarray | None = None,
+    views: tuple[tuple[Camera, ...], tuple[npt.NDArray[np.uint8], ...]] = ((), ()),
 ) -> Measurement:
-    """5.-7.: the fit's quality, the deviations over the cloud and the surface, and the verdict.
+    """5.-8.: the fit's quality, the deviations over the cloud and the surface, the features,
+    the datum alignment, and the verdict.
 
     ``search`` is the global search's fit when the final fit started from
     it (the guided passes): its ambiguity is the part's. ``cameras`` are the
-    rig's camera centres (rig frame), whose view of the CAD has its occlusion edges."""
+    rig's camera centres (rig frame), whose view of the CAD has its occlusion edges;
+    ``views`` the calibrated cameras and their frames, in which the features'
+    outlines are measured."""
     T = np.asarray(fit.transform, dtype=np.float64)
     quality = fit_quality(fit, search)
     if not np.isfinite(T).all():
@@ -473,26 +484,23 @@ def _judge(
             f"(score {quality.runner_up_score:.2f} of the chosen one's; a symmetric-looking part)"
         )
 
-    t = _mark()
-    viewpoints = directions = None
-    if cameras is not None:
-        viewpoints = apply(T, cameras)
-    elif frame == "rig" and p.register.view_direction is not None:
-        directions = (T[:3, :3] @ np.asarray(p.register.view_direction, dtype=np.float64))[None]
-    devs = deviations(
-        part.tree,
-        apply(T, points),
-        part.comparison_points,
-        min_support=p.min_support,
-        max_distance_mm=p.register.max_distance_mm,
-        surface=part.surface,
-        surface_params=p.surface,
-        outlier_mm=rejection_mm(fit),
-        viewpoints=viewpoints,
-        view_directions=directions,
-    )
-    devs = _held_to_the_pose(devs, part.comparison_points, fit, p)
-    _lap(timings, "deviations", t)
+    devs = _deviations_at(part, points, T, fit, p, frame, cameras, views, timings)
+
+    # 8. The datum alignment, where the part has one: the part measured again at its pose.
+    rps = None
+    if part.rps is not None:
+        t = _mark()
+        measured, why = _datums_measured(part, devs, T)
+        if measured is None:
+            _lap(timings, "rps", t)
+            return dataclasses.replace(
+                _unmeasured(why or "", timings, t_start, *passes, frame=frame),
+                transform=T, registration=fit, quality=quality, deviations=devs, points=points,
+            )  # fmt: skip
+        rps = rps_align(part.rps.datums, measured, init=T, hold=part.rps.mode == "best_fit_rps")
+        T = rps.transform
+        devs = _deviations_at(part, points, T, fit, p, frame, cameras, views, timings)
+        _lap(timings, "rps", t)
     _lap(timings, "total", t_start)
     return Measurement(
         verdict=devs.verdict,
@@ -506,7 +514,74 @@ def _judge(
         passes=passes,
         timings_ms=dict(timings),
         cpu_ms=dict(timings.cpu),
+        rps=rps,
     )
+
+
+def _deviations_at(
+    part: PartModel,
+    points: np.ndarray,
+    T: np.ndarray,
+    fit: Registration,
+    p: MeasureParams,
+    frame: Frame,
+    cameras: np.ndarray | None,
+    views: tuple[tuple[Camera, ...], tuple[npt.NDArray[np.uint8], ...]],
+    timings: _Laps,
+) -> Deviations:
+    """6., 7. and the features: the deviations of ``points`` placed by ``T`` (laps
+    ``deviations`` and ``features``)."""
+    t = _mark()
+    viewpoints = directions = None
+    if cameras is not None:
+        viewpoints = apply(T, cameras)
+    elif frame == "rig" and p.register.view_direction is not None:
+        directions = (T[:3, :3] @ np.asarray(p.register.view_direction, dtype=np.float64))[None]
+    points_cad = apply(T, points)
+    devs = deviations(
+        part.tree,
+        points_cad,
+        part.comparison_points,
+        min_support=p.min_support,
+        max_distance_mm=p.register.max_distance_mm,
+        surface=part.surface,
+        surface_params=p.surface,
+        outlier_mm=rejection_mm(fit),
+        viewpoints=viewpoints,
+        view_directions=directions,
+    )
+    devs = _held_to_the_pose(devs, part.comparison_points, fit, p)
+    _lap(timings, "deviations", t)
+    if any(cp.kind in FEATURE_KINDS for cp in part.comparison_points):
+        t = _mark()
+        devs = check_features(devs, part.comparison_points, part.cad, points_cad, T, *views)
+        _lap(timings, "features", t)
+    return devs
+
+
+def _datums_measured(
+    part: PartModel, devs: Deviations, T: np.ndarray
+) -> tuple[np.ndarray | None, str | None]:
+    """The datums as measured, in the measured points' frame (placed by ``T``), or why not."""
+    assert part.rps is not None
+    entries = {c.name: c for c in devs.comparison}
+    named = {cp.name: cp for cp in part.comparison_points}
+    out = []
+    for d in part.rps.datums:
+        cp = named[d.name]
+        keys = ("x", "y") if cp.kind == "hole" else ("",)
+        found = [entries[f"{d.name}.{k}" if k else d.name] for k in keys]
+        bad = [c for c in found if c.verdict is Verdict.NOT_MEASURABLE]
+        if bad:
+            return None, f"RPS datum {d.name} not measurable: {bad[0].reason}"
+        q = np.asarray(cp.position, dtype=np.float64)
+        if cp.kind == "hole":
+            x, y, _ = hole_frame(cp.normal, hole_spec(cp).axis)
+            q = q + found[0].deviation_mm * x + found[1].deviation_mm * y
+        else:
+            q = q + found[0].deviation_mm * np.asarray(cp.normal)
+        out.append(q)
+    return apply(np.linalg.inv(T), np.array(out)), None
 
 
 def rejection_mm(fit: Registration) -> float:

@@ -133,12 +133,16 @@ def test_sign_follows_the_comparison_normal(panel):
     assert devs.comparison[1].deviation_mm == pytest.approx(-0.2, abs=0.01)
 
 
-def test_kinds_not_measured_yet_are_not_measurable(panel):
+def test_features_are_left_to_the_images(panel):
     cad, tree = panel
     p = comparison_points(cad)[1]
-    hole = ComparisonPoint("hole", p.position, p.normal, -1.0, 1.0, 5.0, kind="hole")
+    hole = ComparisonPoint(
+        "hole", p.position, p.normal, -1.0, 1.0, 5.0, kind="hole", diameter_mm=8.0
+    )
     devs = deviations(tree, exact_cloud(cad), [hole])
     assert devs.comparison[0].verdict is Verdict.NOT_MEASURABLE
+    assert devs.comparison[0].kind == "hole"
+    assert devs.comparison[0].reason == "a hole is measured from the images after the fit"
 
 
 def test_robust_location_ignores_a_minority_of_outliers():

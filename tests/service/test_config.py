@@ -260,6 +260,9 @@ def test_the_line_file_sets_every_simulator_key_and_the_ingest_uses_them():
     assert (settings.flip, settings.seed, settings.defect_rate) == (
         sim.flip, sim.seed, sim.defect_rate,
     )  # fmt: skip
+    assert (settings.hole_shift_mm, settings.hole_radius_mm) == (
+        sim.hole_shift_mm, sim.hole_radius_mm,
+    )  # fmt: skip
     assert settings.dent_flat_mm == sim.dent_flat_mm
 
 

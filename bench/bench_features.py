@@ -1,0 +1,255 @@
+"""Holes, slots and trim edges against the simulator's truth; RPS residuals beside the best fit's.
+
+The demo panel with a slot, its holes drawn with a fine rim
+(``PanelSpec.hole_spacing_mm``): each part's holes are shifted and resized at
+random (``inspection.panel.vary_holes``, as the line's simulator does), the
+part rendered with ``Rig.nominal()`` in six poses and two render seeds, and
+measured as the line measures (``measure_frames``, ``Rig.default()``)
+against the drawn panel. Per hole: the centre's error along the hole's x and
+y and the diameter's (and a slot's length), from the images (the measuring
+sequence) and, as the peer, from the cloud's rim alone
+(``hole_from_cloud``), whose bias at edges the images are there to avoid;
+and from the images at the true pose with the rig as built (what the edge
+search alone leaves, without the fit's and the calibration's errors).
+Trim edges: points on the round holes' rims, whose true offset follows from
+the hole's shift and radius. RPS: a hole fixing x and y, the slot fixing y,
+three surface points fixing z, and a second hole's x (seven directions, so
+the datums have residuals): the residuals after the RPS alignment beside
+those the best fit leaves at the same datums.
+
+Goals: holes within 0.05 mm in position and diameter, trim edges within 0.1 mm.
+``BENCH_FEATURE_POSES`` (default 6) and ``BENCH_FEATURE_SEEDS`` (default "11,12").
+Run: ``make bench BENCH=features``.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import statistics
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+POSES = [
+    (0.0, 0.0, 0.0),
+    (40.0, -30.0, 25.0),
+    (-100.0, 80.0, 90.0),
+    (120.0, 60.0, -40.0),
+    (-60.0, -70.0, 160.0),
+    (80.0, -90.0, 230.0),
+]
+GOAL_HOLE_MM = 0.05
+GOAL_TRIM_MM = 0.1
+
+
+def scene():
+    """The drawn panel, its comparison points (holes and rim trim edges) and RPS datums."""
+    from inspection.alignment.rps import Datum
+    from inspection.deviations import ComparisonPoint
+    from inspection.panel import Hole, PanelSpec, surface_point
+
+    spec = PanelSpec(
+        holes=(
+            Hole(170.0, 110.0, 16.0),
+            Hole(150.0, -100.0, 10.0, length_mm=40.0, angle_deg=20.0),
+            Hole(-200.0, 120.0, 10.5),
+        ),
+        hole_spacing_mm=0.7,
+    ).scaled(400.0, 260.0)
+    cps = []
+    for name, h in zip(("H1", "S2", "H3"), spec.holes, strict=True):
+        pos, n = surface_point(spec, h.x_mm, h.y_mm)
+        a = math.radians(h.angle_deg)
+        cps.append(
+            ComparisonPoint(
+                name,
+                pos,
+                n,
+                -0.2,
+                0.2,
+                5.0,
+                kind="hole",
+                diameter_mm=2 * h.radius_mm,
+                length_mm=h.length_mm,
+                axis=(math.cos(a), math.sin(a), 0.0),
+            )  # fmt: skip
+        )
+    trims = []
+    for name, h, ang in (("E1", spec.holes[0], 0.0), ("E2", spec.holes[0], 120.0),
+                         ("E3", spec.holes[2], -90.0)):  # fmt: skip
+        u = np.array([math.cos(math.radians(ang)), math.sin(math.radians(ang))])
+        pos, _ = surface_point(spec, h.x_mm + h.radius_mm * u[0], h.y_mm + h.radius_mm * u[1])
+        cps.append(
+            ComparisonPoint(
+                name, pos, (-u[0], -u[1], 0.0), -0.2, 0.2, 3.0, kind="trim_edge", min_support=5
+            )  # fmt: skip
+        )
+        trims.append((name, spec.holes.index(h), u))
+    zs = [(-150.0, -90.0), (150.0, 0.0), (-60.0, 100.0)]
+    for i, (x, y) in enumerate(zs):
+        pos, n = surface_point(spec, x, y)
+        cps.append(ComparisonPoint(f"Z{i + 1}", pos, n, -0.5, 0.5, 8.0))
+    s2 = spec.holes[1]
+    a = math.radians(s2.angle_deg)
+    datums = (
+        Datum("H1", cps[0].position, ("x", "y")),
+        # The slot fixes the direction across its axis.
+        Datum("S2", cps[1].position, ((-math.sin(a), math.cos(a), 0.0),)),
+        Datum("Z1", cps[6].position, ("z",)),
+        Datum("Z2", cps[7].position, ("z",)),
+        Datum("Z3", cps[8].position, ("z",)),
+        Datum("H3", cps[2].position, ("x",)),
+    )
+    return spec, cps, trims, datums
+
+
+def main() -> int:
+    from inspection.alignment.rps import rps_align
+    from inspection.feature_checks import hole_spec
+    from inspection.features import hole_frame, hole_from_cloud, measure_hole
+    from inspection.measure import PartModel, measure_frames
+    from inspection.panel import sheet_metal_panel, vary_holes
+    from inspection.reconstruct import Reconstructor
+    from inspection.rig import Rig, belt_pose
+    from inspection.simulate import simulate
+    from inspection.transforms import apply
+
+    n_poses = int(os.environ.get("BENCH_FEATURE_POSES", "6"))
+    seeds = [int(s) for s in os.environ.get("BENCH_FEATURE_SEEDS", "11,12").split(",")]
+    spec, cps, trims, datums = scene()
+    part = PartModel.build(sheet_metal_panel(spec), cps)
+    rec = Reconstructor.build(Rig.default())
+    truth_rig = Rig.nominal()
+    by_name = {cp.name: cp for cp in cps}
+    img_err: dict[str, list[float]] = {"x": [], "y": [], "d": [], "len": []}
+    cloud_err: dict[str, list[float]] = {"x": [], "y": [], "d": []}
+    oracle_err: dict[str, list[float]] = {"x": [], "y": [], "d": []}
+    trim_err: list[float] = []
+    rps_res: list[float] = []
+    bf_res: list[float] = []
+    wall, cpu = [], []
+    unmeasured = 0
+    print(f"{'part':>10} {'hole':>4} {'dx img':>8} {'dy img':>8} {'dd img':>8} "
+          f"{'dx cloud':>8} {'dy cloud':>8} {'dd cloud':>8}")  # fmt: skip
+    for pi, pose in enumerate(POSES[:n_poses]):
+        for seed in seeds:
+            rng = np.random.default_rng([seed, pi])
+            truth_spec, shifts = vary_holes(spec, rng)
+            T_rig_part = belt_pose(*pose)
+            frames = simulate(truth_rig, sheet_metal_panel(truth_spec), T_rig_part, seed=seed)
+            m = measure_frames(part, rec, frames)
+            if m.deviations is None or m.transform is None:
+                print(f"pose {pi} seed {seed}: not measured: {m.reason}")
+                unmeasured += 1
+                continue
+            wall.append(m.timings_ms.get("features", math.nan))
+            cpu.append(m.cpu_ms.get("features", math.nan))
+            entries = {c.name: c for c in m.deviations.comparison}
+            pts_cad = apply(m.transform, m.points)
+            for hi, name in enumerate(("H1", "S2", "H3")):
+                cp = by_name[name]
+                x, y, _ = hole_frame(cp.normal, hole_spec(cp).axis)
+                sh = shifts[hi]
+                true = {
+                    "x": float(np.dot([sh.dx_mm, sh.dy_mm, 0.0], x)),
+                    "y": float(np.dot([sh.dx_mm, sh.dy_mm, 0.0], y)),
+                    "d": 2 * sh.dr_mm,
+                    "len": 2 * sh.dr_mm,
+                }
+                row = []
+                for key in ("x", "y", "d", "len"):
+                    e = entries.get(f"{name}.{key}")
+                    if e is None:
+                        continue
+                    err = e.deviation_mm - true[key]
+                    if math.isfinite(err):
+                        img_err[key].append(err)
+                    row.append(err)
+                cm, _ = hole_from_cloud(hole_spec(cp), pts_cad)
+                cl = [math.nan] * 3
+                if cm is not None:
+                    cl = [cm.offset_mm[0] - true["x"], cm.offset_mm[1] - true["y"],
+                          cm.diameter_mm - cp.diameter_mm - true["d"]]  # fmt: skip
+                    for key, v in zip(("x", "y", "d"), cl, strict=True):
+                        cloud_err[key].append(v)
+                om, _ = measure_hole(hole_spec(cp), truth_rig.cameras, frames,
+                                     np.linalg.inv(T_rig_part))  # fmt: skip
+                if om is not None:
+                    oracle_err["x"].append(om.offset_mm[0] - true["x"])
+                    oracle_err["y"].append(om.offset_mm[1] - true["y"])
+                    oracle_err["d"].append(om.diameter_mm - cp.diameter_mm - true["d"])
+                print(f"{pi}/{seed:>7} {name:>4} " + " ".join(f"{v:8.3f}" for v in row[:3])
+                      + " " + " ".join(f"{v:8.3f}" for v in cl))  # fmt: skip
+            for name, hi, u in trims:
+                sh = shifts[hi]
+                true_trim = -(sh.dx_mm * u[0] + sh.dy_mm * u[1] + sh.dr_mm)
+                e = entries[f"{name}.trim"]
+                if math.isfinite(e.deviation_mm):
+                    trim_err.append(e.deviation_mm - true_trim)
+            # RPS: the measured datums in the rig frame, from the best fit's CAD frame.
+            T_bf = m.transform
+            measured_cad = []
+            for d in datums:
+                cp = by_name[d.name]
+                if cp.kind == "hole":
+                    x, y, _ = hole_frame(cp.normal, hole_spec(cp).axis)
+                    ex, ey = entries[f"{d.name}.x"], entries[f"{d.name}.y"]
+                    measured_cad.append(np.asarray(cp.position)
+                                        + ex.deviation_mm * x + ey.deviation_mm * y)  # fmt: skip
+                else:
+                    dev = entries[d.name].deviation_mm
+                    measured_cad.append(np.asarray(cp.position) + dev * np.asarray(cp.normal))
+            measured_cad = np.array(measured_cad)
+            if not np.isfinite(measured_cad).all():
+                continue
+            measured_rig = apply(np.linalg.inv(T_bf), measured_cad)
+            rps = rps_align(datums, measured_rig, init=T_bf)
+            bf = rps_align(datums, measured_rig, init=T_bf, hold=True)
+            rps_res += [abs(v) for r in rps.residuals for v in r.residuals_mm]
+            # The best fit's own residuals at the datums: the measured minus nominal.
+            P = np.array([d.position for d in datums])
+            for i, d in enumerate(datums):
+                for v in d.directions:
+                    bf_res.append(abs(float(np.dot(v, measured_cad[i] - P[i]))))
+            del bf
+
+    def stats(xs: list[float]) -> str:
+        if not xs:
+            return "   -        -     (0)"
+        a = np.abs(np.asarray(xs))
+        return f"{np.median(a):7.3f}  {a.max():7.3f}  ({len(a)})"
+
+    print("\nerrors against the truth, mm: median |e|, max |e| (count)")
+    for key in ("x", "y", "d"):
+        print(
+            f"  hole {key:>3}  images {stats(img_err[key])}   cloud (peer) {stats(cloud_err[key])}"
+        )
+        print(f"            images at the true pose, rig as built {stats(oracle_err[key])}")
+    ratio = [
+        float(np.median(np.abs(img_err[k])) / np.median(np.abs(cloud_err[k])))
+        for k in ("x", "y", "d")
+        if img_err[k] and cloud_err[k]
+    ]
+    print("  images / cloud, median |e| (x, y, d): " + ", ".join(f"{r:.2f}" for r in ratio))
+    print(f"  slot len  images {stats(img_err['len'])}")
+    print(f"  trim      images {stats(trim_err)}")
+    print(
+        f"\nRPS datum residuals, mm: median, max  RPS {stats(rps_res)}   best fit {stats(bf_res)}"
+    )
+    print(f"features stage per part: median wall {statistics.median(wall):.0f} ms, "
+          f"cpu {statistics.median(cpu):.0f} ms; {unmeasured} parts not measured")  # fmt: skip
+    pos = max((np.abs(img_err[k]).max() for k in ("x", "y") if img_err[k]), default=math.inf)
+    dia = float(np.abs(img_err["d"]).max()) if img_err["d"] else math.inf
+    trm = np.abs(trim_err).max() if trim_err else math.inf
+
+    def met(v: float, goal: float) -> str:
+        return f"{'met' if v <= goal else 'not met'} (max {v:.3f})"
+
+    print(
+        f"goal: holes within {GOAL_HOLE_MM} mm: position {met(pos, GOAL_HOLE_MM)}, "
+        f"diameter {met(dia, GOAL_HOLE_MM)}; trim within {GOAL_TRIM_MM} mm: "
+        f"{met(trm, GOAL_TRIM_MM)}"
+    )
+    return 0
