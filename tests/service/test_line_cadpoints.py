@@ -81,7 +81,8 @@ def cadpoints_line(tmp: Path, trees: Path, parts: Path) -> Path:
     config = line_file(tmp, trees, period_s=1.0, queue_size=8)
     text = config.read_text()
     for old, new in [
-        ("[station]\n", f'[station]\nrig_calibration = "{rig_file}"\npath = "{PATH}"\n'),
+        ("[station]\n", f'[station]\nrig_calibration = "{rig_file}"\n'),
+        ('path = "cloud"', f'path = "{PATH}"'),
         ("guided_matching = true", "guided_matching = false"),
         (f'parts_dir = "{ROOT / "configs" / "parts"}"', f'parts_dir = "{parts}"'),
     ]:
