@@ -24,11 +24,6 @@ Per part and path, on the same frames:
   the CAD), and the points measured at its pose;
 - **local at the true pose**: what the local matching errs by itself.
 
-Beside the comparison-point path, its first pass alone (``Reconstructor.sparse``:
-the square windows of its own rows only) and the same pass with every row's
-square windows fitted (``Reconstructor.match(sparse=True)``, where a guided
-pass would start from), on the same frames.
-
 Beside them, each path's pose against the truth: rotation (deg) and the
 displacement of the part's origin (mm).
 
@@ -71,8 +66,6 @@ RADII_MM = (10.0, 4.0)
 AT_FIT = "local at the cloud's pose"
 PATH = "comparison-point path"
 IMAGE = "image pose + local"
-SPARSE = "  of which its sparse pass"
-SPARSE_ALL = "  ... with every row's windows"
 DEPTHS = (0.3, 0.5, 1.0)
 # Ten sites on each part's top (part frame, mm); the first three are dented.
 PANEL_SITES = [
@@ -222,12 +215,6 @@ def bench_part(name, cad, sites, seeds, rig_true, rec) -> dict[str, Any]:  # typ
             # The comparison-point path through the sequence, on the same frames.
             mc, w_c, c_c = _timed(measure_frames, part, rec, frames, on_points)
             lap(PATH, w_c, c_c)
-            # Its first pass, as it is (the square windows of its own rows) and as the
-            # guided cloud's first pass makes it (every row's square windows).
-            _, w, c = _timed(rec.sparse, frames)
-            lap(SPARSE, w, c)
-            _, w, c = _timed(rec.match, frames, sparse=True)
-            lap(SPARSE_ALL, w, c)
             if mc.transform is None or mc.deviations is None:
                 print(f"  seed {seed} ({x:+.0f}, {y:+.0f}, {deg:+.0f}): {PATH}: {mc.reason}")
                 continue

@@ -171,7 +171,7 @@ def _measure_at_points(
 
     # 1. A sparse pass (the windows of every few rows): enough to place the part.
     t = _mark()
-    cloud = rec.sparse(frames)
+    cloud, _ = rec.match(frames, sparse=True)
     _lap(timings, "reconstruct", t)
     first = _pass("first", cloud)
     if len(first.points) == 0:

@@ -236,13 +236,10 @@ def match_pair(
     p: ReconstructParams,
     timings: dict[str, float],
     k: int,
-    rows_apart: int = 1,
 ) -> PairResult | PairState:
     """Steps 1-4 of the module notes for one pair: its square-window fit, ready for the
     warped passes (:func:`.warping.finish_pair`), or its result when there is nothing to
-    refine (no coarse match, nothing above the belt) or the windows were symmetric.
-    ``rows_apart`` > 1: the windows of every ``rows_apart``-th rectified row only
-    (not with symmetric windows)."""
+    refine (no coarse match, nothing above the belt) or the windows were symmetric."""
     t = time.perf_counter()
     left = rectify(img_l, pair.maps_left)
     right = rectify(img_r, pair.maps_right)
@@ -279,8 +276,6 @@ def match_pair(
         left, right, sat_l, sat_r, fg, d_min, d_max, p
     )
     todo = fg[roi] & ~sat_l[roi]
-    if rows_apart > 1 and not p.symmetric:
-        todo[(np.arange(todo.shape[0]) + y0) % rows_apart != 0] = False
     py, px = np.nonzero(todo)
     d_init = d_coarse[roi][py, px]
     report = PairReport(pair.name, coarse=n_coarse, foreground=n_fg, disparity_range=(d_min, d_max))
@@ -374,20 +369,16 @@ def triangulate_state(
     k: int,
     guided: bool,
     keep: npt.NDArray[np.bool_] | None = None,
-    rows_apart: int = 1,
 ) -> PairResult:
     """The pair's result from its warped fit ``(d_ref, score, step)`` (crop
     coordinates), kept with the state it started from (and, ``guided``, the fit);
-    ``keep``: the windows that give points (None: all); ``rows_apart``: the rows
-    between fitted ones (a sparse fit)."""
+    ``keep``: the windows that give points (None: all)."""
     t = time.perf_counter()
     d_ref, score, step = fit
     x_left = (st.px + st.x0).astype(np.float64)
     rows = st.py + st.y0
     d_full = d_ref - np.float32(st.shift)
-    out = triangulate_pair(
-        pair, x_left, rows, d_full, score, step, st.d_init, st.frame, p, keep, rows_apart
-    )
+    out = triangulate_pair(pair, x_left, rows, d_full, score, step, st.d_init, st.frame, p, keep)
     timings[f"triangulate{k}"] = (time.perf_counter() - t) * 1e3
     return replace(out, state=st, guided=fit if guided else None)
 
@@ -403,11 +394,9 @@ def triangulate_pair(
     frame: PairFrame,
     p: ReconstructParams,
     keep: npt.NDArray[np.bool_] | None = None,
-    rows_apart: int = 1,
 ) -> PairResult:
     """Accepted matches of one pair as rig-frame points, and its disparity map
-    (``keep``: the matches that give points; the map is drawn from all of them;
-    ``rows_apart``: the rows between fitted ones, filled in the map)."""
+    (``keep``: the matches that give points; the map is drawn from all of them)."""
     n = len(x_left)
     full = np.full(frame.shape, np.nan, np.float32)
     pts = np.empty((n, 3))
@@ -433,7 +422,7 @@ def triangulate_pair(
         kept_score,
     )
     # The disparity map of the left view, for the other pair's consistency check.
-    fill_gaps(full, p.stride, rows_apart)
+    fill_gaps(full, p.stride)
     pts = pts[:n_out].copy()
     score = kept_score[:n_out].copy()
     rep = replace(frame.report, refined=int(n_good), in_volume=len(pts))
@@ -443,16 +432,10 @@ def triangulate_pair(
 _NO_KEEP = np.zeros(0, np.bool_)
 
 
-def fill_gaps(disparity: npt.NDArray[np.float32], stride: int, rows_apart: int = 1) -> None:
-    """Fill short gaps along rows (the columns not refined), in place, from measured
-    neighbours; and, ``rows_apart`` > 1, along columns (the rows not fitted)."""
+def fill_gaps(disparity: npt.NDArray[np.float32], stride: int) -> None:
+    """Fill short gaps along rows (the columns not refined), in place, from measured neighbours."""
     # A row scan in numba: three box filters per pass over the whole image cost ~50x more.
     kernels.fill_row_gaps(disparity, stride)
-    if rows_apart > 1:
-        # Each pass closes a gap by one pixel from either side.
-        columns = np.ascontiguousarray(disparity.T)
-        kernels.fill_row_gaps(columns, (rows_apart + 1) // 2)
-        disparity[...] = columns.T
 
 
 __all__ = [

@@ -198,23 +198,6 @@ class Reconstructor:
             raise InvalidInput("sparse=True places a guide: it is for the unguided first pass")
         return self._first_pass(frames, prior, guide, keep_frames=True, sparse=sparse)
 
-    def sparse(
-        self, frames: Sequence[npt.NDArray[np.uint8]], *, prior: Prior | None = None
-    ) -> Cloud:
-        """A sparse cloud to place a part with, and nothing to start another pass from.
-
-        The cloud of :meth:`match` with ``sparse``, but the square windows too
-        are fitted on every ``params.sparse_rows``-th rectified row alone
-        (the field the warped windows follow and the disparity map each
-        point is checked against are filled in between): the pairs' matching
-        costs about half. No :class:`Matching` is handed out, since its
-        windows are not those a guided pass starts from.
-        """
-        cloud, _ = self._first_pass(
-            frames, prior, None, keep_frames=False, sparse=True, rows_only=True
-        )
-        return cloud
-
     def guided(self, matching: Matching, guide: Guide) -> tuple[Cloud, Matching]:
         """Match the frames of ``matching`` again, with the windows following ``guide``.
 
@@ -303,11 +286,8 @@ class Reconstructor:
         guide: Guide | None,
         keep_frames: bool,
         sparse: bool = False,
-        rows_only: bool = False,
     ) -> tuple[Cloud, Matching]:
         p = self.params
-        # Square windows fitted on every apart-th row alone (rows_only), or on every row.
-        apart = p.sparse_rows if rows_only else 1
         imgs = _check_frames(self.rig, frames)
         timings: dict[str, float] = {}
         t0 = time.perf_counter()
@@ -340,14 +320,12 @@ class Reconstructor:
             if not (usable[pair.left] and usable[pair.right]):
                 return skipped(self.rig, pair, usable)
             left, right = imgs[pair.left], imgs[pair.right]
-            out = match_pair(
-                pair, self.foreground_disparity[k], left, right, lo, hi, p, timings, k, apart
-            )
+            out = match_pair(pair, self.foreground_disparity[k], left, right, lo, hi, p, timings, k)
             if isinstance(out, PairState):
                 if guide is not None:
                     out = finish_guided(pair, out, p, timings, k, guide)
                 else:
-                    out = finish_pair(pair, out, p, timings, k, sparse=sparse, rows_apart=apart)
+                    out = finish_pair(pair, out, p, timings, k, sparse=sparse)
             timings[f"pair{pair.name}"] = (time.perf_counter() - t1) * 1e3
             return out
 

@@ -70,15 +70,12 @@ def finish_pair(
     k: int,
     shape: npt.NDArray[np.float32] | None = None,
     sparse: bool = False,
-    rows_apart: int = 1,
 ) -> PairResult:
     """The warped passes and the triangulation of one pair, from its square windows
     ``st``; ``shape``: a guide's disparity field over the crop (crop disparities, NaN off
     the part; :func:`.guided.finish_guided`), None for the measured field alone.
     ``sparse``: only the windows of every ``p.sparse_rows``-th row are refitted and
-    give points (the field they follow, and the disparity map, come from all);
-    ``rows_apart``: the rows between the windows ``st`` fitted (:func:`.matching.match_pair`),
-    filled in the field and the map."""
+    give points (the field they follow, and the disparity map, come from all)."""
     t = time.perf_counter()
     keep = (st.py + st.y0) % p.sparse_rows == 0 if sparse else None
     d_ref, score, step = st.d_square, st.score, st.step
@@ -97,11 +94,10 @@ def finish_pair(
             p,
             shape,
             keep,
-            rows_apart,
         )
     timings[f"warp{k}"] = (time.perf_counter() - t) * 1e3
     fit = (d_ref, score, step)
-    return triangulate_state(pair, st, fit, p, timings, k, shape is not None, keep, rows_apart)
+    return triangulate_state(pair, st, fit, p, timings, k, shape is not None, keep)
 
 
 def warped_passes(
@@ -118,7 +114,6 @@ def warped_passes(
     p: ReconstructParams,
     guide: npt.NDArray[np.float32] | None = None,
     only: npt.NDArray[np.bool_] | None = None,
-    rows_apart: int = 1,
 ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], npt.NDArray[np.float32]]:
     """Refine again, with windows warped by the disparity field found so far (see the
     module notes).
@@ -133,8 +128,7 @@ def warped_passes(
 
     Inputs are the crops and pixel lists of :class:`.matching.PairState`
     (disparities in crop coordinates); ``only``: the windows that may be refitted
-    (None: all); ``rows_apart``: the rows between fitted ones (a sparse fit),
-    filled in the field the windows follow. Returns new ``d_ref``, ``score``, ``step``.
+    (None: all). Returns new ``d_ref``, ``score``, ``step``.
     """
     ks = (p.warp_smooth, p.warp_smooth)
     guided = shade = bent = None
@@ -149,7 +143,7 @@ def warped_passes(
         fit = ok if only is None else ok & only
         field_ = np.full(left_n.shape, np.nan, np.float32)
         field_[py[ok], px[ok]] = d_ref[ok]
-        fill_gaps(field_, p.stride, rows_apart)
+        fill_gaps(field_, p.stride)
         known = np.isfinite(field_)
         mask = known.astype(np.float32)
         v = np.where(known, field_, 0.0).astype(np.float32)

@@ -382,30 +382,6 @@ def test_a_sparse_first_pass_places_the_guide_and_matches_the_same(
         reconstructor.match(frames, guide=guide, sparse=True)
 
 
-def test_a_sparse_cloud_of_its_own_rows_alone_is_as_good(
-    reconstructor: Reconstructor, panel_scene
-) -> None:
-    cad, tree, T, frames, plain = panel_scene
-    own = reconstructor.sparse(frames)
-    every, _ = reconstructor.match(frames, sparse=True)
-    # The same rows, about as many points (the warped windows follow a field filled
-    # between the rows), as far over the part, as close to the surface.
-    rows = reconstructor.params.sparse_rows
-    assert 0.85 * len(every) < len(own) < 1.15 * len(every)
-    for k, pair in enumerate(reconstructor.pairs):
-        mine = own.points[own.pair == k]
-        _, y, _ = pair.project(mine)
-        assert np.median(np.abs(y - rows * np.round(y / rows))) < 0.1
-        theirs = every.points[every.pair == k]
-        np.testing.assert_allclose(
-            np.ptp(mine[:, :2], axis=0), np.ptp(theirs[:, :2], axis=0), atol=3.0
-        )
-    r, _ = _surface_errors(tree, T, own)
-    r_every, _ = _surface_errors(tree, T, every)
-    assert len(r) > 0.95 * len(own) and _rms(r) < 1.1 * _rms(r_every)
-    assert own.report.flags == every.report.flags
-
-
 def test_field_slopes_against_numpy() -> None:
     rng = np.random.default_rng(3)
     field_ = rng.normal(size=(40, 50)).astype(np.float32)
