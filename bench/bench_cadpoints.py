@@ -24,8 +24,10 @@ Per part and path, on the same frames:
   the CAD), and the points measured at its pose;
 - **local at the true pose**: what the local matching errs by itself.
 
-Beside them, each path's pose against the truth: rotation (deg) and the
-displacement of the part's origin (mm).
+The comparison-point path's CPU per stage of the sequence (``Measurement.cpu_ms``:
+``reconstruct`` its sparse pass, ``align`` the global search and fit,
+``points`` the local photogrammetry). Beside them, each path's pose against the
+truth: rotation (deg) and the displacement of the part's origin (mm).
 
 The truth at a comparison point is the same robust average of signed
 distances over the support, taken over a dense sample of the dented surface
@@ -179,6 +181,7 @@ def bench_part(name, cad, sites, seeds, rig_true, rec) -> dict[str, Any]:  # typ
     times: dict[str, list[float]] = {}
     cpu: dict[str, list[float]] = {}
     errs: dict[tuple[str, float], list[np.ndarray]] = {}
+    stages: dict[str, list[float]] = {}  # the comparison-point path's CPU ms per stage
 
     def lap(key: str, wall: float, c: float) -> None:
         times.setdefault(key, []).append(wall)
@@ -215,6 +218,8 @@ def bench_part(name, cad, sites, seeds, rig_true, rec) -> dict[str, Any]:  # typ
             # The comparison-point path through the sequence, on the same frames.
             mc, w_c, c_c = _timed(measure_frames, part, rec, frames, on_points)
             lap(PATH, w_c, c_c)
+            for stage, ms in mc.cpu_ms.items():
+                stages.setdefault(stage, []).append(ms)
             if mc.transform is None or mc.deviations is None:
                 print(f"  seed {seed} ({x:+.0f}, {y:+.0f}, {deg:+.0f}): {PATH}: {mc.reason}")
                 continue
@@ -244,7 +249,7 @@ def bench_part(name, cad, sites, seeds, rig_true, rec) -> dict[str, Any]:  # typ
                   f"{cpu[PATH][-1]:5.0f}; worst error at 10 mm: cloud {worst['cloud']:.3f}, "
                   f"local {worst[AT_FIT]:.3f}, path {worst[PATH]:.3f} mm",
                   flush=True)  # fmt: skip
-    return {"times": times, "cpu": cpu, "errors": errs, "poses": poses}
+    return {"times": times, "cpu": cpu, "errors": errs, "poses": poses, "stages": stages}
 
 
 def report(name: str, out: dict[str, Any]) -> bool:
@@ -257,6 +262,9 @@ def report(name: str, out: dict[str, Any]) -> bool:
         print(f"  {key:32s} {statistics.median(times[key]):9.1f} {_p(times[key], 90):9.1f} "
               f"{statistics.median(cpu[key]):8.1f} {_p(cpu[key], 90):8.1f} "
               f"{base / statistics.median(cpu[key]):19.1f}")  # fmt: skip
+    print(f"{name}: the comparison-point path per stage, CPU ms p50 (p90): " + ", ".join(
+        f"{k} {statistics.median(v):.1f} ({_p(v, 90):.1f})" for k, v in out["stages"].items()
+    ))  # fmt: skip
     print(f"{name}: comparison-point errors against the truth")
     ok = True
     for r in RADII_MM:

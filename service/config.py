@@ -490,6 +490,15 @@ class StationSection(_Strict):
             "the demo panel the part's corners come out 0.07 mm off (median) instead of 0.15."
         ),
     )
+    path: Literal["cloud", "comparison_points"] = Field(
+        default="cloud",
+        description=(
+            "What the station measures: the whole reconstructed cloud (`cloud`), or each "
+            "comparison point by local photogrammetry around it alone (`comparison_points`: "
+            "faster, but the surface between the points is not checked, so a part whose "
+            "[surface] fails parts needs `cloud`)."
+        ),
+    )
     parts: list[Name] = Field(default_factory=lambda: ["demo-panel"], min_length=1)
     queue_size: int = Field(
         default=4, ge=1, le=1000, description="Frame sets waiting for the worker."
@@ -1280,9 +1289,36 @@ def load_line_config(
         raise ConfigError(f"{p}: 'base_dir' is not a configuration key")
     data["base_dir"] = str(p.parent)
     try:
-        return LineConfig.model_validate(data)
+        cfg = LineConfig.model_validate(data)
     except ValidationError as exc:
         raise ConfigError(_format_validation(p, exc)) from exc
+    if cfg.station.path != "cloud":
+        for spec_path in cfg.part_spec_paths():
+            check_path(load_part_spec(spec_path), cfg.station.path, where=f"{p}: ")
+    return cfg
+
+
+def path_refusal(spec: PartSpecBase, path: str) -> str | None:
+    """Why a station measuring on ``path`` cannot measure ``spec`` (None: it can)."""
+    if path == "comparison_points" and spec.surface.fails_part:
+        return (
+            f"part {spec.name!r}: station path 'comparison_points' does not check the surface "
+            "between the comparison points, so its [surface] cannot fail parts: set the "
+            "station's path to 'cloud', or the part's [surface] fails_part to false"
+        )
+    return None
+
+
+def check_path(spec: PartSpecBase, path: str, *, where: str = "") -> None:
+    """Refuse a part spec that a station measuring on ``path`` cannot measure.
+
+    Raises
+    ------
+    ConfigError
+    """
+    refusal = path_refusal(spec, path)
+    if refusal is not None:
+        raise ConfigError(where + refusal)
 
 
 def line_config_from_env(path: str | Path, **kwargs: Any) -> LineConfig:

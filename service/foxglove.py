@@ -225,7 +225,7 @@ def markers(result: InspectionResult, points: Sequence[ComparisonPoint], t: int)
         _sphere(entity, p.position, 2 * p.radius_mm, _verdict_colour(verdict))
         _label(entity, np.add(p.position, LABEL_OFFSET_MM * np.asarray(p.normal)), label)
         update.entities.append(entity)
-    for i, d in enumerate(result.defects):
+    for i, d in enumerate(result.defects or ()):
         entity = _entity(f"defect/{i}", t, {"kind": d.kind, "area_mm2": f"{d.area_mm2:.1f}"})
         size = 2 * float(np.sqrt(d.area_mm2 / np.pi))
         _sphere(entity, d.center_mm, size, DENT_COLOUR if d.kind == "dent" else BUMP_COLOUR)
@@ -278,7 +278,7 @@ def result_log(result: InspectionResult, t: int) -> Log:
     for c in bad:
         dev = "not measurable" if c.deviation_mm is None else f"{c.deviation_mm:+.3f} mm"
         parts.append(f"{c.name} {dev} [{c.lower_mm:+g}, {c.upper_mm:+g}]")
-    for d in result.defects:
+    for d in result.defects or ():
         parts.append(f"{d.kind} {d.peak_mm:+.2f} mm over {d.area_mm2:.0f} mm2")
     if result.rms_mm is not None:
         parts.append(f"fit RMS {result.rms_mm:.3f} mm")

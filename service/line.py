@@ -275,11 +275,12 @@ class Station:
         }
 
     def rig_metadata(self) -> dict[str, str]:
-        """The stages (and whether they match a second time, guided by the CAD), the
-        calibration id and the calibrated rig itself (TOML)."""
+        """The stages (whether they match a second time, guided by the CAD, and which path
+        they measure), the calibration id and the calibrated rig itself (TOML)."""
         meta = {
             "stages": self.stages.name,
             "guided": "true" if self.stages.guided else "false",
+            "path": self.stages.path,
             "calibration_id": self.stages.calibration_id,
         }
         if self.stages.calibration_toml is not None:
@@ -358,6 +359,7 @@ def stages_for(cfg: LineConfig) -> Stages:
     return flash_stages(
         cfg.rig_calibration_path(),
         guided=cfg.station.guided_matching,
+        path=cfg.station.path,
         truth=truth,
         render_options=RenderOptions(flash_us=cfg.projector.flash_us),
     )

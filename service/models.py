@@ -27,7 +27,7 @@ from inspection.spc import ChartKind
 from .config import ComparisonPointSpec, Name, PartSpecBase
 from .names import ID_PATTERN, ID_SEPARATOR, NAME_MAX_LEN
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 """Version of :class:`InspectionResult`'s JSON."""
 
 MAX_ID_LEN = 2 * NAME_MAX_LEN + 2 * 19 + 3
@@ -184,9 +184,16 @@ class InspectionResult(_Model):
         ge=0,
         description="The best other pose's score over the chosen one's (1: fits as well).",
     )
+    path: Literal["cloud", "comparison_points"] | None = Field(
+        default=None,
+        description="What measured the part: the whole reconstructed cloud (cloud) or local "
+        "photogrammetry at each comparison point alone (comparison_points); null: not measured.",
+    )
     comparison: list[PointResult] = Field(default_factory=list)
-    defects: list[SurfaceDefectResult] = Field(
-        default_factory=list, description="Surface defects, largest first."
+    defects: list[SurfaceDefectResult] | None = Field(
+        default=None,
+        description="Surface defects, largest first; null: the surface was not checked (the "
+        "comparison-point path, or no measurement), which is not the same as none found.",
     )
     field: FieldStats | None = None
     timings_ms: dict[str, float] = Field(default_factory=dict)

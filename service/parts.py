@@ -15,7 +15,8 @@ Errors::
     PartError
      ├── UnknownPart          no part of that name
      ├── PartNotReady         its tree is still building, or the build failed
-     └── PartConflict         creating a part that exists / deleting a configured one
+     ├── PartConflict         creating a part that exists / deleting a configured one
+     └── PathConflict         a part the station's measuring path cannot judge as its spec asks
 """
 
 from __future__ import annotations
@@ -52,6 +53,7 @@ from .config import (
     PartSpecBase,
     canonical_hash,
     load_part_spec,
+    path_refusal,
 )
 from .models import Job, JobState, PartPublic, PartState
 from .names import NAME_RULE, is_valid_name
@@ -88,6 +90,11 @@ class PointOffSurface(PartError):
 
 class PartConflict(PartError):
     """The operation contradicts the registry's state."""
+
+
+class PathConflict(PartError):
+    """The part's spec asks for a check the station's measuring path does not make (a
+    ``[surface]`` that fails parts, on the comparison-point path)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -445,12 +452,21 @@ class PartRegistry:
     alignment : bool
         Compute each part's global-alignment model (needed to inspect clouds
         in the rig frame; a registry that only lists parts can skip it).
+    path : {"cloud", "comparison_points"}
+        The station's measuring path: a part it cannot judge as its spec asks
+        is refused (:class:`PathConflict`).
     """
 
     def __init__(
-        self, trees_dir: str | Path, uploads_dir: str | Path, *, alignment: bool = True
+        self,
+        trees_dir: str | Path,
+        uploads_dir: str | Path,
+        *,
+        alignment: bool = True,
+        path: str = "cloud",
     ) -> None:
         self.alignment = alignment
+        self.path = path
         self.trees_dir = Path(trees_dir)
         self.uploads_dir = Path(uploads_dir)
         self._lock = threading.RLock()
@@ -470,7 +486,9 @@ class PartRegistry:
 
         Nothing is built yet: call :meth:`preload` (blocking) or :meth:`start`.
         """
-        reg = cls(cfg.storage.trees_path(), Path(cfg.storage.data_dir) / "parts")
+        reg = cls(
+            cfg.storage.trees_path(), Path(cfg.storage.data_dir) / "parts", path=cfg.station.path
+        )
         for path in cfg.part_spec_paths():
             reg.add(load_part_spec(path), path.parent, configured=True)
         reg.add_uploaded()
@@ -489,13 +507,27 @@ class PartRegistry:
     # ------------------------------------------------------------------ adding
 
     def add(self, spec: PartSpec, base_dir: Path, *, configured: bool) -> None:
-        """Register a spec (not yet loaded)."""
+        """Register a spec (not yet loaded).
+
+        Raises
+        ------
+        PartConflict
+            A part of that name is registered.
+        PathConflict
+            The station's path cannot judge the part as its spec asks.
+        """
+        self._check_path(spec)
         with self._lock:
             if spec.name in self._entries:
                 raise PartConflict(f"part {spec.name!r} is defined twice")
             self._entries[spec.name] = _Entry(
                 spec=spec, base_dir=Path(base_dir), configured=configured
             )
+
+    def _check_path(self, spec: PartSpecBase) -> None:
+        refusal = path_refusal(spec, self.path)
+        if refusal is not None:
+            raise PathConflict(refusal)
 
     def add_uploaded(self) -> None:
         """Register the parts created through the API in an earlier run.
@@ -521,7 +553,10 @@ class PartRegistry:
                 if spec.name in self._entries:
                     log.warning("uploaded part %s shadowed by a configured one", spec.name)
                     continue
-            self.add(spec, folder, configured=False)
+            try:
+                self.add(spec, folder, configured=False)
+            except PathConflict as exc:  # kept on disk for a station measuring the cloud
+                log.error("ignoring uploaded part %s: %s", folder, exc)
 
     def _upload_dir(self, name: str) -> Path:
         """The folder of uploaded part ``name``, checked to be a direct child of the uploads root.
@@ -564,7 +599,10 @@ class PartRegistry:
             The upload is not a usable mesh, or its file name has no CAD suffix.
         PointOffSurface
             A comparison point farther than ``max_point_offset_mm`` from the surface.
+        PathConflict
+            The station's path cannot judge the part as its spec asks.
         """
+        self._check_path(spec)
         suffix = Path(filename).suffix.lower()
         if suffix not in UPLOAD_SUFFIXES:
             raise CadLoadError(

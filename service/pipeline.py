@@ -28,7 +28,7 @@ import numpy as np
 import trimesh
 
 from inspection.errors import InspectionError
-from inspection.measure import Measurement
+from inspection.measure import Measurement, MeasurePath
 
 from .models import (
     InspectionResult,
@@ -69,6 +69,8 @@ class Stages:
         ``K``, ``D``, ``T_camera_rig``: see :class:`~service.recorder.Recorder`).
     guided : bool
         Whether ``measure`` matches the frames a second time, guided by the CAD.
+    path : {"cloud", "comparison_points"}
+        What ``measure`` measures (``inspection.MeasureParams.path``).
     calibration_toml : str or None
         The calibrated rig itself, for the recordings.
     remake : callable(threads) -> Stages, or None
@@ -88,6 +90,7 @@ class Stages:
     calibrations: Callable[[], list[dict[str, Any]]] = list
     guided: bool = True
     calibration_toml: str | None = None
+    path: MeasurePath = "cloud"
     remake: Callable[[int], Stages] | None = None
     sensor: str = "flash"
 
@@ -110,17 +113,20 @@ class FlashRender:
 @dataclass(frozen=True)
 class FlashRemake:
     """A :attr:`Stages.remake` for :func:`flash_stages`: the calibrated rig as TOML text
-    and the matching mode, which is all a process elsewhere needs to measure the same way."""
+    the matching mode and the path, which is all a process elsewhere needs to measure the
+    same way."""
 
     calibration_toml: str
     guided: bool
+    path: MeasurePath = "cloud"
 
     def __call__(self, threads: int) -> Stages:
         from inspection.rig import Rig
 
         return flash_stages(
-            Rig.from_toml(self.calibration_toml), guided=self.guided, threads=threads
-        )
+            Rig.from_toml(self.calibration_toml), guided=self.guided, threads=threads,
+            path=self.path,
+        )  # fmt: skip
 
 
 def flash_stages(
@@ -130,6 +136,7 @@ def flash_stages(
     truth: Any = None,
     render_options: Any = None,
     threads: int | None = None,
+    path: MeasurePath = "cloud",
 ) -> Stages:
     """The line's stages: ``inspection.simulate`` renders with the rig as built;
     ``inspection.measure_frames`` with the calibrated rig measures.
@@ -149,6 +156,8 @@ def flash_stages(
     threads : int, optional
         Stereo pairs matched at once (``ReconstructParams.threads``; default
         its own). The pairs are matched the same whatever the count.
+    path : {"cloud", "comparison_points"}
+        What is measured: the whole cloud, or the comparison points alone.
     """
     from inspection.measure import measure_frames
     from inspection.reconstruct import Reconstructor, ReconstructParams
@@ -164,7 +173,7 @@ def flash_stages(
     reconstructor = Reconstructor.build(calibrated, params)
 
     def measure(part: LoadedPart, frames: list[np.ndarray]) -> Measurement:
-        params = dataclasses.replace(part.params, guided=guided)
+        params = dataclasses.replace(part.params, guided=guided, path=path)
         return measure_frames(part.model, reconstructor, frames, params)
 
     def calibrations() -> list[dict[str, Any]]:
@@ -193,7 +202,8 @@ def flash_stages(
         calibrations=calibrations,
         guided=guided,
         calibration_toml=calibrated.to_toml(),
-        remake=FlashRemake(calibrated.to_toml(), guided),
+        path=path,
+        remake=FlashRemake(calibrated.to_toml(), guided, path),
     )
 
 

@@ -25,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from inspection.measure import MeasurePath
+
 from .config import PartSpec
 from .models import InspectionResult
 from .parts import LoadedPart, load_part, load_part_cad
@@ -129,14 +131,19 @@ def recorded_stages(metadata: dict[str, dict[str, str]]) -> Stages:
         raise ReplayError(f"recorded with the {rig['stages']!r} stages, which no longer exist")
     # Recordings from before the guided pass existed say nothing: they were one pass.
     guided = rig.get("guided", "false") == "true"
+    # ... and from before the comparison-point path existed, on the cloud.
+    paths: dict[str, MeasurePath] = {"cloud": "cloud", "comparison_points": "comparison_points"}
+    path = paths.get(rig.get("path", "cloud"))
+    if path is None:
+        raise ReplayError(f"recorded on path {rig['path']!r}, which does not exist")
     toml = rig.get("calibration_toml")
     if not toml:
-        return flash_stages(None, guided=guided)
+        return flash_stages(None, guided=guided, path=path)
     with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "rig.toml"
-        path.write_text(toml)
+        file = Path(tmp) / "rig.toml"
+        file.write_text(toml)
         try:
-            stages = flash_stages(path, guided=guided)
+            stages = flash_stages(file, guided=guided, path=path)
         except Exception as exc:
             raise ReplayError(f"the recorded rig calibration does not load: {exc}") from exc
     want = rig.get("calibration_id")
@@ -176,6 +183,8 @@ def compare(
     t_diff = dev_diff = 0.0
     if new.status != old.status:
         diffs.append(f"status {new.status.value} vs logged {old.status.value}")
+    if new.path != old.path:
+        diffs.append(f"measured on path {new.path} vs logged {old.path}")
     if (new.transform is None) != (old.transform is None):
         diffs.append("transform present in only one of them")
     elif new.transform is not None and old.transform is not None:

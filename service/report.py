@@ -133,8 +133,11 @@ def report_html(result: InspectionResult, ctx: ReportContext) -> str:
         f'<tr><td>{i}</td><td>{_e(f.kind)}</td><td class="num">{f.peak_mm:+.3f}</td>'
         f'<td class="num">{f.area_mm2:.0f}</td><td>{", ".join(f"{v:.1f}" for v in f.center_mm)}'
         f"</td><td>{_e(f.nearest_point)}</td></tr>"
-        for i, f in enumerate(r.defects, start=1)
+        for i, f in enumerate(r.defects or (), start=1)
     ]
+    no_defects = (
+        "none" if r.defects is not None else f"not checked ({_e(r.path or 'not measured')})"
+    )
     fit = [
         ("RMS", f"{_num(r.rms_mm, 4)} mm"),
         ("inliers", None if r.inlier_fraction is None else f"{100 * r.inlier_fraction:.1f} %"),
@@ -147,6 +150,7 @@ def report_html(result: InspectionResult, ctx: ReportContext) -> str:
         ("line / station", f"{r.line} / {r.station}"), ("seq", r.seq), ("id", r.id),
         ("part spec version", r.spec_version), ("CAD hash", r.cad_hash), ("tree hash", r.tree_hash),
         ("calibration", r.calibration_id), ("software", r.software_version),
+        ("measured on", r.path),
         ("recording", ctx.recording),
     ]  # fmt: skip
     trends = []
@@ -192,7 +196,8 @@ def report_html(result: InspectionResult, ctx: ReportContext) -> str:
 <h2>Surface defects</h2>
 <table><thead><tr><th>#</th><th>kind</th><th>peak mm</th><th>area mm²</th><th>centre mm (CAD)</th>
 <th>nearest point</th></tr></thead>
-<tbody>{"".join(defects) or '<tr><td colspan="6" class="muted">none</td></tr>'}</tbody></table>
+<tbody>{"".join(defects) or f'<tr><td colspan="6" class="muted">{no_defects}</td></tr>'}</tbody>
+</table>
 <h2>Fit</h2>{dl(fit)}
 <h2>Traceability</h2>{dl(trace)}
 <h2>Trend context</h2>

@@ -142,6 +142,7 @@ def outcome(m: Measurement, trigger: Trigger) -> Outcome:
             comparison=point_results(devs), defects=defect_results(devs), field=field_stats(devs)
         )
         distances = np.where(devs.inliers, devs.distances, np.nan)
+    measured["path"] = m.path
     result = InspectionResult(
         **dataclasses.asdict(trigger),
         status=status,
@@ -173,7 +174,10 @@ def point_results(devs: Deviations) -> list[PointResult]:
     ]
 
 
-def defect_results(devs: Deviations) -> list[SurfaceDefectResult]:
+def defect_results(devs: Deviations) -> list[SurfaceDefectResult] | None:
+    """The surface defects found; None where the surface was not checked."""
+    if devs.defects is None:
+        return None
     return [
         SurfaceDefectResult(
             kind=f.kind,  # type: ignore[arg-type]
@@ -184,7 +188,7 @@ def defect_results(devs: Deviations) -> list[SurfaceDefectResult]:
             nearest_point=f.nearest_point,
             points=f.points,
         )
-        for f in devs.defects or ()  # None: the surface was not checked
+        for f in devs.defects
     ]
 
 

@@ -92,7 +92,7 @@ def feature_values(results: Sequence[InspectionResult], feature: str) -> np.ndar
         if feature == FIT_RMS:
             v = r.rms_mm
         elif feature == DEFECTS:
-            v = float(len(r.defects))
+            v = None if r.defects is None else float(len(r.defects))
         else:
             c = next((c for c in r.comparison if c.name == feature), None)
             v = None if c is None or c.verdict == Verdict.NOT_MEASURABLE else c.deviation_mm

@@ -12,7 +12,7 @@ from __future__ import annotations
 from ..registration import RegisterParams
 from .hologram import measure_hologram
 from .judging import fit_quality, pose_sigma_mm
-from .params import LINE_REGISTER, Frame, MeasureParams
+from .params import LINE_REGISTER, Frame, MeasureParams, MeasurePath
 from .part import PartModel
 from .result import FitQuality, Measurement, Pass
 from .sequence import (
@@ -30,6 +30,7 @@ __all__ = [
     "MIN_POINTS",
     "FitQuality",
     "Frame",
+    "MeasurePath",
     "Measurement",
     "MeasureParams",
     "Pass",

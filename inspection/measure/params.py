@@ -16,6 +16,9 @@ Frame = Literal["rig", "cad", "data"]
 belt), ``data`` (any frame, anywhere), ``cad`` (already near the CAD frame:
 only the fine registration runs)."""
 
+MeasurePath = Literal["cloud", "comparison_points"]
+"""What is measured: the whole reconstructed cloud, or the comparison points alone."""
+
 
 LINE_REGISTER = RegisterParams(
     max_iterations=50, max_distance_mm=10.0, view_direction=(0.0, 0.0, 1.0)
@@ -70,7 +73,7 @@ class MeasureParams:
         How the comparison-point path matches each point's windows.
     """
 
-    path: Literal["cloud", "comparison_points"] = "cloud"
+    path: MeasurePath = "cloud"
     guided: bool = True
     use_weights: bool = True
     max_points: int = 150_000

@@ -13,6 +13,7 @@ Codes are stable (clients switch on them); messages are for people.
     PartConflict           -> 409        part_conflict
     CadLoadError           -> 422        invalid_cad
     PointOffSurface        -> 422        point_off_surface (with each point's distance)
+    PathConflict           -> 422        path_conflict (a check the station's path does not make)
     unknown query param    -> 422        unknown_parameter
     StoreError             -> 503        store_unavailable (the database cannot be reached)
 """
@@ -29,7 +30,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from inspection.errors import CadLoadError, InvalidInput
 
 from ..models import ErrorBody, ErrorDetail
-from ..parts import PartConflict, PartNotReady, PointOffSurface, UnknownPart
+from ..parts import PartConflict, PartNotReady, PathConflict, PointOffSurface, UnknownPart
 from ..store import StoreError
 
 log = logging.getLogger(__name__)
@@ -107,6 +108,10 @@ def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(PointOffSurface)
     async def _off_surface(request: Request, exc: PointOffSurface) -> JSONResponse:
         return error_response(422, "point_off_surface", str(exc))
+
+    @app.exception_handler(PathConflict)
+    async def _path_conflict(request: Request, exc: PathConflict) -> JSONResponse:
+        return error_response(422, "path_conflict", str(exc))
 
     @app.exception_handler(InvalidInput)
     async def _invalid(request: Request, exc: InvalidInput) -> JSONResponse:

@@ -52,7 +52,7 @@ def results_csv(results: Iterable[InspectionResult]) -> str:
         head = [
             r.id, r.line, r.station, r.part, r.serial, r.seq, r.triggered_ns,
             _utc(r.triggered_ns), r.status.value, r.reason, r.rms_mm, r.inlier_fraction,
-            len(r.defects),
+            None if r.defects is None else len(r.defects),
         ]  # fmt: skip
         tail = [r.spec_version, r.software_version]
         if not r.comparison:

@@ -127,3 +127,18 @@ def test_a_defect_free_baseline_gives_no_count_limits_and_says_why(store):
     ch = part_chart(store, "p", "defects", SpcSettings(baseline_parts=20))
     assert ch.limits is None and "none in the 20 baseline parts" in ch.limits_note
     assert [p.value for p in ch.points][22] == 1.0 and all(not p.rules for p in ch.points)
+
+
+def test_a_part_whose_surface_was_not_checked_has_no_defect_count(store):
+    from service.spc import feature_values
+
+    checked = [res(i, 0.0, dents=i % 2) for i in range(4)]
+    unchecked = [r.model_copy(update={"defects": None, "path": "comparison_points"})
+                 for r in (res(i, 0.0) for i in range(4, 8))]  # fmt: skip
+    values = feature_values([*checked, *unchecked], "defects")
+    assert values[:4].tolist() == [0.0, 1.0, 0.0, 1.0]
+    assert np.isnan(values[4:]).all()  # not measured, not zero
+    for r in [*checked, *unchecked]:
+        store.put(r)
+    chart = part_chart(store, "p", "defects", SpcSettings())
+    assert len(chart.points) == 4

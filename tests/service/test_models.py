@@ -27,8 +27,10 @@ DESIGN_FIELDS = {
     # The fit's diagnostics ("One measuring sequence"):
     "converged", "stop_reason", "iterations", "observability", "weak_directions", "ambiguous",
     "runner_up_score",
-    # The whole surface ("The verdict covers the whole surface"):
+    # The whole surface ("The verdict covers the whole surface"), null where not checked:
     "defects",
+    # Which path measured the part (cloud or comparison points):
+    "path",
 }  # fmt: skip
 
 
@@ -64,6 +66,16 @@ def result(**kw) -> InspectionResult:
 
 def test_fields_are_exactly_those_of_the_design():
     assert set(InspectionResult.model_fields) == DESIGN_FIELDS
+
+
+def test_a_surface_not_checked_is_null_not_none_found():
+    unchecked = result(path="comparison_points")
+    assert json.loads(unchecked.model_dump_json())["defects"] is None
+    checked = result(path="cloud", defects=[])
+    assert json.loads(checked.model_dump_json())["defects"] == []
+    assert InspectionResult.model_validate_json(unchecked.model_dump_json()) == unchecked
+    with pytest.raises(ValueError, match="path"):
+        result(path="holes")
 
 
 def test_json_round_trip_is_identical():

@@ -14,6 +14,7 @@ from service.parts import (
     PartConflict,
     PartNotReady,
     PartRegistry,
+    PathConflict,
     UnknownPart,
     load_part_cad,
     panel_spec,
@@ -222,3 +223,18 @@ def test_the_line_and_the_benchmarks_measure_with_the_same_parameters():
     for path in cfg.part_spec_paths():
         got = measure_params(load_part_spec(path), guided=cfg.station.guided_matching)
         assert got == bench_endtoend.params(), path
+
+
+def test_a_station_on_the_comparison_points_refuses_a_surface_that_fails_parts(tmp_path):
+    failing = spec("failing")  # a [surface] fails parts by default
+    lenient = PartSpec(name="lenient", cad="generated:panel", panel=SMALL,
+                       surface={"fails_part": False})  # fmt: skip
+    with PartRegistry(tmp_path / "t", tmp_path / "u", path="comparison_points") as reg:
+        with pytest.raises(PathConflict, match="fails_part"):
+            reg.add(failing, tmp_path, configured=True)
+        reg.add(lenient, tmp_path, configured=True)
+        with pytest.raises(PathConflict, match="comparison_points"):
+            reg.create(failing, b"solid x\nendsolid x\n", "x.stl")
+        assert not (tmp_path / "u" / "failing").exists()  # refused before anything is written
+    with PartRegistry(tmp_path / "t", tmp_path / "u") as reg:
+        reg.add(failing, tmp_path, configured=True)  # the cloud path checks the surface

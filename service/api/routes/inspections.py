@@ -326,7 +326,7 @@ def colormap_png(
         limit_mm = max(tol) if tol else 1.0
     markers = [
         Marker(tuple(f.center_mm), f.area_mm2, f"{f.kind} {f.peak_mm:+.2f} mm")  # type: ignore[arg-type]
-        for f in result.defects
+        for f in result.defects or ()
     ]
     marks: list[PointMark] = []
     if annotated:
