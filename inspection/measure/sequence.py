@@ -480,7 +480,7 @@ def _judge(
     elif frame == "rig" and p.register.view_direction is not None:
         directions = (T[:3, :3] @ np.asarray(p.register.view_direction, dtype=np.float64))[None]
     devs = deviations(
-        part.tree,
+        part.exact,
         apply(T, points),
         part.comparison_points,
         min_support=p.min_support,
