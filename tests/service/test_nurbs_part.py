@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import io
 import json
+import pickle
 
 import numpy as np
 import pytest
@@ -22,6 +23,7 @@ from inspection.deviations import ComparisonPoint
 from inspection.nurbs import tessellate_faces, write_step_surfaces
 from service.api import ResultHub, create_app
 from service.config import load_line_config
+from service.dask_executor import PartBundle
 from service.models import InspectionResult
 from service.parts import PartRegistry, tree_cache_path
 from service.store import DeviationArchive, ResultStore
@@ -167,3 +169,15 @@ def test_a_step_whose_faces_cannot_be_sampled_is_refused(client, tmp_path):
     assert err["code"] == "invalid_cad" and "bad.step" in err["message"], err
     assert "creating" not in err["message"]  # the client's name, not the staging folder
     assert client.get("/v1/parts/bad").status_code == 404
+
+
+def test_a_nurbs_part_travels_to_another_host_as_nurbs(line, tmp_path):
+    _, reg, _ = line
+    part = reg.get(PART)
+    bundle = pickle.loads(pickle.dumps(PartBundle.of(part)))  # as Dask ships it
+    there = bundle.load(tmp_path / "trees")
+    assert there.cad_kind == "nurbs" and there.cad.hash == part.cad.hash
+    x = part.cad.vertices[:500] + [0.0, 0.0, 0.3]
+    np.testing.assert_array_equal(
+        there.model.exact.query(x).distances, part.model.exact.query(x).distances
+    )
