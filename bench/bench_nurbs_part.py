@@ -17,7 +17,15 @@ wall and CPU time (median of 3).
 The tessellation's chords lie inside the convex side: a fit to them moves
 the cloud towards them by their mean gap, a bias that every deviation
 measured to the exact faces from that pose inherits. The figures say how
-large it is for each sampling, and what the exact fit costs.
+large it is for each sampling, and what the exact fit costs (its CPU time
+against the tessellation fit's, the peer, in the same run).
+
+Part 2, the measuring sequence. Frames of the panel rendered from a 1 mm
+sampling at 640 x 512 px, measured by ``measure_frames`` with the part built
+on 2 mm cells (the service's default sampling) as a NURBS part and as a mesh
+part (the same tree): the deviations stage's wall time, the whole call's
+CPU time (medians of 3), and how far the mesh part's deviations lie from
+the NURBS part's (the chords' gap).
 
 Run: ``python -m bench nurbs_part`` (``make bench BENCH=nurbs_part``).
 """
@@ -103,12 +111,13 @@ def main() -> int:
     )
     print(f"{'cells':>6s} {'fit to':>16s} {'triangles':>9s} {'dt um':>7s} {'drot udeg':>9s} "
           f"{'err max um':>10s} {'err rms um':>10s} {'bias um':>8s} {'wall ms':>8s} "
-          f"{'CPU ms':>7s} {'iters':>5s}")  # fmt: skip
+          f"{'CPU ms':>7s} {'CPU x':>6s} {'iters':>5s}")  # fmt: skip
     for cell in CELLS_MM:
         model = tessellate_faces(faces, cell_mm=cell)
         tree = GridTree.build(model.cad)
         exact = ExactTree(tree, model)
         planes = CadFaces.of(tree)
+        peer_cpu = None
         for label, query, kw in (("tessellation", tree, {"faces": planes}),
                                  ("exact faces", exact, {})):  # fmt: skip
             runs = []
@@ -117,6 +126,8 @@ def main() -> int:
                 fit = register(query, pts, rp, init=start, **kw)
                 runs.append((time.perf_counter() - w0, time.process_time() - c0, fit))
             fit = runs[0][2]
+            cpu = statistics.median(r[1] for r in runs)
+            peer_cpu = cpu if peer_cpu is None else peer_cpu
             dT = fit.transform @ T_data_cad
             rot = np.degrees(np.arccos(np.clip((np.trace(dT[:3, :3]) - 1) / 2, -1.0, 1.0)))
             dev = deviations(exact, apply(fit.transform, pts))
@@ -126,11 +137,47 @@ def main() -> int:
                 f"{np.linalg.norm(dT[:3, 3]) * 1e3:7.2f} {rot * 1e6:9.1f} "
                 f"{np.abs(err).max() * 1e3:10.2f} {np.sqrt(np.mean(err**2)) * 1e3:10.2f} "
                 f"{err.mean() * 1e3:8.2f} {statistics.median(r[0] for r in runs) * 1e3:8.0f} "
-                f"{statistics.median(r[1] for r in runs) * 1e3:7.0f} {fit.iterations:5d}"
+                f"{cpu * 1e3:7.0f} {cpu / peer_cpu:6.1f} {fit.iterations:5d}"
             )
     print("(err: the deviation measured to the exact faces from the fitted pose, minus the "
           "truth; the noise of 0.01 mm is in it)")  # fmt: skip
+    sequence(faces)
     return 0
+
+
+def sequence(faces) -> None:  # type: ignore[no-untyped-def]
+    """Part 2: the measuring sequence on rendered frames, NURBS part against mesh part."""
+    from inspection.measure import PartModel, measure_frames
+    from inspection.nurbs import tessellate_faces
+    from inspection.reconstruct import Reconstructor
+    from inspection.rig import Rig, belt_pose
+    from inspection.simulate import simulate
+
+    size = (640, 512)
+    nurbs = PartModel.build(tessellate_faces(faces, cell_mm=2.0))
+    mesh = dataclasses.replace(nurbs, nurbs=None)
+    fine = tessellate_faces(faces, cell_mm=1.0)
+    frames = simulate(Rig.nominal(*size), fine.cad, belt_pose(20.0, -10.0, 15.0), seed=3)
+    print(f"\nmeasure_frames, {size[0]} x {size[1]} px, tree on 2 mm cells "
+          f"({len(nurbs.cad.faces)} triangles)")  # fmt: skip
+    print(f"{'part':>6s} {'points':>7s} {'deviations wall ms':>18s} {'total CPU ms':>12s}")
+    out = {}
+    with Reconstructor.build(Rig.default().with_image_size(*size)) as rec:
+        measure_frames(nurbs, rec, frames)  # warm-up
+        for label, part in (("mesh", mesh), ("nurbs", nurbs)):
+            runs = []
+            for _ in range(ROUNDS):
+                c0 = time.process_time()
+                m = measure_frames(part, rec, frames)
+                runs.append((m.timings_ms["deviations"], time.process_time() - c0))
+            out[label] = m.deviations.distances  # type: ignore[union-attr]
+            print(f"{label:>6s} {len(m.points):7d} {statistics.median(r[0] for r in runs):18.1f} "
+                  f"{statistics.median(r[1] for r in runs) * 1e3:12.0f}")  # fmt: skip
+    gap = out["mesh"] - out["nurbs"]
+    print(
+        f"mesh part's deviations minus the NURBS part's (the chords' gap): median "
+        f"{np.median(gap) * 1e3:.2f} um, 99th percentile {np.percentile(gap, 99) * 1e3:.2f} um"
+    )
 
 
 if __name__ == "__main__":
