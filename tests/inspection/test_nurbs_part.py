@@ -169,3 +169,11 @@ def test_an_edge_measured_out_of_order_gives_its_smooth_deviation():
 def test_bad_edges_are_refused(points, kw, match):
     with pytest.raises(InvalidInput, match=match):
         fit_edge(points, nominal_edge(), **kw)
+
+
+def test_a_saved_nurbs_part_loads_with_its_faces(part, tmp_path):
+    part.save(tmp_path / "part")
+    again = PartModel.load(tmp_path / "part", cad=part.cad, nurbs=part.nurbs)
+    assert isinstance(again.exact, ExactTree) and again.tree.hash == part.tree.hash
+    mesh = PartModel.load(tmp_path / "part", cad=part.cad)
+    assert mesh.nurbs is None and mesh.exact is mesh.tree
