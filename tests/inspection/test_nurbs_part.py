@@ -23,6 +23,7 @@ from inspection.nurbs import (
     ExactTree,
     closest_points,
     fit_edge,
+    read_step_faces,
     read_step_nurbs,
     tessellate_faces,
     write_step_surfaces,
@@ -50,6 +51,12 @@ def test_a_step_of_bare_surfaces_is_read_as_the_whole_part(faces):
     ((surface, trim),) = faces
     assert trim is None
     np.testing.assert_array_equal(surface.control_points, panel().control_points)
+
+
+def test_a_step_with_faces_of_other_kinds_is_not_a_nurbs_part(shared_cad):
+    path = shared_cad("featuretype.STEP")  # one B-spline face among planes and cylinders
+    assert len(read_step_faces(path)) == 1
+    assert read_step_nurbs(path) == []
 
 
 def test_a_nurbs_part_measures_to_its_faces_and_a_mesh_part_to_its_tree(part):
