@@ -381,9 +381,13 @@ def part_from_cad(
     return LoadedPart(
         spec=spec,
         model=PartModel(
-            cad, tree, model, comparison_points(spec), surface_node_mm=spec.surface.node_mm,
+            cad,
+            tree,
+            model,
+            comparison_points(spec),
+            surface_node_mm=spec.surface.node_mm,
             nurbs=nurbs,
-        ),  # fmt: skip
+        ),
         tree_hash=tree.hash,
         params=measure_params(spec),
     )
