@@ -6,11 +6,12 @@ survives a restart). Its tree is built once and cached under the trees
 directory, keyed by the CAD geometry hash, the build parameters and the
 tree's format version; a cached tree that no longer matches is rebuilt.
 
-A STEP CAD whose every face is a B-spline face is read as NURBS
-(:func:`inspection.nurbs.read_step_nurbs`): its tree is built on the faces
-sampled on regular parameter grids (``tree.nurbs_cell_mm``), its key then
-also holds the faces' hash and that sampling, and deviations are measured to
-the exact faces (``cad_kind`` "nurbs"). Any other CAD is a mesh.
+A STEP CAD whose every face is a B-spline face, in millimetres (or of no
+declared unit), is read as NURBS (:func:`inspection.nurbs.read_step_nurbs`):
+its tree is built on the faces sampled on regular parameter grids
+(``tree.nurbs_cell_mm``), its key then also holds the faces' hash and that
+sampling, and deviations are measured to the exact faces (``cad_kind``
+"nurbs"). Any other CAD is a mesh.
 
 Trees are built in one background thread, each build reported as a
 :class:`~service.models.Job` with its progress. :meth:`PartRegistry.preload`
@@ -50,7 +51,7 @@ from inspection.cad import CadModel, load_cad
 from inspection.deviations import ComparisonPoint
 from inspection.errors import CadLoadError, InspectionError, InvalidInput, TreeMismatch
 from inspection.measure import Frame, MeasureParams, PartModel, RegisterParams, measure_cloud
-from inspection.nurbs import NurbsModel, read_step_nurbs, tessellate_faces
+from inspection.nurbs import NurbsModel, read_step_nurbs, step_length_units, tessellate_faces
 
 from .config import (
     GENERATED_STEPPED_PLATE,
@@ -242,9 +243,15 @@ def load_part_nurbs(spec: PartSpec, base_dir: Path) -> NurbsModel | None:
 
 
 def read_nurbs(path: Path, spec: PartSpecBase) -> NurbsModel | None:
-    """The NURBS faces of the CAD file ``path`` (STEP, B-spline faces only)
-    tessellated on cells of ``spec.tree.nurbs_cell_mm``, or None."""
+    """The NURBS faces of the CAD file ``path`` (STEP, B-spline faces only, in
+    millimetres or of no declared unit) tessellated on cells of
+    ``spec.tree.nurbs_cell_mm``, or None."""
     if path.suffix.lower() not in (".step", ".stp"):
+        return None
+    units = step_length_units(path)
+    if any(u != "mm" for u in units):
+        # Our reader does not convert units; the mesh reader does.
+        log.info("%s: length units %s, not mm only: read as a mesh", path.name, ", ".join(units))
         return None
     faces = read_step_nurbs(path, scale=spec.scale)
     if not faces:

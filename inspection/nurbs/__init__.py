@@ -16,7 +16,8 @@
   surfaces.
 - :func:`read_step_surfaces` and :func:`read_step_faces` (a light reader of
   STEP's B-spline surfaces, and of their faces' outer boundaries as trims),
-  :func:`read_step_nurbs` (a part whose every face is a B-spline face)
+  :func:`read_step_nurbs` (a part whose every face is a B-spline face),
+  :func:`step_length_units` (the units the file declares)
   and :func:`read_3dm_surfaces` (Rhino's 3dm, through rhino3dm), with writers.
 
 Modules: :mod:`.basis` (the B-spline basis kernels), :mod:`.kernels` (the
@@ -34,7 +35,13 @@ from .fit import METHODS, CurveDeviation, CurveFit, deviation_along, fit_curve
 from .flops import EvaluationFlops, basis_flops, evaluation_flops
 from .model import ExactTree, NurbsModel, tessellate, tessellate_faces
 from .rhino import read_3dm_surfaces, write_3dm_surfaces
-from .step import read_step_faces, read_step_nurbs, read_step_surfaces, write_step_surfaces
+from .step import (
+    read_step_faces,
+    read_step_nurbs,
+    read_step_surfaces,
+    step_length_units,
+    write_step_surfaces,
+)
 from .surface import Surface
 
 __all__ = [
@@ -59,6 +66,7 @@ __all__ = [
     "read_step_faces",
     "read_step_nurbs",
     "read_step_surfaces",
+    "step_length_units",
     "tessellate",
     "tessellate_faces",
     "write_3dm_surfaces",

@@ -199,6 +199,39 @@ def read_step_faces(path: str | Path, *, scale: float = 1.0) -> list[tuple[Surfa
     return _faces(p, entities, scale)[0]
 
 
+_SI_LENGTH = re.compile(r"SI_UNIT\s*\(\s*(\$|\.[A-Z]+\.)\s*,\s*\.METRE\.\s*\)")
+_CONVERTED = re.compile(r"CONVERSION_BASED_UNIT\s*\(\s*'((?:[^']|'')*)'")
+_SI_PREFIX = {"$": "m", ".MILLI.": "mm", ".CENTI.": "cm", ".DECI.": "dm", ".MICRO.": "um"}
+
+
+def step_length_units(path: str | Path) -> tuple[str, ...]:
+    """The length units a STEP file declares, in file order: "mm", "m", "cm",
+    ... for SI units, the name of a conversion-based one ("INCH"); empty
+    when it declares none (as our writer's files).
+
+    The reader does not convert units (``scale`` does): a caller that reads
+    a part's faces checks that they are in millimetres.
+
+    Raises
+    ------
+    CadLoadError
+        Not a readable STEP file.
+    """
+    _, entities = _read_entities(path, 1.0)
+    units = []
+    for eid in sorted(entities):
+        text = entities[eid]
+        if "LENGTH_UNIT" not in text:
+            continue
+        converted = _CONVERTED.search(text)
+        si = _SI_LENGTH.search(text)
+        if converted:
+            units.append(converted.group(1).replace("''", "'"))
+        elif si:
+            units.append(_SI_PREFIX.get(si.group(1), si.group(1).strip(".").lower() + "m"))
+    return tuple(units)
+
+
 def read_step_nurbs(path: str | Path, *, scale: float = 1.0) -> list[tuple[Surface, Trim | None]]:
     """The whole part as NURBS faces, or nothing: the B-spline faces of a STEP
     file with their trims, or, in a file of bare surfaces without topology,

@@ -25,6 +25,7 @@ from inspection.nurbs import (
     fit_edge,
     read_step_faces,
     read_step_nurbs,
+    step_length_units,
     tessellate_faces,
     write_step_surfaces,
 )
@@ -57,6 +58,12 @@ def test_a_step_with_faces_of_other_kinds_is_not_a_nurbs_part(shared_cad):
     path = shared_cad("featuretype.STEP")  # one B-spline face among planes and cylinders
     assert len(read_step_faces(path)) == 1
     assert read_step_nurbs(path) == []
+    assert set(step_length_units(path)) == {"m", "INCH"}
+
+
+def test_our_step_declares_no_unit(tmp_path):
+    path = write_step_surfaces(tmp_path / "p.step", [panel()])
+    assert step_length_units(path) == ()
 
 
 def test_a_nurbs_part_measures_to_its_faces_and_a_mesh_part_to_its_tree(part):

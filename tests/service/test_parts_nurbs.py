@@ -22,10 +22,10 @@ from inspection import deviations
 from inspection.deviations import ComparisonPoint
 from inspection.nurbs import tessellate_faces, write_step_surfaces
 from service.api import ResultHub, create_app
-from service.config import load_line_config
+from service.config import PartSpecBase, load_line_config
 from service.dask_executor import PartBundle
 from service.models import InspectionResult
-from service.parts import PartRegistry, tree_cache_path
+from service.parts import PartRegistry, read_nurbs, tree_cache_path
 from service.store import DeviationArchive, ResultStore
 
 PART = "crowned"
@@ -181,3 +181,17 @@ def test_a_nurbs_part_travels_to_another_host_as_nurbs(line, tmp_path):
     np.testing.assert_array_equal(
         there.model.exact.query(x).distances, part.model.exact.query(x).distances
     )
+
+
+@pytest.mark.parametrize("unit, nurbs", [("SI_UNIT(.MILLI.,.METRE.)", True),
+                                         ("SI_UNIT($,.METRE.)", False)])  # fmt: skip
+def test_a_step_in_other_units_than_mm_is_left_to_the_mesh_reader(line, tmp_path, unit, nurbs):
+    _, _, parts = line
+    text = (parts / "crowned.step").read_text()
+    entity = f"#99999 = ( LENGTH_UNIT() NAMED_UNIT(*) {unit} );"
+    declared = text.replace("\nENDSEC;\nEND-ISO", f"\n{entity}\nENDSEC;\nEND-ISO")
+    assert declared != text
+    path = tmp_path / "declared.step"
+    path.write_text(declared)
+    model = read_nurbs(path, PartSpecBase(name="declared"))
+    assert (model is not None) == nurbs
