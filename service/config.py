@@ -300,10 +300,20 @@ class TreeSettings(_Strict):
 
     spacing_mm: float | None = Field(default=None, gt=0, le=100)
     band_mm: float | None = Field(default=None, gt=0, le=1000)
+    nurbs_cell_mm: float = Field(
+        default=2.0,
+        gt=0,
+        le=100,
+        description="Grid cell of the NURBS faces' sampling the tree is built on (a STEP "
+        "CAD of B-spline faces only): the pose is fitted to it, deviations are refined on "
+        "the exact faces.",
+    )
 
     def build_kwargs(self) -> dict[str, float]:
         """Keyword arguments for ``GridTree.build`` (only those set)."""
-        return {k: v for k, v in self.model_dump().items() if v is not None}
+        return {
+            k: v for k, v in self.model_dump(exclude={"nurbs_cell_mm"}).items() if v is not None
+        }
 
 
 class PartSpecBase(_Strict):

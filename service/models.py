@@ -343,6 +343,12 @@ class PartPublic(_Model):
     subgroup_size: int = Field(default=1, description="Parts per subgroup of its charts.")
     faces: int | None = None
     extents_mm: list[float] | None = None
+    cad_kind: Literal["mesh", "nurbs"] | None = Field(
+        default=None,
+        description="What deviations are measured to, once loaded: 'nurbs', the exact "
+        "B-spline faces of a STEP CAD; 'mesh', the triangles.",
+    )
+    nurbs_faces: int | None = Field(default=None, description="B-spline faces, for 'nurbs'.")
 
 
 class JobState(StrEnum):

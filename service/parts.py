@@ -6,6 +6,13 @@ survives a restart). Its tree is built once and cached under the trees
 directory, keyed by the CAD geometry hash, the build parameters and the
 tree's format version; a cached tree that no longer matches is rebuilt.
 
+A STEP CAD whose every face is a B-spline face, in millimetres (or of no
+declared unit), is read as NURBS (:func:`inspection.nurbs.read_step_nurbs`):
+its tree is built on the faces sampled on regular parameter grids
+(``tree.nurbs_cell_mm``), its key then also holds the faces' hash and that
+sampling, and deviations are measured to the exact faces (``cad_kind``
+"nurbs"). Any other CAD is a mesh.
+
 Trees are built in one background thread, each build reported as a
 :class:`~service.models.Job` with its progress. :meth:`PartRegistry.preload`
 builds or loads every configured part before the line reports itself ready.
@@ -46,6 +53,7 @@ from inspection.cad import CadModel, load_cad
 from inspection.deviations import ComparisonPoint
 from inspection.errors import CadLoadError, InspectionError, InvalidInput, TreeMismatch
 from inspection.measure import Frame, MeasureParams, PartModel, RegisterParams, measure_cloud
+from inspection.nurbs import NurbsModel, read_step_nurbs, step_length_units, tessellate_faces
 
 from .config import (
     GENERATED_STEPPED_PLATE,
@@ -124,6 +132,11 @@ class LoadedPart:
     @property
     def cad(self) -> CadModel:
         return self.model.cad
+
+    @property
+    def cad_kind(self) -> str:
+        """ "nurbs": deviations are measured to the exact B-spline faces; "mesh": to triangles."""
+        return "mesh" if self.model.nurbs is None else "nurbs"
 
 
 def comparison_points(spec: PartSpec) -> tuple[ComparisonPoint, ...]:
@@ -227,7 +240,11 @@ def panel_spec(params: dict[str, Any]) -> Any:
 
 
 def load_part_cad(spec: PartSpec, base_dir: Path) -> CadModel:
-    """The CAD model of a spec: its mesh file, or a generated part."""
+    """The CAD model of a spec: its mesh file, the tessellation of its NURBS
+    faces (:func:`load_part_nurbs`), or a generated part."""
+    nurbs = load_part_nurbs(spec, base_dir)
+    if nurbs is not None:
+        return nurbs.cad
     if spec.cad == GENERATED_STEPPED_PLATE:
         from inspection.holography import stepped_plate
 
@@ -239,6 +256,31 @@ def load_part_cad(spec: PartSpec, base_dir: Path) -> CadModel:
     return load_cad(spec.cad_path(base_dir), scale=spec.scale, name=spec.name)
 
 
+def load_part_nurbs(spec: PartSpec, base_dir: Path) -> NurbsModel | None:
+    """The NURBS faces of a spec's STEP CAD, sampled for its tree, or None
+    (a mesh, a generated panel, or a STEP with faces of other kinds)."""
+    if spec.is_generated:
+        return None
+    return read_nurbs(spec.cad_path(base_dir), spec)
+
+
+def read_nurbs(path: Path, spec: PartSpecBase) -> NurbsModel | None:
+    """The NURBS faces of the CAD file ``path`` (STEP, B-spline faces only, in
+    millimetres or of no declared unit) tessellated on cells of
+    ``spec.tree.nurbs_cell_mm``, or None."""
+    if path.suffix.lower() not in (".step", ".stp"):
+        return None
+    units = step_length_units(path)
+    if any(u != "mm" for u in units):
+        # Our reader does not convert units; the mesh reader does.
+        log.info("%s: length units %s, not mm only: read as a mesh", path.name, ", ".join(units))
+        return None
+    faces = read_step_nurbs(path, scale=spec.scale)
+    if not faces:
+        return None
+    return tessellate_faces(faces, cell_mm=spec.tree.nurbs_cell_mm, name=spec.name)
+
+
 def tree_format_version() -> int:
     """The tree file format version of the installed :mod:`inspection.grid`."""
     from inspection.grid import FORMAT_VERSION
@@ -246,13 +288,20 @@ def tree_format_version() -> int:
     return int(FORMAT_VERSION)
 
 
-def tree_cache_path(trees_dir: Path, cad: CadModel, spec: PartSpec) -> Path:
+def tree_cache_path(
+    trees_dir: Path, cad: CadModel, spec: PartSpec, nurbs: NurbsModel | None = None
+) -> Path:
     """Where the tree of ``cad`` with ``spec``'s build parameters is cached.
 
     The name holds the CAD hash, a hash of the build parameters and the
-    format version: any change of the three gives another file.
+    format version: any change of the three gives another file. For NURBS
+    faces (``cad`` is ``nurbs.cad``) the parameters also hold the faces' hash
+    and their sampling.
     """
-    params = canonical_hash(spec.tree.build_kwargs())[:12]
+    made_of: dict[str, Any] = dict(spec.tree.build_kwargs())
+    if nurbs is not None:
+        made_of |= {"nurbs": nurbs.faces_hash(), "nurbs_cell_mm": spec.tree.nurbs_cell_mm}
+    params = canonical_hash(made_of)[:12]
     return trees_dir / f"{cad.hash[:24]}-{params}-v{tree_format_version()}.npz"
 
 
@@ -261,8 +310,11 @@ def build_or_load_tree(
     spec: PartSpec,
     trees_dir: Path,
     progress: Callable[[float, str], None] | None = None,
+    nurbs: NurbsModel | None = None,
 ) -> Any:
     """The tree of ``cad``: loaded from the cache when it matches, built (and cached) otherwise.
+
+    ``nurbs``: the NURBS faces ``cad`` tessellates (a key of the cache).
 
     Returns
     -------
@@ -272,7 +324,7 @@ def build_or_load_tree(
     from inspection.grid import GridTree
 
     report = progress or (lambda f, m: None)
-    path = tree_cache_path(trees_dir, cad, spec)
+    path = tree_cache_path(trees_dir, cad, spec, nurbs)
     if path.is_file():
         try:
             tree = GridTree.load(path, cad=cad)
@@ -324,8 +376,11 @@ def load_part(
     """
     report = progress or (lambda f, m: None)
     report(0.05, "loading CAD")
-    cad = load_part_cad(spec, base_dir)
-    return part_from_cad(spec, cad, trees_dir, report, alignment=alignment, models=models)
+    nurbs = load_part_nurbs(spec, base_dir)
+    cad = nurbs.cad if nurbs is not None else load_part_cad(spec, base_dir)
+    return part_from_cad(
+        spec, cad, trees_dir, report, alignment=alignment, models=models, nurbs=nurbs
+    )
 
 
 def part_from_cad(
@@ -336,10 +391,15 @@ def part_from_cad(
     *,
     alignment: bool = True,
     models: MutableMapping[str, AlignmentModel] | None = None,
+    nurbs: NurbsModel | None = None,
 ) -> LoadedPart:
-    """:func:`load_part` from a CAD model already loaded (or received from another host)."""
+    """:func:`load_part` from a CAD model already loaded (or received from another host).
+
+    ``nurbs``: the NURBS faces ``cad`` tessellates; deviations are then
+    measured to them. None: ``cad`` is a mesh.
+    """
     report = progress or (lambda f, m: None)
-    tree = build_or_load_tree(cad, spec, trees_dir, report)
+    tree = build_or_load_tree(cad, spec, trees_dir, report, nurbs)
     model = None
     if alignment:
         cached = alignment_model_path(trees_dir, cad).is_file()
@@ -359,6 +419,7 @@ def part_from_cad(
             comparison_points(spec),
             surface_node_mm=spec.surface.node_mm,
             rps=rps_scheme(spec),
+            nurbs=nurbs,
         ),  # fmt: skip
         tree_hash=tree.hash,
         params=measure_params(spec),
@@ -627,8 +688,14 @@ class PartRegistry:
             staging = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=self.uploads_dir.resolve()))
             (staging / full.cad).write_bytes(cad_bytes)
             try:
-                cad = load_cad(staging / full.cad, scale=full.scale, name=full.name)  # fail fast
-            except CadLoadError as exc:
+                # Fail fast: the NURBS faces are read (and sampled) as the build will.
+                nurbs = read_nurbs(staging / full.cad, full)
+                cad = (
+                    nurbs.cad
+                    if nurbs is not None
+                    else load_cad(staging / full.cad, scale=full.scale, name=full.name)
+                )
+            except (CadLoadError, InvalidInput) as exc:
                 # Its message starts with the staging file's path: name the client's file.
                 raise CadLoadError(
                     hide_paths(str(exc), {staging / full.cad: filename, staging: "upload"})
@@ -863,6 +930,12 @@ class PartRegistry:
                 subgroup_size=e.spec.subgroup_size,
                 faces=len(loaded.cad.faces) if loaded else None,
                 extents_mm=[float(x) for x in loaded.cad.extents] if loaded else None,
+                cad_kind=loaded.cad_kind if loaded else None,  # type: ignore[arg-type]
+                nurbs_faces=(
+                    len(loaded.model.nurbs.surfaces)
+                    if loaded and loaded.model.nurbs is not None
+                    else None
+                ),
             )
 
     def loaded(self, names: list[str]) -> dict[str, LoadedPart]:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..alignment import AlignmentModel, alignment_model
@@ -13,9 +13,14 @@ from ..cad import CadModel
 from ..deviations import ComparisonPoint, check_comparison_points, load_comparison_points
 from ..errors import InvalidInput
 from ..grid import GridTree
+from ..nurbs import ExactTree, NurbsModel
 from ..perspective import RayCaster
 from ..registration import CadFaces
 from ..surface import NODE_MM, SurfaceModel
+
+# What deviations are measured against: the grid tree or, for NURBS faces, the
+# tree's closest points refined on the exact surfaces.
+DeviationTree = GridTree | ExactTree
 
 
 @dataclass(frozen=True, eq=False)
@@ -45,6 +50,15 @@ class PartModel:
         search scales with (see :class:`SurfaceModel`).
     rps : RpsScheme or None
         The part's datum scheme; None: the best fit alone aligns it.
+    nurbs : NurbsModel or None
+        The NURBS faces ``cad`` tessellates (``cad`` is ``nurbs.cad``); None:
+        a mesh-only CAD.
+    exact : GridTree or ExactTree
+        What deviations are measured against: ``tree`` refined on the exact
+        faces (:class:`inspection.nurbs.ExactTree`) when the part has
+        ``nurbs``, else ``tree`` itself. The fit keeps ``tree``: on a fine
+        enough sampling the chords move the pose little, and a fit to the
+        exact faces costs many times more (``bench/bench_nurbs_part.py``).
     """
 
     cad: CadModel
@@ -56,11 +70,13 @@ class PartModel:
     caster: RayCaster | None = None
     surface_node_mm: float = NODE_MM
     rps: RpsScheme | None = None
+    nurbs: NurbsModel | None = None
+    exact: DeviationTree = field(init=False, repr=False)
 
     @classmethod
     def build(
         cls,
-        cad: CadModel,
+        cad: CadModel | NurbsModel,
         comparison_points: Sequence[ComparisonPoint] = (),
         *,
         spacing_mm: float | None = None,
@@ -73,7 +89,10 @@ class PartModel:
 
         Parameters
         ----------
-        cad : CadModel
+        cad : CadModel, or NurbsModel
+            A NurbsModel (:func:`inspection.nurbs.tessellate_faces`): the
+            tree is built on its tessellation and deviations are measured to
+            its exact faces.
         comparison_points : sequence of ComparisonPoint
         spacing_mm, band_mm : float, optional
             The grid's build parameters; None: its defaults.
@@ -85,8 +104,11 @@ class PartModel:
         rps : RpsScheme, optional
             Align by the datums (see :class:`~inspection.alignment.rps.RpsScheme`).
         """
+        nurbs = cad if isinstance(cad, NurbsModel) else None
+        if nurbs is not None:
+            cad = nurbs.cad
         if not isinstance(cad, CadModel):
-            raise InvalidInput(f"cad must be a CadModel, got {type(cad).__name__}")
+            raise InvalidInput(f"cad must be a CadModel or NurbsModel, got {type(cad).__name__}")
         tree = GridTree.build(
             cad,
             **({} if spacing_mm is None else {"spacing_mm": spacing_mm}),  # type: ignore[arg-type]
@@ -94,9 +116,15 @@ class PartModel:
         )
         model = alignment_model(cad) if alignment else None
         return cls(cad, tree, model, check_comparison_points(comparison_points),
-                   surface_node_mm=surface_node_mm, rps=rps)  # fmt: skip
+                   surface_node_mm=surface_node_mm, rps=rps, nurbs=nurbs)  # fmt: skip
 
     def __post_init__(self) -> None:
+        exact: DeviationTree = self.tree
+        if self.nurbs is not None:
+            if self.nurbs.cad.hash != self.cad.hash:
+                raise InvalidInput("the NURBS model's tessellation is not this part's CAD")
+            exact = ExactTree(self.tree, self.nurbs)  # refuses a tree of another CAD
+        object.__setattr__(self, "exact", exact)
         object.__setattr__(
             self, "comparison_points", check_comparison_points(self.comparison_points)
         )
@@ -139,8 +167,12 @@ class PartModel:
         return d
 
     @classmethod
-    def load(cls, directory: str | Path, *, cad: CadModel) -> PartModel:
+    def load(
+        cls, directory: str | Path, *, cad: CadModel, nurbs: NurbsModel | None = None
+    ) -> PartModel:
         """Read what :meth:`save` wrote; refuses a tree or model built from another CAD.
+
+        ``nurbs``: the NURBS faces ``cad`` tessellates (``cad`` is ``nurbs.cad``).
 
         Raises
         ------
@@ -155,4 +187,4 @@ class PartModel:
         model = AlignmentModel.load(path, key=cad.hash) if path.is_file() else None
         node_mm = json.loads((d / "points.json").read_text()).get("surface_node_mm", NODE_MM)
         return cls(cad, tree, model, load_comparison_points(d / "points.json"),
-                   surface_node_mm=node_mm)  # fmt: skip
+                   surface_node_mm=node_mm, nurbs=nurbs)  # fmt: skip

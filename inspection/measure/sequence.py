@@ -539,7 +539,7 @@ def _deviations_at(
         directions = (T[:3, :3] @ np.asarray(p.register.view_direction, dtype=np.float64))[None]
     points_cad = apply(T, points)
     devs = deviations(
-        part.tree,
+        part.exact,
         points_cad,
         part.comparison_points,
         min_support=p.min_support,

@@ -474,21 +474,34 @@ class CurveDeviation:
     distances: FloatArray
 
 
-def deviation_along(measured: Curve, nominal: Curve, samples: int = 200) -> CurveDeviation:
+def deviation_along(
+    measured: Curve,
+    nominal: Curve,
+    samples: int = 200,
+    *,
+    span: tuple[float, float] | None = None,
+) -> CurveDeviation:
     """The deviation of a fitted, measured curve (a trim edge, a character
     line) from its nominal, at ``samples`` parameters evenly spread over the
-    nominal's domain: each nominal point's vector to its closest point on
-    the measured curve.
+    nominal's domain (or ``span`` of it): each nominal point's vector to its
+    closest point on the measured curve.
 
     Parameters
     ----------
     measured : Curve, e.g. ``fit_curve(...).curve`` of the measured edge points
     nominal : Curve, the design's edge
     samples : int >= 2
+    span : (lo, hi), optional, the nominal's parameters where the edge was
+        measured (within its domain, lo < hi); default its whole domain
     """
     if not isinstance(samples, int) or isinstance(samples, bool) or samples < 2:
         raise InvalidInput(f"samples must be an integer >= 2, got {samples!r}")
-    t = np.linspace(*nominal.domain, samples)
+    lo, hi = nominal.domain if span is None else (float(span[0]), float(span[1]))
+    if not (nominal.domain[0] <= lo < hi <= nominal.domain[1]):
+        raise InvalidInput(
+            f"span must lie within the nominal's domain {nominal.domain}, got {span}"
+        )
+    t = np.linspace(lo, hi, samples)
     pts = nominal.evaluate(t)
     # Start each foot at the nearest of dense samples of the measured curve.
     dense = np.linspace(*measured.domain, 20 * samples + 1)

@@ -15,6 +15,7 @@ its tessellation; a mesh-only CAD keeps its plain tree.
 
 from __future__ import annotations
 
+import hashlib
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -48,6 +49,23 @@ class NurbsModel:
     cad: CadModel
     triangle_face: np.ndarray
     corner_params: FloatArray
+
+    def faces_hash(self) -> str:
+        """SHA-256 (hex) of the faces: degrees, knots, weighted control points
+        and trim polygons, little-endian float64, in face order (the source of
+        the tessellation, whatever its sampling)."""
+        h = hashlib.sha256()
+        for surface, trim in zip(self.surfaces, self.trims, strict=True):
+            h.update(np.array([surface.degree_u, surface.degree_v], dtype="<i8").tobytes())
+            for a in (surface.knots_u, surface.knots_v, surface.homogeneous):
+                h.update(np.array(a.shape, dtype="<i8").tobytes())
+                h.update(np.ascontiguousarray(a, dtype="<f8").tobytes())
+            loops = () if trim is None else (trim.polygon, *trim.holes)
+            h.update(np.array([len(loops)], dtype="<i8").tobytes())
+            for loop in loops:
+                h.update(np.array(loop.shape, dtype="<i8").tobytes())
+                h.update(np.ascontiguousarray(loop, dtype="<f8").tobytes())
+        return h.hexdigest()
 
 
 def _grid_triangles(

@@ -196,7 +196,74 @@ def read_step_faces(path: str | Path, *, scale: float = 1.0) -> list[tuple[Surfa
         boundary cannot be read (the reason is given).
     """
     p, entities = _read_entities(path, scale)
+    return _faces(p, entities, scale)[0]
+
+
+_SI_LENGTH = re.compile(r"SI_UNIT\s*\(\s*(\$|\.[A-Z]+\.)\s*,\s*\.METRE\.\s*\)")
+_CONVERTED = re.compile(r"CONVERSION_BASED_UNIT\s*\(\s*'((?:[^']|'')*)'")
+_SI_PREFIX = {"$": "m", ".MILLI.": "mm", ".CENTI.": "cm", ".DECI.": "dm", ".MICRO.": "um"}
+
+
+def step_length_units(path: str | Path) -> tuple[str, ...]:
+    """The length units a STEP file declares, in file order: "mm", "m", "cm",
+    ... for SI units, the name of a conversion-based one ("INCH"); empty
+    when it declares none (as our writer's files).
+
+    The reader does not convert units (``scale`` does): a caller that reads
+    a part's faces checks that they are in millimetres.
+
+    Raises
+    ------
+    CadLoadError
+        Not a readable STEP file.
+    """
+    _, entities = _read_entities(path, 1.0)
+    units = []
+    for eid in sorted(entities):
+        text = entities[eid]
+        if "LENGTH_UNIT" not in text:
+            continue
+        converted = _CONVERTED.search(text)
+        si = _SI_LENGTH.search(text)
+        if converted:
+            units.append(converted.group(1).replace("''", "'"))
+        elif si:
+            units.append(_SI_PREFIX.get(si.group(1), si.group(1).strip(".").lower() + "m"))
+    return tuple(units)
+
+
+def read_step_nurbs(path: str | Path, *, scale: float = 1.0) -> list[tuple[Surface, Trim | None]]:
+    """The whole part as NURBS faces, or nothing: the B-spline faces of a STEP
+    file with their trims, or, in a file of bare surfaces without topology,
+    every B-spline surface untrimmed.
+
+    Returns
+    -------
+    list of (Surface, Trim or None)
+        Empty when the file holds no B-spline surface, or faces of other
+        kinds too (planes, cylinders): these the reader does not evaluate,
+        so such a part is measured against its mesh.
+
+    Raises
+    ------
+    CadLoadError
+        As :func:`read_step_faces`.
+    """
+    p, entities = _read_entities(path, scale)
+    faces, others = _faces(p, entities, scale)
+    if others:
+        return []
+    if faces:
+        return list(faces)
+    return [(s, None) for s in read_step_surfaces(p, scale=scale)]
+
+
+def _faces(
+    p: Path, entities: dict[int, str], scale: float
+) -> tuple[list[tuple[Surface, Trim]], int]:
+    """The B-spline faces with their trims, and the number of faces of other kinds."""
     out = []
+    others = 0
     for eid in sorted(entities):
         text = entities[eid]
         if not text.lstrip().startswith("ADVANCED_FACE"):
@@ -205,12 +272,13 @@ def read_step_faces(path: str | Path, *, scale: float = 1.0) -> list[tuple[Surfa
             _, bounds, surface_ref = _parts(_parse(text))["ADVANCED_FACE"][:3]
             sparts = _parts(_parse(entities[surface_ref]))
             if "B_SPLINE_SURFACE_WITH_KNOTS" not in sparts:
+                others += 1
                 continue
             surface = _surface(entities, sparts, scale)
             out.append((surface, _face_trim(entities, bounds, surface, scale)))
         except (InspectionError, ValueError, KeyError, IndexError, TypeError) as exc:
             raise CadLoadError(f"{p}: face #{eid}: {exc}") from exc
-    return out
+    return out, others
 
 
 def _face_trim(entities: dict[int, str], bounds: list[Any], surface: Surface, scale: float) -> Trim:
