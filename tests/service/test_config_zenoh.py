@@ -140,11 +140,12 @@ def test_the_router_takes_the_line_file_and_refuses_a_bad_one_with_exit_code_2(l
 
 
 def test_a_bus_that_cannot_open_is_said_without_a_traceback(capsys):
-    """An ingest whose router is not there: exit code 1 and zenoh's reason, no traceback."""
+    """An ingest whose router is not there: exit code 2 (what it was told to reach does not
+    answer) and zenoh's reason, no traceback."""
     from linekit import ROOT, free_port
 
     code = main(["ingest", "--config", str(ROOT / "configs" / "line.toml"),
                  "--zenoh-connect", f"tcp/127.0.0.1:{free_port()}", "--count", "1"])  # fmt: skip
     err = capsys.readouterr().err
-    assert code == 1, err
+    assert code == 2, err
     assert "cannot open a zenoh client session" in err and "Traceback" not in err

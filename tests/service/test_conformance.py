@@ -27,7 +27,7 @@ import schemathesis
 from fastapi.testclient import TestClient
 from hypothesis import HealthCheck, Phase, settings
 from linekit import PART, PARTS_DIR, uvicorn_server
-from schemathesis.specs.openapi.checks import positive_data_acceptance
+from schemathesis.specs.openapi.checks import negative_data_rejection, positive_data_acceptance
 
 from service.api import ResultHub, create_app
 from service.config import LineConfig, load_part_spec
@@ -143,6 +143,10 @@ def test_every_operation_conforms(case, api):
     excluded = []
     if _refused_for_content(response):
         excluded.append(positive_data_acceptance)
+    if response.status_code == 413:
+        # Refused for its size before it is read (a generated part spec outgrows the
+        # upload cap): a rejection, though not among the statuses the check expects.
+        excluded.append(negative_data_rejection)
     case.validate_response(response, excluded_checks=excluded)
     assert str(api.root) not in response.text, "a server path in a response"
 
