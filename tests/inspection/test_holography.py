@@ -353,7 +353,9 @@ def test_a_dent_beyond_a_quarter_synthetic_wavelength_is_flagged_not_unwrapped(d
 
 
 def test_the_spatial_unwrapper_fails_across_the_step_where_the_cad_does_not(shallow):
-    skimage = pytest.importorskip("skimage.restoration")
+    skimage = pytest.importorskip(
+        "skimage.restoration", reason="the peer unwrapper: pip install scikit-image (dev extra)"
+    )
     _, truth, shape = shallow
     m = shape.measured
     z = np.asarray(skimage.unwrap_phase(shape.wrapped_phase)) * 1.1 / (4 * np.pi)
