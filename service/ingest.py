@@ -43,6 +43,12 @@ from .protocol import FrameSet, Truth, encode_frameset
 log = logging.getLogger(__name__)
 
 
+def simulated_serial(part: str, seq: int, rng: np.random.Generator) -> str:
+    """A simulated part's serial: its part's name, the seq and four hex digits drawn from
+    the trigger's own stream (so that the same seed gives the same serials)."""
+    return f"{part[:8].upper()}-{seq:06d}-{rng.integers(16**4):04x}"
+
+
 class FrameSource(Protocol):
     """Turns a trigger into a FrameSet."""
 
@@ -219,7 +225,7 @@ class SimulatedRig:
         place[:2, :2] = [[c, -si], [si, c]]
         place[:2, 3] = rng.uniform(-1, 1, 2) * np.asarray(s.position_range_mm)
         T_rig_part = place @ rest
-        serial = f"{part.name[:8].upper()}-{seq:06d}-{rng.integers(16**4):04x}"
+        serial = simulated_serial(part.name, seq, rng)
         defects: tuple[Dent, ...] = ()
         mesh = part.mesh
         holes: tuple[HoleShift, ...] = ()
@@ -337,7 +343,7 @@ class SimulatedHead:
         play[:3, :3] = Rotation.from_rotvec([tilts[0], tilts[1], 0.0]).as_matrix()
         play[2, 3] = rng.uniform(-1, 1) * s.height_range_mm
         T_head_part = np.asarray(s.T_head_cad, dtype=np.float64) @ play
-        serial = f"{part.name[:8].upper()}-{seq:06d}-{rng.integers(16**4):04x}"
+        serial = simulated_serial(part.name, seq, rng)
         defects: tuple[Dent, ...] = ()
         if rng.random() < s.defect_rate:
             defects = (self._random_dent(T_head_part, rng),)
