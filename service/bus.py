@@ -146,7 +146,7 @@ def access_control_config(acl: AccessControl) -> dict[str, Any]:
             "permission": "allow",
             "flows": ["ingress"],
             "messages": ["put"],
-            "key_exprs": [f"{p}/*/frames"],
+            "key_exprs": [f"{p}/*/frames", f"{p}/*/fired"],
         },
         {
             "id": "results",

@@ -461,6 +461,8 @@ class Ingest:
             log.info("ingest: going on from seq %d", self.seq)
         self.stop_event = threading.Event()
         self._thread: threading.Thread | None = None
+        self.last_triggered_ns: int | None = None
+        """Trigger time of the last FrameSet published (None: none yet)."""
 
     def trigger(self) -> FrameSet:
         """Fire one trigger now: capture, publish, count."""
@@ -469,6 +471,7 @@ class Ingest:
         t_ns = time.time_ns()
         fs = self.source.capture(self.seq, t_ns)
         self.publish(encode_frameset(fs, encoding=self.encoding))
+        self.last_triggered_ns = t_ns
         self.seq += 1
         if self.on_trigger is not None:
             self.on_trigger(fs)

@@ -465,6 +465,61 @@ def make_ingest(cfg: LineConfig, station: Station, publish: Callable[[bytes], No
     )
 
 
+FIRED_EVERY_S = 1.0
+"""Period of the ingest's count on the ``fired`` key (also sent after each trigger)."""
+
+
+class FiredCount:
+    """The ingest's count of fired triggers on ``<prefix>/<line>/<station>/fired``.
+
+    Sent after each trigger, every :data:`FIRED_EVERY_S` (a worker started
+    later, or one that missed a sample, hears it) and once more at the stop.
+    The station's worker answers ``missed`` the triggers it counts whose
+    FrameSet never came, when no later FrameSet shows the gap: the last ones
+    before a stop, those fired while the worker was down.
+    """
+
+    def __init__(
+        self, session: zenoh.Session, key: str, ingest: Ingest, *, period_s: float = FIRED_EVERY_S
+    ) -> None:
+        self._session = session
+        self._key = key
+        self._ingest = ingest
+        self._period_s = period_s
+        chained = ingest.on_trigger
+
+        def after(fs: FrameSet) -> None:
+            if chained is not None:
+                chained(fs)
+            self.publish()
+
+        ingest.on_trigger = after
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="fired", daemon=True)
+        self._thread.start()
+
+    def publish(self) -> None:
+        """Send the count now (nothing before the first trigger)."""
+        t_ns = self._ingest.last_triggered_ns
+        if t_ns is None:
+            return
+        doc = {"next_seq": self._ingest.seq, "triggered_ns": t_ns, "time_ns": time.time_ns()}
+        try:
+            bus.put_json(self._session, self._key, json.dumps(doc))
+        except zenoh.ZError as exc:
+            log.warning("trigger count not published on %s: %s", self._key, exc)
+
+    def _run(self) -> None:
+        while not self._stop.wait(self._period_s):
+            self.publish()
+
+    def close(self) -> None:
+        """Stop the periodic count, after sending it once more (stop the ingest first)."""
+        self._stop.set()
+        self._thread.join(5.0)
+        self.publish()
+
+
 def store_sink(store: ResultStore) -> Callable[[Outcome, FrameSet | None], None]:
     def sink(outcome: Outcome, fs: FrameSet | None) -> None:
         store.put(outcome.result)
@@ -618,10 +673,13 @@ class LineHandles:
     app: Api | None = None
     janitor: Janitor | None = None
     executor: Executor | None = None
+    fired: FiredCount | None = None
 
     def close(self) -> None:
         """Stop triggering, let the worker finish what was triggered, close everything."""
         self.ingest.stop()
+        if self.fired is not None:
+            self.fired.close()
         last = self.ingest.seq - 1
         if last >= 0 and not self.counter.wait_seq(last, 60.0):
             log.warning("stopping before the result of seq %d arrived", last)
@@ -722,13 +780,15 @@ def start_line(
                     raise RuntimeError(f"the API did not start on {cfg.http.host}:{cfg.http.port}")
         publisher = bus.frame_publisher(session, station.keys.frames(station.name))
         ingest = make_ingest(cfg, station, publisher.put)
+        fired = FiredCount(session, station.keys.fired(station.name), ingest)
+        opened.append(fired)
         ingest.start()
     except BaseException:
         bus.close_all(reversed(opened))
         raise
     return LineHandles(
         session, station, store, recorder, worker, ingest, counter, api, hub, made, janitor,
-        executor,
+        executor, fired,
     )  # fmt: skip
 
 
@@ -781,10 +841,12 @@ def run_ingest(
     with contextlib.closing(bus.open_session(bus_settings(cfg))) as session:
         publisher = bus.frame_publisher(session, station.keys.frames(station.name))
         ingest = make_ingest(cfg, station, publisher.put)
+        fired = FiredCount(session, station.keys.fired(station.name), ingest)
         ingest.start(count)
         while not stop.is_set() and ingest._thread is not None and ingest._thread.is_alive():
             stop.wait(0.2)
         ingest.stop()
+        fired.close()
         publisher.undeclare()
     return 0
 

@@ -152,6 +152,11 @@ class Keys:
         """``<prefix>/<line>/<station>/status``: worker status and heartbeat (JSON)."""
         return f"{self.prefix}/{self.line}/{validate_name(station, 'station')}/status"
 
+    def fired(self, station: str) -> str:
+        """``<prefix>/<line>/<station>/fired``: the trigger source's count (JSON), so that a
+        trigger whose FrameSet never came is answered even when no later one shows the gap."""
+        return f"{self.prefix}/{self.line}/{validate_name(station, 'station')}/fired"
+
     def worker_token(self, station: str, worker_id: str) -> str:
         """``@<prefix>/<line>/<station>/worker/<id>``: liveliness token of one worker."""
         return (

@@ -226,6 +226,11 @@ AlarmSink = Callable[[Alarm], object]
 DEFAULT_MAX_SEQ_JUMP = 300
 """Triggers a seq may skip before the jump is refused instead of answered as missed."""
 
+FIRED_GRACE_S = 5.0
+"""How long after the trigger source said a seq fired its FrameSet may still come
+(with nothing left in the queue): a FrameSet crosses the bus in milliseconds, so
+one that has not come by then was lost, and its trigger is answered ``missed``."""
+
 RECENT_IDS = 4096
 """Result ids remembered to answer a trigger delivered twice once, store or not."""
 
@@ -304,6 +309,30 @@ class SeqTracker:
         return SeqCheck(False, alarm=(AlarmKind.seq_jump,
                         f"seq jumped from {nxt - 1} to {seq}, beyond the bound of "
                         f"{self.max_jump}: refused, not answered as missed"))  # fmt: skip
+
+    def fired(self, seq: int, triggered_ns: int) -> SeqCheck:
+        """The trigger source says it fired up to ``seq`` (at ``triggered_ns``), and no
+        FrameSet of the seqs above the count came: they are missing, ``seq`` included.
+
+        Before any seq was seen, nothing is missing (where counting starts is
+        the first FrameSet's, as ever); at or below the count, nothing either.
+        A claim beyond the bound is refused, like a FrameSet's jump.
+        """
+        nxt = self.next
+        if nxt is None or seq < nxt:
+            return SeqCheck(True)
+        if seq > nxt + self.max_jump:
+            message = (f"the trigger source says seq {seq} fired, beyond the bound of "
+                       f"{self.max_jump} after seq {nxt - 1}: not answered as missed")  # fmt: skip
+            return SeqCheck(False, alarm=(AlarmKind.seq_jump, message))
+        last_ns = self.last_ns if self.last_ns is not None else triggered_ns
+        step = (triggered_ns - last_ns) / (seq - nxt + 1)
+        missing = [
+            (m, max(0, int(last_ns + k * step)))
+            for k, m in enumerate(range(nxt, seq + 1), start=1)
+            if m not in self._answered
+        ]
+        return self._accept(seq, triggered_ns, missing)
 
     def behind(self, seq: int) -> bool:
         """Whether ``seq`` is below the count (answered, or owed from before a restart)."""
@@ -403,6 +432,8 @@ class Worker:
     executor : Executor, optional
         Where the measurements run; default :class:`~service.executor.InProcessExecutor`
         on ``pipeline``.
+    fired_grace_s : float
+        See :data:`FIRED_GRACE_S` and :meth:`note_fired`.
     """
 
     def __init__(
@@ -422,6 +453,7 @@ class Worker:
         metrics: Metrics | None = None,
         cameras: list[tuple[str, int, int]] | None = None,
         executor: Executor | None = None,
+        fired_grace_s: float = FIRED_GRACE_S,
     ) -> None:
         self.pipeline = pipeline
         self.executor: Executor = executor if executor is not None else InProcessExecutor(pipeline)
@@ -438,6 +470,14 @@ class Worker:
         self.journal = journal
         self.stats = WorkerStats()
         self._recent: collections.OrderedDict[str, None] = collections.OrderedDict()
+        # What the trigger source said it fired, (seq, triggered_ns, when heard),
+        # and the seqs answered missed on its word: their FrameSet, should it
+        # still come, is not answered again.
+        self.fired_grace_s = fired_grace_s
+        self._fired_lock = threading.Lock()
+        self._fired: tuple[int, int, float] | None = None
+        self._fired_heard: int | None = None
+        self._given_up: collections.OrderedDict[int, None] = collections.OrderedDict()
         # The accounting's one lock; ``_changed`` wakes whoever waits for a
         # finished measurement or a free slot.
         self._lock = threading.RLock()
@@ -493,6 +533,7 @@ class Worker:
                 if item is None:
                     if stopping:
                         break
+                    self._settle_fired()
                     continue
                 self.handle(item)
             except Exception:  # the loop must survive anything
@@ -550,12 +591,65 @@ class Worker:
                 lambda: self._hand_out_finished() or not self._in_flight, timeout_s
             )
 
+    def note_fired(self, next_seq: int, triggered_ns: int) -> None:
+        """The trigger source's word: it has fired every seq below ``next_seq``, the last
+        at ``triggered_ns`` (any thread).
+
+        FrameSets usually tell the worker of a trigger whose FrameSet was lost:
+        the next one shows the gap. The last triggers before the source stops,
+        or those fired while this worker was down, have no next FrameSet; once
+        the queue is empty and :attr:`fired_grace_s` has passed, they are
+        answered ``missed``.
+        """
+        seq = next_seq - 1
+        if seq < 0:
+            return
+        with self._fired_lock:
+            if self._fired_heard == seq:
+                return  # the same word again (it is repeated every second)
+            self._fired_heard = seq
+            self._fired = (seq, triggered_ns, time.monotonic())
+
+    def _settle_fired(self) -> None:
+        """Answer what the trigger source fired and no FrameSet brought (queue empty)."""
+        with self._fired_lock:
+            fired = self._fired
+            if fired is None or time.monotonic() - fired[2] < self.fired_grace_s:
+                return
+            if self.source.depth() > 0:
+                return
+            self._fired = None
+        seq, t_ns, _ = fired
+        with self._lock:
+            check = self.seqs.fired(seq, t_ns)
+            self._admit(check, seq, t_ns)
+            for missing, _t in check.missing:
+                self._given_up[missing] = None
+            while len(self._given_up) > RECENT_IDS:
+                self._given_up.popitem(last=False)
+            self._hand_out_finished()
+
+    def _came_late(self, line: str, station: str, seq: int | None, triggered_ns: int) -> bool:
+        """Whether this is the FrameSet of a trigger answered missed already, on the
+        trigger source's word (it came after the grace): an alarm, no second result."""
+        if seq is None or (line, station) != (self.line, self.station):
+            return False
+        if seq not in self._given_up:
+            return False
+        self.stats.duplicates += 1
+        message = (f"FrameSet seq {seq} came after its trigger was answered missed: "
+                   "not answered again")  # fmt: skip
+        self._alarm(AlarmKind.seq_repeat, message, triggered_ns, seq)
+        return True
+
     def _dropped(self, item: Dropped) -> None:
         ident = item.identity
         seq = ident.get("seq")
         t_ns = ident.get("triggered_ns", item.received_ns)
         line, station = ident.get("line", self.line), ident.get("station", self.station)
         if self._answered(make_result_id(line, station, seq or 0, t_ns), seq, t_ns, item.replayed):
+            return
+        if self._came_late(line, station, seq, t_ns):
             return
         fields: dict[str, Any] = dict(
             line=line, station=station, seq=seq if seq is not None else 0, triggered_ns=t_ns,
@@ -585,7 +679,7 @@ class Worker:
             line, station = ident.get("line", self.line), ident.get("station", self.station)
             if self._answered(
                 make_result_id(line, station, seq or 0, t_ns), seq, t_ns, item.replayed
-            ):
+            ) or self._came_late(line, station, seq, t_ns):
                 return False
             if (line, station) == (self.line, self.station):
                 self.seqs.note_unreadable(seq)
@@ -610,6 +704,8 @@ class Worker:
             return False
         id_ = make_result_id(fs.line, fs.station, fs.seq, fs.triggered_ns)
         if self._answered(id_, fs.seq, fs.triggered_ns, item.replayed):
+            return False
+        if self._came_late(fs.line, fs.station, fs.seq, fs.triggered_ns):
             return False
         if (fs.line, fs.station) == (self.line, self.station) and not self._owed(
             fs.seq, item.replayed
@@ -894,6 +990,7 @@ class ZenohWorker:
         metrics: Metrics | None = None,
         executor: Executor | None = None,
         alarms: Iterable[AlarmSink] = (),
+        fired_grace_s: float = FIRED_GRACE_S,
     ) -> None:
         self.id = bus.worker_id(station)
         self.session = session
@@ -923,6 +1020,7 @@ class ZenohWorker:
             metrics=metrics,
             cameras=[(c["name"], c["width"], c["height"]) for c in cals] or None,
             executor=executor,
+            fired_grace_s=fired_grace_s,
         )
         if metrics is not None:
             own = {"line": keys.line, "station": station}
@@ -938,11 +1036,26 @@ class ZenohWorker:
             lambda: self.worker.status(self.id, self._state),
             period_s=heartbeat_s,
         )
+        self.fired = bus.RingSubscriber(
+            session, keys.fired(station), self._on_fired, capacity=4, name="fired-rx"
+        )
         self.worker.start()
         self.heartbeat.publish()
 
+    def _on_fired(self, sample: zenoh.Sample) -> None:
+        try:
+            doc = json.loads(sample.payload.to_bytes())
+            next_seq, triggered_ns = doc["next_seq"], doc["triggered_ns"]
+            if not all(type(v) is int and v >= 0 for v in (next_seq, triggered_ns)):
+                raise ValueError("next_seq and triggered_ns must be whole numbers >= 0")
+        except (ValueError, KeyError, TypeError) as exc:
+            log.warning("ignored a trigger count on %s: %s", sample.key_expr, exc)
+            return
+        self.worker.note_fired(next_seq, triggered_ns)
+
     def close(self) -> None:
         """Stop receiving, finish the job in hand, say goodbye on the status key."""
+        self.fired.close()
         self.source.close()
         self.worker.stop()
         self._state = "stopping"

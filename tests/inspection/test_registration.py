@@ -273,18 +273,7 @@ def test_a_turn_out_of_the_holes_reach_is_found_by_the_escape(discs, deg, caplog
     "deg",
     [
         3.0,
-        pytest.param(
-            -3.0,
-            marks=pytest.mark.xfail(
-                strict=True,
-                reason="a defect of the escape, open: with today's dependencies (numpy 2.4, "
-                "scipy 1.17, embreex 4.4; the code that passed before fails too, trimesh 4 or "
-                "5 alike), turned -3 deg, the fit stops 2.5 deg off; "
-                "neither scanned line (about the centroid, or with the first-order shift, "
-                "even with the translation settled at each angle) has a minimum at the "
-                "plate's place, so the escape refits from 5-6 deg and lands 2.7 deg off",
-            ),
-        ),
+        -3.0,
     ],
 )
 def test_a_plate_turned_in_its_plane_about_a_corner_is_found_by_the_escape(shared, deg):

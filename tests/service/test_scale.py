@@ -208,9 +208,17 @@ def test_a_station_on_dask_answers_every_trigger_once_through_kills(
                 # next FrameSet shows the gap (on a loaded machine the shift may have passed
                 # SHIFT meanwhile).
                 assert frames.wait_seq(max(SHIFT - 1, frames.seq + 2), 300), line._stderr("ingest")
+                ingest = line.procs["ingest"]
                 line.stop("ingest")
                 last = line.fired() - 1
-                assert stream.wait_seq(last, 120), why(line, beats)
+                if not stream.wait_seq(last, 120):
+                    seen_seqs = {r.seq for r in stream.got}
+                    unanswered = sorted(set(range(last + 1)) - seen_seqs)
+                    pytest.fail(
+                        f"seqs fired but not answered: {unanswered} (last fired {last}, "
+                        f"last FrameSet seen {frames.seq})\n{why(line, beats)}\n"
+                        f"ingest log: {ingest.stderr.read()[-3000:]}"
+                    )
                 fetched = fetch_results(session, KEYS, STATION)
                 # Results finish out of seq order: some may still be in flight. Stopped,
                 # the dispatcher answers them before it exits.

@@ -672,3 +672,60 @@ def test_a_journal_entry_below_the_stores_last_seq_is_answered_not_refused(
         assert alarms.kinds() == ["seq_repeat"] and w.stats.duplicates == 1
         measured = [r.seq for r in store.station_results(LINE, STATION) if r.status != "error"]
         assert sorted(measured) == [0, 1, 2, 3]
+
+
+def test_the_trigger_sources_count_answers_what_no_later_frameset_shows():
+    from service.worker import SeqTracker
+
+    t = SeqTracker(max_jump=5)
+    assert t.fired(3, 300).missing == []  # nothing seen yet: counting starts with a FrameSet
+    assert t.check(0, 0).accepted
+    assert [m for m, _ in t.fired(3, 300).missing] == [1, 2, 3]
+    assert t.fired(3, 300).missing == [] and t.fired(2, 200).missing == []
+    refused = t.fired(10, 1000)  # 7 beyond the count: not expanded
+    assert not refused.accepted and refused.alarm[0].value == "seq_jump"
+    assert t.check(4, 400).missing == []  # the count went on from the word
+
+
+def test_frames_lost_after_the_last_one_are_answered_on_the_ingests_count(quick_part):
+    """The ingest's last two FrameSets never reach the bus: no later FrameSet shows the
+    gap, the ``fired`` count does. One of them coming late is not answered twice."""
+    from service.ingest import Ingest
+    from service.line import FiredCount
+
+    port = free_port()
+    keys = Keys(LINE)
+    got = Collect()
+    with bus.open_session(peer(port)) as wsess, bus.open_session(client(port)) as csess:
+        alarms = csess.declare_subscriber(keys.alarms(), bus.zenoh.handlers.FifoChannel(16))
+        zw = ZenohWorker(wsess, keys, STATION, pipeline(quick_part), queue_size=4, sinks=[got],
+                         missed_part=PART, fired_grace_s=0.5)  # fmt: skip
+        try:
+            pub = bus.frame_publisher(csess, keys.frames(STATION))
+            assert bus.wait_for_subscribers(pub, 10)
+            lost: list[bytes] = []
+            ingest = Ingest(
+                rig(QUICK, quick_part),
+                lambda b: pub.put(b) if ingest.seq < 3 else lost.append(b),
+                period_s=1.0,
+            )
+            fired = FiredCount(csess, keys.fired(STATION), ingest, period_s=0.2)
+            # A count no ingest could send is ignored, and the worker goes on.
+            bus.put_json(csess, keys.fired(STATION), '{"next_seq": -4, "triggered_ns": 1}')
+            for _ in range(5):
+                ingest.trigger()
+            fired.close()
+            assert got.wait(5, 30), [r.seq for r in got.results]
+            pub.put(lost[-1])  # seq 4, long after its grace
+            sample = alarms.handler.recv()
+            pub.undeclare()
+        finally:
+            zw.close()
+            alarms.undeclare()
+    assert [r.seq for r in got.results] == [0, 1, 2, 3, 4]
+    assert [r.status for r in got.results[3:]] == [Status.missed, Status.missed]
+    assert all("never arrived" in r.reason for r in got.results[3:])
+    assert got.results[2].triggered_ns < got.results[3].triggered_ns < got.results[4].triggered_ns
+    assert str(sample.key_expr) == keys.alarm(STATION)
+    assert b"came after its trigger was answered missed" in sample.payload.to_bytes()
+    assert zw.worker.stats.duplicates == 1
