@@ -14,8 +14,8 @@ synthetic wavelength are found and flagged rather than unwrapped wrongly.
   spectrum refocusing, speckle displacements with a peak quality;
 - :mod:`.lobecut`: each lobe's cut centred by the speckle displacements it leaves;
 - :mod:`.calibration`: both lobes and the phase difference from a plate;
-- :mod:`.gradient`: the unwrapped gradient field from speckle displacements
-  and the coarse pose (tilts, in-plane shift) it gives against the CAD;
+- :mod:`.gradient`: the unwrapped gradient field from speckle displacements,
+  and the coarse pose against the CAD (tilts from it, the shift from the steps);
 - :mod:`.unwrap`, :mod:`.shape`: the CAD-based unwrapping and the shape.
 """
 
@@ -24,7 +24,14 @@ from __future__ import annotations
 from .calibration import CalibrateParams, HoloCalibration, LobeCalibration, calibrate_head
 from .correlation import Displacement, correlate
 from .depth import DepthMap, depth_map
-from .gradient import CoarsePose, GradientField, align_to_cad, gradient_field
+from .gradient import (
+    CoarsePose,
+    GradientField,
+    align_to_cad,
+    coarse_pose,
+    gradient_field,
+    step_shift,
+)
 from .head import HoloHead, HoloNoise, ReferenceWave, describe
 from .lobecut import LobeCut, minimise_cut
 from .parts import Dent, dent_map, stepped_plate
@@ -55,6 +62,7 @@ __all__ = [
     "ShapeParams",
     "align_to_cad",
     "calibrate_head",
+    "coarse_pose",
     "correlate",
     "dent_map",
     "depth_map",
@@ -68,6 +76,7 @@ __all__ = [
     "propagate",
     "simulate_hologram",
     "spectrum",
+    "step_shift",
     "stepped_plate",
     "wrap",
 ]

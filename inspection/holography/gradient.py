@@ -17,21 +17,29 @@ of several phase intervals over the field is read as directly as a small one.
 
 **Alignment to the CAD.** The CAD at a pose predicts the gradient (its
 normals), averaged as the windows and the defocus average the measurement.
-The part's two tilts add a constant to the gradient; an in-plane shift moves
-the CAD's features (where its slope changes: a facet's rim), so the fit is
-Gauss-Newton on ``g - G_cad(x - s) - t`` with Tukey weights (the steps' rims,
-where a speckle sees both sides, and dents do not pull it), the CAD rendered
+The part's two tilts add a constant to it: robust least squares (Tukey
+weights, so the dents do not pull) on ``g - G_cad - t``, with windows that
+see a CAD step left out (there the phase difference jumps, and a speckle
+straddling the jump moves by nothing the slopes predict), the CAD rendered
 again at each update (ICP with the rendered CAD as the closest points).
 
-*Regularisation*: a Tikhonov penalty on the pose's change from the start
-(the prior: where the line put the part). The in-plane shift is observed
-only through the CAD's slope features, weakly on a part with few (on a flat
-part, not at all): without a prior its normal equations are near singular
-and the shift would wander with the noise; the penalty holds an unobserved
-direction at the start and is small against the data where the data tell.
-A smoothness regularisation of integrating the gradients into heights would
-not help here: a height offset is the one thing gradients do not carry, and
-the CAD already supplies the shape between the windows.
+**The in-plane shift** is not in the gradients of this part (its slope
+changes only at its steps and at a facet's foot by the field's border, and
+fitted there it is biased by a few tenths of a millimetre), but the steps
+themselves are seen: the two lasers' speckles straddling a step differ by the
+step's phase, so the phase difference's coherence drops along it. The shift
+is where the measured incoherence correlates best with the CAD's step map
+(:func:`step_shift`).
+
+*Regularisation*: a Tikhonov penalty on the tilts' change from the start
+(the prior: where the line put the part), and the shift's search bounded to
+three of its prior sigmas. The tilts are observed by every window that lies
+on the part away from a step; on a part that is mostly steps few are left,
+the normal equations lose rank and the penalty keeps the start instead. The
+bound keeps a CAD whose steps repeat from sending the part a period away. A
+smoothness regularisation of integrating the gradients into heights would
+not help: a height offset is the one thing gradients do not carry, and the
+CAD already supplies the shape between the windows.
 
 The height is not fitted: the gradient field does not see it, nor does
 anything else in an image-plane hologram of a diffuse surface under normal
@@ -56,6 +64,7 @@ from ..errors import InvalidInput
 from .calibration import HoloCalibration
 from .correlation import correlate
 from .depth import depth_map
+from .head import HoloHead
 from .propagate import propagate
 
 log = logging.getLogger(__name__)
@@ -89,9 +98,10 @@ class GradientField:
 
 @dataclass(frozen=True)
 class CoarsePose:
-    """The pose from the gradient field: the fitted pose, the tilts (slopes) and the
-    in-plane shift (mm) it found from the start, why it stopped, and on how many
-    windows."""
+    """The coarse pose: the fitted pose, the tilts (slopes added, dz/dx and dz/dy) and
+    the in-plane shift (mm, from the steps) it found from the start, whether the tilts'
+    fit converged in how many CAD renderings, on how many windows, and their slope
+    residual's RMS."""
 
     T_head_part: Transform
     slope: tuple[float, float]
@@ -160,12 +170,10 @@ def align_to_cad(
     T_head_part: Transform,
     *,
     sigma_slope: float = 0.1,
-    sigma_shift_mm: float = 0.5,
     iterations: int = 6,
     edge_jump_mm: float = 0.02,
-    fit_shift: bool = True,
-) -> CoarsePose:
-    """Fit the part's two tilts and in-plane shift to the gradient field.
+) -> tuple[Transform, tuple[float, float], int, bool, int, float]:
+    """Fit the part's two tilts to the gradient field.
 
     Parameters
     ----------
@@ -173,25 +181,27 @@ def align_to_cad(
     calib : HoloCalibration (its head)
     mesh : the CAD, part frame, mm
     T_head_part : (4, 4) float64, the start
-    sigma_slope, sigma_shift_mm : float
-        The prior's spread: how far the start may be off in slope (dz/dx) and in
-        shift (mm). The Tikhonov penalty is the change over these, squared.
+    sigma_slope : float
+        The prior's spread: how far the start may be off in slope (dz/dx); the
+        Tikhonov penalty is the change over it, squared.
     iterations : int
         CAD renderings at most.
     edge_jump_mm : float
         Height change between neighbouring CAD pixels that makes a step.
-    fit_shift : bool
-        Fit the in-plane shift too (else the tilts alone).
+
+    Returns
+    -------
+    T_head_part, (slope_x, slope_y) added, iterations, converged, windows used,
+    the slope residual's RMS.
     """
     head = calib.head
     g = gradients
-    if not (sigma_slope > 0 and sigma_shift_mm > 0 and iterations >= 1):
-        raise InvalidInput("sigma_slope and sigma_shift_mm must be > 0, iterations >= 1")
+    if not (sigma_slope > 0 and iterations >= 1):
+        raise InvalidInput("sigma_slope must be > 0, iterations >= 1")
     T = np.array(T_head_part, dtype=np.float64)
     coords = np.stack([g.rows, g.cols])
-    prior = np.diag([1 / sigma_slope**2] * 2 + [1 / sigma_shift_mm**2] * 2)
-    total = np.zeros(4)  # slope_x, slope_y, shift_x, shift_y from the start
-    free = [0, 1, 2, 3] if fit_shift else [0, 1]
+    prior = np.eye(2) / sigma_slope**2
+    total = np.zeros(2)
     converged = False
     used = 0
     rms = math.nan
@@ -202,16 +212,11 @@ def align_to_cad(
         nz = np.where(depth.hit, depth.normals[..., 2], 1.0)
         grads = [np.where(depth.hit, -depth.normals[..., k] / nz, 0.0) for k in (0, 1)]
         cover = gaussian_filter(hit, g.sigma_px)
-        smooth = [gaussian_filter(v, g.sigma_px) / np.maximum(cover, 1e-9) for v in grads]
-        at = [map_coordinates(v, coords, order=1, mode="nearest") for v in smooth]
-        # d G / d(x, y) in 1/mm: the CAD's slope features, what tells the shift.
-        jac = [
-            [
-                map_coordinates(d, coords, order=1, mode="nearest") / head.pitch_mm
-                for d in np.gradient(v)[::-1]  # (d/dx, d/dy)
-            ]
-            for v in smooth
-        ]
+        at = [
+            map_coordinates(gaussian_filter(v, g.sigma_px) / np.maximum(cover, 1e-9), coords,
+                            order=1, mode="nearest")
+            for v in grads
+        ]  # fmt: skip
         inside = map_coordinates(cover, coords, order=1, mode="nearest") > 0.95
         # Across a CAD step the phase difference jumps: a speckle straddling it moves
         # by nothing the slopes predict. Windows that see a step are left out.
@@ -221,41 +226,133 @@ def align_to_cad(
         used = int(use.sum())
         if used < 8:
             raise InvalidInput(f"only {used} gradient windows lie on the part: cannot align")
-        m = used
         r = np.concatenate([g.gx[use] - at[0][use], g.gy[use] - at[1][use]])
-        J = np.zeros((2 * m, 4))
-        J[:m, 0] = 1.0
-        J[m:, 1] = 1.0
-        for k in (0, 1):  # shift s moves the CAD's slope map: G(x - s) = G - dG/dx s
-            J[:m, 2 + k] = -jac[0][k][use]
-            J[m:, 2 + k] = -jac[1][k][use]
-        # Robust scale of the slope noise, then Tukey weights (IRLS).
+        J = np.zeros((2 * used, 2))
+        J[:used, 0] = 1.0
+        J[used:, 1] = 1.0
+        # Robust scale of the slope noise, then Tukey weights (IRLS); the prior enters
+        # the normal equations as the Tikhonov term.
         w = np.ones_like(r)
-        step = np.zeros(4)
+        step = np.zeros(2)
         for _ in range(5):
             res = r - J @ step
             scale = max(1.4826 * float(np.median(np.abs(res - np.median(res)))), 1e-4)
             u = res / (4.685 * scale)
             w = np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0)
             Jw = J * w[:, None]
-            A = Jw.T @ J / scale**2 + prior
-            step = np.zeros(4)
-            step[free] = np.linalg.solve(
-                A[np.ix_(free, free)], (Jw.T @ r / scale**2 - prior @ total)[free]
-            )
+            step = np.linalg.solve(Jw.T @ J / scale**2 + prior, Jw.T @ r / scale**2 - prior @ total)
         res = r - J @ step
         rms = float(np.sqrt(np.average(res**2, weights=np.maximum(w, 1e-12))))
         total += step
-        log.debug("coarse pose iteration %d: step %s, rms %.4f", it, step, rms)
-        T = _update(step) @ T
-        if np.max(np.abs(step[:2])) < 1e-4 and np.max(np.abs(step[2:])) < 0.01:
+        log.debug("coarse tilt iteration %d: step %s, rms %.4f", it, step, rms)
+        T = _update(np.array([step[0], step[1], 0.0, 0.0])) @ T
+        if np.max(np.abs(step)) < 1e-4:
             converged = True
             break
-    log.debug("coarse pose: slope %s, shift %s mm, %d windows", total[:2], total[2:], used)
+    return T, (float(total[0]), float(total[1])), it, converged, used, rms
+
+
+def step_shift(
+    calib: HoloCalibration,
+    image: npt.ArrayLike,
+    mesh: object,
+    T_head_part: Transform,
+    *,
+    sigma_shift_mm: float = 0.5,
+    smooth_speckles: float = 0.5,
+    edge_jump_mm: float = 0.02,
+) -> tuple[float, float] | None:
+    """The part's in-plane shift (x, y mm, head frame) from where its steps are, or
+    None when the CAD has no step in the field.
+
+    A speckle straddling a step sees both sides, whose phase differences differ by
+    the step's ``4 pi h / L``: the phase difference's coherence (its complex mean
+    over ``smooth_speckles`` against the mean of its modulus) drops along every step
+    not a whole number of intervals high. The CAD at the pose predicts the steps
+    and how much each lowers the coherence;
+    the shift is the peak of the cross-correlation of the measured incoherence with
+    the predicted step map, blurred alike, refined by a parabola. The search is
+    limited to three ``sigma_shift_mm`` (the prior: where the line put the part), so
+    that a CAD whose steps repeat cannot send the part a period away.
+    """
+    head = calib.head
+    if not sigma_shift_mm > 0:
+        raise InvalidInput("sigma_shift_mm must be > 0")
+    sigma = smooth_speckles * head.speckle_mm / head.pitch_mm
+    gamma = calib.difference(image)
+    mean = gaussian_filter(gamma.real, sigma) + 1j * gaussian_filter(gamma.imag, sigma)
+    incoherence = 1.0 - np.abs(mean) / np.maximum(gaussian_filter(np.abs(gamma), sigma), 1e-300)
+    depth = depth_map(head, mesh, T_head_part)
+    template = gaussian_filter(_step_weights(depth.height_mm, edge_jump_mm, head), sigma)
+    if template.std() < 1e-6 or not depth.hit.any():
+        return None
+    # A slope lowers the coherence a little all over (its phase varies within the
+    # average): a facet beside a step would pull the step towards itself. The local
+    # background, over a few times the average, is taken off both maps.
+    incoherence = incoherence - gaussian_filter(incoherence, 3.0 * sigma, mode="wrap")
+    template = template - gaussian_filter(template, 3.0 * sigma, mode="wrap")
+    n = head.pixels
+    corr = np.fft.irfft2(
+        np.fft.rfft2(incoherence) * np.conj(np.fft.rfft2(template)),
+        s=(n, n),
+    )
+    corr = np.fft.fftshift(corr)  # zero shift at (n/2, n/2)
+    f = np.arange(n, dtype=np.float64) - n // 2
+    reach = 3.0 * sigma_shift_mm / head.pitch_mm
+    corr = np.where(f[:, None] ** 2 + f[None, :] ** 2 <= reach**2, corr, -np.inf)
+    i, j = np.unravel_index(int(np.argmax(corr)), corr.shape)
+
+    def vertex(cm: float, c0: float, cp: float) -> float:
+        den = cm - 2.0 * c0 + cp
+        return 0.0 if not np.isfinite(den) or den >= 0 else 0.5 * (cm - cp) / den
+
+    di = vertex(corr[i - 1, j], corr[i, j], corr[(i + 1) % n, j])
+    dj = vertex(corr[i, j - 1], corr[i, j], corr[i, (j + 1) % n])
+    return (float(f[j] + dj) * head.pitch_mm, float(f[i] + di) * head.pitch_mm)
+
+
+def _step_weights(height: F64, jump_mm: float, head: HoloHead) -> F64:
+    """Per pixel, how much a step beside it lowers the coherence: two equal halves of a
+    speckle whose phase differences differ by ``d = 4 pi h / L`` average to
+    ``|cos(d / 2)|``, so a step weighs ``1 - |cos(2 pi h / L)|`` (nothing for a step of
+    whole intervals); the part's outline weighs 1."""
+    out = np.zeros(height.shape)
+    for axis in (0, 1):
+        d = np.abs(np.diff(height, axis=axis))
+        w = np.where(np.isfinite(d), 1.0 - np.abs(np.cos(2.0 * np.pi * d / head.synthetic_mm)), 1.0)
+        w = np.where(np.isfinite(d) & (d <= jump_mm), 0.0, w)
+        lo = [slice(None)] * 2
+        hi = [slice(None)] * 2
+        lo[axis] = slice(None, -1)
+        hi[axis] = slice(1, None)
+        out[tuple(lo)] = np.maximum(out[tuple(lo)], w)
+        out[tuple(hi)] = np.maximum(out[tuple(hi)], w)
+    return np.where(np.isfinite(height), out, 0.0)
+
+
+def coarse_pose(
+    calib: HoloCalibration,
+    image: npt.ArrayLike,
+    mesh: object,
+    T_head_part: Transform,
+    *,
+    shift: bool = True,
+    edge_jump_mm: float = 0.02,
+) -> CoarsePose:
+    """The pose's in-plane shift from the steps (:func:`step_shift`, if ``shift``), then
+    its tilts from the gradient field (:func:`gradient_field`, :func:`align_to_cad`)."""
+    T = np.array(T_head_part, dtype=np.float64)
+    moved = step_shift(calib, image, mesh, T, edge_jump_mm=edge_jump_mm) if shift else None
+    if moved is not None:
+        T = _update(np.array([0.0, 0.0, *moved])) @ T
+    T, slope, it, converged, used, rms = align_to_cad(
+        gradient_field(calib, image), calib, mesh, T, edge_jump_mm=edge_jump_mm
+    )
+    log.debug("coarse pose: shift %s mm, slope %s, %d windows", moved, slope, used)
     return CoarsePose(
         T_head_part=T,
-        slope=(float(total[0]), float(total[1])),
-        shift_mm=(float(total[2]), float(total[3])),
+        slope=slope,
+        shift_mm=moved or (0.0, 0.0),
         iterations=it,
         converged=converged,
         windows=used,

@@ -10,9 +10,9 @@
    or so (amplitude-weighted complex mean) without mixing the two sides of a
    step. Pixels next to the CAD's edges (where a speckle sees both sides) and
    of low coherence are left out.
-3. **The pose, iterated**: optionally first the tilts (and the in-plane
-   shift) from the unwrapped gradient field of the speckle displacements
-   (:mod:`.gradient`); then the part's out-of-plane pose (height and two
+3. **The pose, iterated**: optionally first the in-plane shift from the
+   steps and the tilts from the unwrapped gradient field of the speckle
+   displacements (:mod:`.gradient`); then the part's out-of-plane pose (height and two
    tilts) is fitted to the deviation's phase by robust least squares (Tukey
    weights, so dents do not pull it), the prediction redone, until the update
    stops moving; then the CAD is rendered again at the fitted pose.
@@ -39,7 +39,7 @@ from ..arrays import Transform
 from ..errors import InvalidInput
 from .calibration import HoloCalibration
 from .depth import depth_map
-from .gradient import CoarsePose, align_to_cad, gradient_field
+from .gradient import CoarsePose, coarse_pose
 from .unwrap import Orders, orders
 
 log = logging.getLogger(__name__)
@@ -71,9 +71,9 @@ class ShapeParams:
     (:mod:`.gradient`): the phase-based pose alone fails from a start tilted by more than
     about two degrees. Off by default: a start from the line's registration is far
     closer, and the gradient field costs more than the rest of the measurement."""
-    coarse_shift: bool = False
-    """With ``coarse_pose``, fit the in-plane shift too (observed only where the CAD's
-    slope changes away from its steps)."""
+    coarse_shift: bool = True
+    """With ``coarse_pose``, find the in-plane shift first, from where the CAD's steps
+    lower the phase difference's coherence."""
 
     def __post_init__(self) -> None:
         for name in ("smooth_speckles", "edge_jump_mm", "tukey_mm", "pose_tolerance_um"):
@@ -178,13 +178,8 @@ def measure_shape(
     T = np.array(T_head_part, dtype=np.float64)
     coarse = None
     if params.coarse_pose:
-        coarse = align_to_cad(
-            gradient_field(calib, image),
-            calib,
-            mesh,
-            T,
-            edge_jump_mm=params.edge_jump_mm,
-            fit_shift=params.coarse_shift,
+        coarse = coarse_pose(
+            calib, image, mesh, T, shift=params.coarse_shift, edge_jump_mm=params.edge_jump_mm
         )
         T = coarse.T_head_part
         timings["coarse_ms"] = (time.perf_counter() - t1) * 1e3
