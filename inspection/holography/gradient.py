@@ -119,12 +119,16 @@ def gradient_field(
     planes_mm: tuple[float, ...] = (-1000.0, 1000.0),
     window: int | None = None,
     min_peak: float = 0.5,
+    passes: int = 1,
 ) -> GradientField:
     """The gradient field of the surface in ``image`` from the displacements between
     the two lasers' speckles in the planes ``planes_mm`` (at least two distinct).
 
     Far planes give large displacements but average the slope over a wider disc
-    (``NA dz``); a thousand millimetres is a few speckles at this head's NA.
+    (``NA dz``); a thousand millimetres is a few speckles at this head's NA. One
+    refinement pass of the correlation (``passes``) is enough for a coarse pose: the
+    whole-pixel pull of the later ones' subject is a small fraction of a pixel here,
+    a slope of a few 1e-4.
     """
     head = calib.head
     dz = np.asarray(planes_mm, dtype=np.float64)
@@ -143,7 +147,7 @@ def gradient_field(
     for d in dz:
         a = np.abs(propagate(o1, float(d), l1, head.pitch_mm)) ** 2
         b = np.abs(propagate(o2, float(d), l2, head.pitch_mm)) ** 2
-        disp = correlate(a, b, window=window)
+        disp = correlate(a, b, window=window, passes=passes)
         dxs.append(disp.dx)
         dys.append(disp.dy)
         good = disp.good(min_peak=min_peak)
@@ -208,21 +212,17 @@ def align_to_cad(
     it = 0
     for it in range(1, iterations + 1):  # noqa: B007
         depth = depth_map(head, mesh, T)
-        hit = depth.hit.astype(np.float64)
         nz = np.where(depth.hit, depth.normals[..., 2], 1.0)
-        grads = [np.where(depth.hit, -depth.normals[..., k] / nz, 0.0) for k in (0, 1)]
-        cover = gaussian_filter(hit, g.sigma_px)
+        cover = _blur_at(depth.hit.astype(np.float64), g.sigma_px, coords)
         at = [
-            map_coordinates(gaussian_filter(v, g.sigma_px) / np.maximum(cover, 1e-9), coords,
-                            order=1, mode="nearest")
-            for v in grads
-        ]  # fmt: skip
-        inside = map_coordinates(cover, coords, order=1, mode="nearest") > 0.95
+            _blur_at(np.where(depth.hit, -depth.normals[..., k] / nz, 0.0), g.sigma_px, coords)
+            / np.maximum(cover, 1e-9)
+            for k in (0, 1)
+        ]
         # Across a CAD step the phase difference jumps: a speckle straddling it moves
         # by nothing the slopes predict. Windows that see a step are left out.
-        steps = gaussian_filter(depth.edges(edge_jump_mm, 0).astype(np.float64), g.sigma_px)
-        clear = map_coordinates(steps, coords, order=1, mode="nearest") < 1e-3
-        use = g.good & inside & clear
+        steps = _blur_at(depth.edges(edge_jump_mm, 0).astype(np.float64), g.sigma_px, coords)
+        use = g.good & (cover > 0.95) & (steps < 1e-3)
         used = int(use.sum())
         if used < 8:
             raise InvalidInput(f"only {used} gradient windows lie on the part: cannot align")
@@ -250,6 +250,18 @@ def align_to_cad(
             converged = True
             break
     return T, (float(total[0]), float(total[1])), it, converged, used, rms
+
+
+def _blur_at(image: F64, sigma: float, coords: F64) -> F64:
+    """``image`` averaged by a Gaussian of ``sigma`` px, at the points ``coords`` (2, m)
+    (rows, columns). The average is smooth on the scale of sigma: block means of a third
+    of it first (their own spread, a ninth of sigma squared over 12, is negligible)
+    make the filter cheap."""
+    k = max(1, int(sigma / 3.0))
+    n0, n1 = (d // k * k for d in image.shape)
+    blocks = image[:n0, :n1].reshape(n0 // k, k, n1 // k, k).mean(axis=(1, 3))
+    smooth = gaussian_filter(blocks, sigma / k)
+    return map_coordinates(smooth, (coords - (k - 1) / 2.0) / k, order=1, mode="nearest")
 
 
 def step_shift(
