@@ -1,7 +1,9 @@
 """Calibration of the holographic head from one hologram of a reference plate.
 
 1. **The lobes** are found in the plate hologram's spectrum
-   (:func:`~inspection.holography.spectrum.find_lobes`).
+   (:func:`~inspection.holography.spectrum.find_lobes`), and each cut is then
+   centred where its reconstruction's speckles do not move on refocusing
+   (:func:`~inspection.holography.lobecut.minimise_cut`).
 2. **Each lobe's reference wave** (tilt and quadratic phase): the lobe's
    field ``O W*`` carries the wave's phase, whose local gradient is the local
    spatial frequency; propagated from ``-dz`` to ``+dz``, a speckle pattern
@@ -45,6 +47,7 @@ from scipy.optimize import minimize
 from ..errors import CalibrationError, InvalidInput
 from .correlation import Displacement, correlate
 from .head import ASTIGMATISM_HALF_MM, HoloHead, ReferenceWave
+from .lobecut import minimise_cut
 from .propagate import propagate
 from .spectrum import Field, Lobe, find_lobes, lobe_field, spectrum
 
@@ -297,6 +300,10 @@ class CalibrateParams:
     astigmatism: bool = True
     """Fit each wave's curvature along x, y and the diagonals apart (any quadratic phase);
     off: one curvature for both axes (a spherical wave)."""
+    minimise_cut: bool = True
+    """Centre each lobe's cut where its speckles do not move on refocusing
+    (:func:`~inspection.holography.lobecut.minimise_cut`), starting from the spectrum's
+    peak; off: the peak's cut (:func:`~inspection.holography.spectrum.find_lobes`)."""
 
 
 def calibrate_head(
@@ -320,6 +327,18 @@ def calibrate_head(
     if not math.isfinite(plate_height_mm):
         raise InvalidInput("plate_height_mm must be finite")
     lobes = find_lobes(head, image)
+    moved = ""
+    if params.minimise_cut:
+        cut = minimise_cut(head, image, lobes, window=params.window, min_peak=params.min_peak)
+        moved = (
+            ", lobe cut moved "
+            + " / ".join(
+                f"{math.hypot(a.row - b.row, a.col - b.col):.2f}"
+                for a, b in zip(cut.lobes, cut.start, strict=True)
+            )
+            + " bins from the spectrum's peak by its speckle displacements"
+        )
+        lobes = cut.lobes
     spec = spectrum(image)
     x, y = head.grid()
     cals = []
@@ -343,7 +362,7 @@ def calibrate_head(
         residual=residual,
         source=(
             f"flat plate at z = {plate_height_mm:g} mm, planes +-{params.dz_mm:g} mm, "
-            f"phase coherence {residual.coherence:.3f}"
+            f"phase coherence {residual.coherence:.3f}{moved}"
         ),
     )
 

@@ -10,7 +10,9 @@
    or so (amplitude-weighted complex mean) without mixing the two sides of a
    step. Pixels next to the CAD's edges (where a speckle sees both sides) and
    of low coherence are left out.
-3. **The pose, iterated**: the part's out-of-plane pose (height and two
+3. **The pose, iterated**: optionally first the in-plane shift from the
+   steps and the tilts from the unwrapped gradient field of the speckle
+   displacements (:mod:`.gradient`); then the part's out-of-plane pose (height and two
    tilts) is fitted to the deviation's phase by robust least squares (Tukey
    weights, so dents do not pull it), the prediction redone, until the update
    stops moving; then the CAD is rendered again at the fitted pose.
@@ -37,6 +39,7 @@ from ..arrays import Transform
 from ..errors import InvalidInput
 from .calibration import HoloCalibration
 from .depth import depth_map
+from .gradient import CoarsePose, coarse_pose
 from .unwrap import Orders, orders
 
 log = logging.getLogger(__name__)
@@ -63,6 +66,14 @@ class ShapeParams:
     pose_tolerance_um: float = 0.05
     tukey_mm: float = 0.02
     """Tukey's constant of the pose fit: deviations beyond it do not pull the pose."""
+    coarse_pose: bool = False
+    """First align the pose's tilts to the gradient field from the speckle displacements
+    (:mod:`.gradient`): the phase-based pose alone fails from a start tilted by more than
+    about two degrees. Off by default: a start from the line's registration is far
+    closer, and the gradient field costs more than the rest of the measurement."""
+    coarse_shift: bool = True
+    """With ``coarse_pose``, find the in-plane shift first, from where the CAD's steps
+    lower the phase difference's coherence."""
 
     def __post_init__(self) -> None:
         for name in ("smooth_speckles", "edge_jump_mm", "tukey_mm", "pose_tolerance_um"):
@@ -126,6 +137,8 @@ class HoloShape:
     """The largest deviation the CAD-based unwrapping tells: a quarter of the
     synthetic wavelength."""
     timings_ms: dict[str, float] = field(default_factory=dict)
+    coarse: CoarsePose | None = None
+    """The pose from the gradient field, when ``ShapeParams.coarse_pose`` asked for it."""
 
 
 def measure_shape(
@@ -161,8 +174,15 @@ def measure_shape(
     t1 = time.perf_counter()
     timings["phase_ms"] = (t1 - t0) * 1e3
 
-    # 2-3. Against the CAD, the pose iterated.
+    # 2-3. Against the CAD, the pose iterated; the tilts first from the gradient field.
     T = np.array(T_head_part, dtype=np.float64)
+    coarse = None
+    if params.coarse_pose:
+        coarse = coarse_pose(
+            calib, image, mesh, T, shift=params.coarse_shift, edge_jump_mm=params.edge_jump_mm
+        )
+        T = coarse.T_head_part
+        timings["coarse_ms"] = (time.perf_counter() - t1) * 1e3
     depth = depth_map(head, mesh, T)
     x, y = head.grid()
     band = max(1, int(round(params.edge_band_speckles * speckle_px)))
@@ -192,7 +212,7 @@ def measure_shape(
     residual, coherence = _residual(gamma, norm, depth.height_mm, scale, sigma)
     usable = ~depth.edges(params.edge_jump_mm, band) & (coherence >= params.min_coherence)
     t2 = time.perf_counter()
-    timings["unwrap_ms"] = (t2 - t1) * 1e3
+    timings["unwrap_ms"] = (t2 - t1) * 1e3 - timings.get("coarse_ms", 0.0)
 
     # 4. Orders: what lies beyond a quarter of the synthetic wavelength.
     o = orders(residual, usable, min_region_px=min_region)
@@ -225,6 +245,7 @@ def measure_shape(
         calibration_id=calib.id,
         timings_ms=timings,
         limit_mm=head.synthetic_mm / 4.0,
+        coarse=coarse,
     )
     return shape
 

@@ -489,3 +489,119 @@ def test_a_dent_between_the_points_is_found_on_a_grid_as_fine_as_the_field(
     assert len(dents) == 1 and m.verdict is Verdict.FAIL and "dent" in m.reason
     assert np.hypot(dents[0].center_mm[0] - 5.0, dents[0].center_mm[1] + 4.0) < 1.0
     assert -0.17 < dents[0].peak_mm < -0.1
+
+
+# -- the gradient field and the coarse pose ------------------------------------------
+
+# Tilted by 4 and 2.3 degrees: the field's corner (-9, 9) mm lies 1.07 mm off the start,
+# the part's slope is two phase intervals over the field.
+T_TILTED = _pose_update(np.array([0.08, -0.07, 0.04]))
+
+
+@pytest.fixture(scope="module")
+def tilted(head, injected, part):
+    return simulate_hologram(
+        head, part, T_TILTED, deviation_mm=dent_map(head, SHALLOW), references=injected, seed=7
+    )
+
+
+def test_the_gradient_field_reads_a_tilt_of_several_intervals_unwrapped(calib, tilted):
+    from inspection.holography import gradient_field
+
+    image, truth = tilted
+    g = gradient_field(calib, image)
+    n = truth.normals
+    true_gx = (-n[..., 0] / n[..., 2])[np.rint(g.rows).astype(int), np.rint(g.cols).astype(int)]
+    plate = g.good & (np.abs(true_gx + 0.07) < 1e-3)  # windows on the tilted plate
+    assert plate.sum() > 20
+    assert np.median(g.gx[plate]) == pytest.approx(-0.07, abs=0.005)
+    assert np.median(g.gy[plate]) == pytest.approx(0.04, abs=0.005)
+    with pytest.raises(InvalidInput, match="planes"):
+        gradient_field(calib, image, planes_mm=(100.0, 100.0))
+
+
+def test_a_start_tilted_beyond_the_phase_range_is_found_only_with_the_coarse_pose(
+    calib, part, tilted
+):
+    from inspection.holography import ShapeParams
+
+    image, truth = tilted
+    corners = np.array([[-9.0, -9.0, 0.0], [9.0, -9.0, 0.0], [-9.0, 9.0, 0.0], [9.0, 9.0, 0.0]])
+    true = corners @ T_TILTED[:3, :3].T + T_TILTED[:3, 3]
+    assert np.max(np.abs(true[:, 2])) > 1.0  # the start (identity) is > 1 mm off there
+    wrong = {}
+    for coarse in (False, True):
+        shape = measure_shape(calib, image, part, np.eye(4), ShapeParams(coarse_pose=coarse))
+        err = np.abs(shape.height_mm - truth.height_mm)[shape.measured]
+        wrong[coarse] = float(np.mean(err > 0.1))
+        if coarse:
+            assert shape.coarse is not None and shape.coarse.converged
+            assert shape.coarse.slope == pytest.approx((-0.07, 0.04), abs=0.005)
+            fitted = corners @ shape.T_head_part[:3, :3].T + shape.T_head_part[:3, 3]
+            assert np.max(np.abs(fitted[:, 2] - true[:, 2])) < 0.01
+            assert np.sqrt(np.mean(err**2)) < 0.020
+        else:
+            assert shape.coarse is None
+    assert wrong[True] == 0.0 and wrong[False] > 0.3, wrong
+
+
+def test_a_start_whole_intervals_off_in_height_is_measured_in_the_wrong_order(calib, part, shallow):
+    """The height's order is in no part of the hologram: lifted by two phase intervals
+    the part gives the same phase difference and the same gradients, so the shape
+    comes out exactly two intervals off, flagged nowhere."""
+    from inspection.holography import ShapeParams
+
+    image, truth, _ = shallow
+    start = _pose_update(np.array([-1.1, 0.0, 0.0]))
+    shape = measure_shape(calib, image, part, start, ShapeParams(coarse_pose=True))
+    err = (shape.height_mm - truth.height_mm)[shape.measured]
+    assert shape.pose_converged and not shape.flagged.any()
+    assert np.median(err) == pytest.approx(-1.1, abs=0.005)
+    assert np.sqrt(np.mean((err - np.median(err)) ** 2)) < 0.020
+
+
+def test_the_in_plane_shift_is_found_where_the_steps_lower_the_coherence(
+    head, injected, part, calib, flat_plate
+):
+    from inspection.holography import step_shift
+
+    moved = np.eye(4)
+    moved[:2, 3] = (0.5, -0.4)
+    image, _ = simulate_hologram(head, part, moved @ T_TRUE, references=injected, seed=8)
+    found = step_shift(calib, image, part, np.eye(4))
+    assert found is not None
+    # Along x the pad's and the facet's steps tell; along y only the facet's side, a
+    # step rising from 0 to 0.4 mm, seen through 0.8 mm speckles at this pixel count.
+    assert found[0] == pytest.approx(0.5, abs=0.1)
+    assert found[1] == pytest.approx(-0.4, abs=0.2)
+    # Where the CAD has no step, nothing tells the shift: none is made up.
+    plate, _ = simulate_hologram(head, flat_plate, np.eye(4), references=injected, seed=8)
+    assert step_shift(calib, plate, flat_plate, np.eye(4)) is None
+
+
+# -- the lobe cut ----------------------------------------------------------------------
+
+
+def test_the_lobe_cut_follows_a_lobe_the_spectrum_peak_misses(head, injected, flat_plate):
+    """Laser 2's reference wave 1.06 mrad off the design (30 bins): the peak's search
+    window clips its lobe; the cut centred by the speckle displacements does not."""
+    from inspection.holography import minimise_cut
+
+    l2 = head.wavelengths_mm[1]
+    knocked = replace(injected[1], tilt_x_mrad=injected[1].tilt_x_mrad + 30 / 18.0 * l2 * 1e3)
+    waves = (injected[0], knocked)
+    image, _ = simulate_hologram(head, flat_plate, np.eye(4), references=waves, seed=1)
+    carriers = [
+        (-w.tilt_y_mrad * 1e-3 / lam * 18.0, -w.tilt_x_mrad * 1e-3 / lam * 18.0)
+        for w, lam in zip(waves, head.wavelengths_mm, strict=True)
+    ]
+    cut = minimise_cut(head, image)
+    assert cut.converged
+    off_peak = math.dist((cut.start[1].row, cut.start[1].col), carriers[1])
+    off_cut = [math.dist((lb.row, lb.col), c) for lb, c in zip(cut.lobes, carriers, strict=True)]
+    assert off_peak > 2.0 and max(off_cut) < 0.5, (off_peak, off_cut)
+    assert cut.between_px < 0.5 * cut.start_between_px
+    peak = calibrate_head(head, image, params=CalibrateParams(minimise_cut=False))
+    ours = calibrate_head(head, image)
+    assert ours.lobes[1].lobe == cut.lobes[1]
+    assert ours.residual.coherence > peak.residual.coherence + 0.005
