@@ -17,8 +17,12 @@ line, embossing), in one run:
 Times are medians over repeats after a warm-up; the near queries of all
 methods are timed in interleaved rounds, so that load from elsewhere hits
 them alike, and the median of the rounds' own cKDTree / GridTree ratios is
-printed too. Ratios are peer time / grid time; the line starting ``RATIO``
-gives the headline one (against cKDTree).
+printed too. Ratios are peer time / grid time; the first line starting
+``RATIO`` gives the headline one (against cKDTree, both on every core), the
+second the same pair with one thread each (numba's threads set to 1,
+``workers=1``): on a shared machine a parallel launch of a few milliseconds
+waits for a core held elsewhere far longer than one of a second does, so the
+one-thread pair is the one that compares the searches alike under load.
 Exit status 1 when, and only when, an accuracy check fails: speed and build
 times are printed beside their goals, never asserted, as they depend on the
 machine's load.
@@ -49,6 +53,8 @@ N_SAMPLES = 1_000_000
 # times per round, each peer once).
 ROUNDS = 9
 GRID_PER_ROUND = 3
+# The near queries' speed against cKDTree in the same run.
+RATIO_GOAL = 100.0
 SHARED_COUNTER = Path(__file__).resolve().parents[1].parent / "shared/data/cad/counter.unitsmm.STL"
 
 
@@ -123,6 +129,37 @@ def _errors(q: np.ndarray, got: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray
     return d_err, np.linalg.norm(got - ref, axis=1)
 
 
+def _single_threaded(tree, kd, near: np.ndarray) -> dict[str, list[float]]:  # type: ignore[no-untyped-def]
+    """Wall times of the near queries with one thread each: GridTree with one
+    numba thread, cKDTree with ``workers=1``, in interleaved rounds.
+
+    On a shared machine a parallel launch waits for a second core that other
+    work holds: a query of a few milliseconds can wait longer than it runs,
+    while a query of a second hardly notices. One thread each compares the
+    two searches, not the scheduler."""
+    import numba
+
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        runs: dict[str, Callable[[], object]] = {
+            "grid": lambda: tree.query(near),
+            "kd": lambda: kd.query(near, workers=1),
+        }
+        out: dict[str, list[float]] = {name: [] for name in runs}
+        for fn in runs.values():
+            fn()
+        for _ in range(ROUNDS):
+            for name, fn in runs.items():
+                for _ in range(GRID_PER_ROUND if name == "grid" else 1):
+                    start = time.perf_counter()
+                    fn()
+                    out[name].append(time.perf_counter() - start)
+    finally:
+        numba.set_num_threads(threads)
+    return out
+
+
 def main() -> int:
     from scipy.spatial import cKDTree
 
@@ -194,14 +231,17 @@ def main() -> int:
     # that a burst of load from elsewhere hits every method alike; each
     # round's own ratio to GridTree is kept too (paired ratios).
     near_times: dict[str, list[float]] = {name: [] for name, _ in methods}
+    near_cpu: dict[str, list[float]] = {name: [] for name, _ in methods}
     for _, fn in methods:
         fn(near)  # warm-up
     for _ in range(ROUNDS):
         for name, fn in methods:
             for _ in range(GRID_PER_ROUND if name.startswith("GridTree") else 1):
-                start = time.perf_counter()
+                start, cpu = time.perf_counter(), time.process_time()
                 fn(near)
                 near_times[name].append(time.perf_counter() - start)
+                near_cpu[name].append(time.process_time() - cpu)
+    single = _single_threaded(tree, kd, near)
     rows = []
     for name, fn in methods:
         times = near_times[name]
@@ -251,12 +291,26 @@ def main() -> int:
     kd_ratio = rows[1][1] / grid_near
     kd_best = rows[1][6] / grid_best
     kd_paired = float(np.median(paired))
+    grid_name, kd_name = methods[0][0], methods[1][0]
+    kd_cpu = statistics.median(near_cpu[kd_name]) / statistics.median(near_cpu[grid_name])
+    s_grid = np.array(single["grid"])
+    s_kd = np.array(single["kd"])
+    s_ratio = float(np.median(s_kd) / np.median(s_grid))
+    s_best = float(s_kd.min() / s_grid.min())
+    s_paired = float(np.median(s_kd / np.median(s_grid.reshape(ROUNDS, GRID_PER_ROUND), axis=1)))
+    threads = os.cpu_count()
     print(
         f"\nRATIO  GridTree.query is {kd_ratio:.1f}x faster than scipy cKDTree(workers=-1) "
         f"on {N_NEAR // 1000}k queries within 3 mm (medians; {kd_best:.1f}x best repeats; "
-        f"{kd_paired:.1f}x median of the {ROUNDS} rounds' own ratios); "
-        f"goal >= 50x: {'met' if kd_ratio >= 50 else 'NOT met'} at load "
+        f"{kd_paired:.1f}x median of the {ROUNDS} rounds' own ratios; {kd_cpu:.1f}x in CPU "
+        f"time), both on every core ({threads}: numba's threads, cKDTree's workers); "
+        f"goal >= {RATIO_GOAL:g}x: {'met' if kd_ratio >= RATIO_GOAL else 'NOT met'} at load "
         f"{os.getloadavg()[0]:.1f}"
+    )
+    print(
+        f"RATIO  one thread each (numba 1 thread, cKDTree workers=1): {s_ratio:.1f}x "
+        f"(medians {np.median(s_grid) * 1e3:.2f} ms and {np.median(s_kd) * 1e3:.1f} ms; "
+        f"{s_best:.1f}x best repeats; {s_paired:.1f}x median of the rounds' own ratios)"
     )
     off = e_near > 1e-3
     print(
@@ -276,10 +330,12 @@ def main() -> int:
             bool(np.all((disp_far <= 0.1) | (e_far <= 1e-3))),
         ),
     ]
+    g = RATIO_GOAL
     goals = [
-        (f"near speed >= 50x cKDTree, medians (got {kd_ratio:.1f}x)", kd_ratio >= 50),
-        (f"near speed >= 50x cKDTree, best repeats (got {kd_best:.1f}x)", kd_best >= 50),
-        (f"near speed >= 50x cKDTree, paired rounds (got {kd_paired:.1f}x)", kd_paired >= 50),
+        (f"near speed >= {g:g}x cKDTree, medians (got {kd_ratio:.1f}x)", kd_ratio >= g),
+        (f"near speed >= {g:g}x cKDTree, best repeats (got {kd_best:.1f}x)", kd_best >= g),
+        (f"near speed >= {g:g}x cKDTree, paired rounds (got {kd_paired:.1f}x)", kd_paired >= g),
+        (f"near speed >= {g:g}x cKDTree, one thread each (got {s_ratio:.1f}x)", s_ratio >= g),
     ]
     if len(builds) > 1:
         cb = builds[1][2]

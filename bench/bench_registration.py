@@ -427,8 +427,7 @@ def bench_meshes(seeds: list[int]) -> None:
     from inspection.panel import PanelSpec, sheet_metal_panel
     from inspection.registration import CadFaces, register
 
-    env = os.environ.get("INSPECTION_SHARED_CAD")
-    shared = Path(env) if env else Path(__file__).resolve().parents[1].parent / "shared/data/cad"
+    shared = _shared_dir()
     cases = [("panel 300 x 200", None)] + [(n, shared / n) for n in SHARED_SCALE]
     print(
         f"\nfine registration on the meshes: {N_POINTS} points, noise {NOISE_MM} mm, "
@@ -491,6 +490,96 @@ def bench_meshes(seeds: list[int]) -> None:
         )
 
 
+# Per-case speed: seeds of BENCH_CASE_SEEDS (0,1,2; empty to skip).
+CASE_SEEDS = "0,1,2"
+
+
+def _shared_dir() -> Path:
+    env = os.environ.get("INSPECTION_SHARED_CAD")
+    return Path(env) if env else Path(__file__).resolve().parents[1].parent / "shared/data/cad"
+
+
+def bench_cases(seeds: list[int]) -> None:
+    """Speed per case: the panel and each shared mesh, the fine registration's
+    scenario (50,000 points of the faces turned up, noise 0.02 mm, 5 % blob
+    outliers, start 5 degrees and 10 mm off), ``REPEATS`` timed fits per
+    seed; Open3D point-to-plane with TukeyLoss on the same clouds."""
+    from inspection.cad import load_cad
+    from inspection.grid import GridTree
+    from inspection.panel import PanelSpec, sheet_metal_panel
+    from inspection.registration import CadFaces, register
+
+    shared = _shared_dir()
+    cases = [("panel 300 x 200", None)] + [(n, shared / n) for n in SHARED_SCALE]
+    o3d_name = f"open3d p2plane tukey(k={O3D_TUKEY_K:g})"
+    print(
+        f"\nspeed per case: {N_POINTS} points, noise {NOISE_MM} mm, {OUTLIERS:.0%} blob "
+        f"outliers, start {START_DEG:g} deg / {START_MM:g} mm, seeds {seeds}, "
+        f"{REPEATS} fits per seed (medians over the seeds' medians); goal <= 10 ms, aim 5 ms"
+    )
+    print(
+        f"{'case':<22} {'CPU ms':>7} {'wall ms':>7} {'max':>6} {'rot max':>8} {'disp max':>8}"
+        f" | {'o3d CPU':>7} {'o3d wall':>8} {'x CPU':>6} {'x wall':>6}"
+    )
+    print(f"{'':<22} {'':>7} {'':>7} {'CPU':>6} {'deg':>8} {'um':>8} |")
+    worst = 0.0
+    for name, path in cases:
+        if path is None:
+            cad = sheet_metal_panel(PanelSpec().scaled(300.0, 200.0))
+        elif path.is_file():
+            cad = load_cad(path, scale=SHARED_SCALE[name])
+        else:
+            print(f"{name:<22} (not found at {path.parent})")
+            continue
+        tree = GridTree.build(cad)
+        faces = CadFaces.of(cad)
+        o3d = _peers(cad).get(o3d_name)
+        cpu, wall, cpu_max, rots, disps, o_cpu, o_wall = [], [], [], [], [], [], []
+        for seed in seeds:
+            pts, normals = _facing(cad, np.eye(4), N_POINTS, seed=seed)
+            T_data_cad = _start(np.random.default_rng(seed), pts.mean(axis=0))
+            data = apply(T_data_cad, pts)
+            data = _blobs(data, normals @ T_data_cad[:3, :3].T, OUTLIERS, seed=seed)
+            T_true = np.linalg.inv(T_data_cad)
+            times = []
+
+            def ours(data=data, times=times, tree=tree, faces=faces):
+                c0 = time.process_time()
+                T = register(tree, data, faces=faces).transform
+                times.append(time.process_time() - c0)
+                return T
+
+            t, ct, T = _median_time(ours, REPEATS)
+            wall.append(t)
+            cpu.append(ct)
+            cpu_max.append(max(times[1:]))
+            rot, disp = _errors(T, T_true, pts)
+            rots.append(rot)
+            disps.append(disp * 1e3)
+            if o3d is not None:
+                t, ct, _ = _median_time(o3d(data), 1)
+                o_wall.append(t)
+                o_cpu.append(ct)
+        c, w = statistics.median(cpu), statistics.median(wall)
+        worst = max(worst, c)
+        peer = (
+            f" | {statistics.median(o_cpu) * 1e3:7.1f} {statistics.median(o_wall) * 1e3:8.1f} "
+            f"{statistics.median(o_cpu) / c:6.1f} {statistics.median(o_wall) / w:6.1f}"
+            if o_cpu
+            else " | (Open3D unavailable)"
+        )
+        print(
+            f"{name:<22} {c * 1e3:7.1f} {w * 1e3:7.1f} {max(cpu_max) * 1e3:6.1f} "
+            f"{max(rots):8.5f} {max(disps):8.2f}{peer}",
+            flush=True,
+        )
+    print(
+        f"slowest case's median {worst * 1e3:.1f} ms CPU (goal <= 10 ms: "
+        f"{'met' if worst <= 0.010 else 'NOT met'}; load average {os.getloadavg()[0]:.1f} "
+        f"on {os.cpu_count()} cores)"
+    )
+
+
 def main() -> int:
     from inspection.grid import GridTree
     from inspection.panel import PanelSpec, sheet_metal_panel
@@ -512,6 +601,9 @@ def main() -> int:
     )
     register(wide, pts)
     ok = bench_fine(cad, tree, wide)
+    case_seeds = [int(x) for x in os.environ.get("BENCH_CASE_SEEDS", CASE_SEEDS).split(",") if x]
+    if case_seeds:
+        bench_cases(case_seeds)
     seeds = [int(x) for x in os.environ.get("BENCH_MESH_SEEDS", "3,4,5").split(",") if x]
     if seeds:
         bench_meshes(seeds)

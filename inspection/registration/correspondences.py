@@ -102,11 +102,14 @@ def closest(
     # small, and on a loaded machine a parallel launch waits for a second core
     # longer than the query takes. The answer does not depend on the thread count.
     threads = numba.get_num_threads()
-    numba.set_num_threads(1)
-    try:
+    if threads == 1:
         cl = tree.query(X)
-    finally:
-        numba.set_num_threads(threads)
+    else:
+        numba.set_num_threads(1)
+        try:
+            cl = tree.query(X)
+        finally:
+            numba.set_num_threads(threads)
     Q = np.ascontiguousarray(cl.points, dtype=np.float64)
     N = np.ascontiguousarray(cl.normals, dtype=np.float64)
     d = np.asarray(cl.distances, dtype=np.float64)
@@ -121,10 +124,10 @@ def residuals_at(
     X = transform_points(T[:3, :3].copy(), T[:3, 3].copy(), P)
     Q, N, d, _ = closest(tree, X)
     if distance:
-        r, _ = distance_residuals(X, Q, N, d)
-    else:
-        r = plane_residuals(X, Q, N)
-    return r, d
+        # The signed distance is the residual (distance_residuals copies it
+        # and adds the gradients, which no caller of this needs).
+        return d, d
+    return plane_residuals(X, Q, N), d
 
 
 def match(

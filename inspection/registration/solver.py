@@ -304,9 +304,23 @@ class _Fit:
     sizes: list[int] = field(default_factory=list)
     stop: StopReason = StopReason.MAX_ITERATIONS
 
+    # The input weights' sum over the subset, for the subset of ``_vsum_m`` points.
+    _vsum: float = 0.0
+    _vsum_m: int = -1
+
     @property
     def distance(self) -> bool:
         return self.p.residual == "distance"
+
+    @property
+    def weight_sum(self) -> float:
+        """The sum of the input weights of the current subset. The weights of
+        a subset's points are set (gated) before it is used and never change
+        after, so the sum is taken once per subset, not once per iteration."""
+        if self._vsum_m != self.m:
+            self._vsum = float(self.V[: self.m].sum())
+            self._vsum_m = self.m
+        return self._vsum
 
     def for_cost(self, r: np.ndarray, normals: np.ndarray, T: Transform) -> np.ndarray:
         """The residuals for the cost: a point whose closest face is turned
@@ -486,7 +500,7 @@ def _tolerances(fit: _Fit) -> tuple[float, float]:
     # nothing that matters: up to 10 times the given tolerances, a quarter of
     # that uncertainty ends the stage.
     f = p.subset_tolerance_factor if fit.m < fit.cap else 1.0
-    f = max(f, min(10.0, 0.25 * _uncertainty(fit.H, fit.sigma, fit.V[: fit.m]) / p.tolerance_mm))
+    f = max(f, min(10.0, 0.25 * _uncertainty(fit.H, fit.sigma, fit.weight_sum) / p.tolerance_mm))
     return f * p.tolerance_rad, f * p.tolerance_mm
 
 
@@ -594,8 +608,7 @@ def _settled(fit: _Fit, e0: float, step: _Step) -> bool:
         fit.gnc == 0.0
         and fit.m < fit.cap
         and step.accepted
-        and e0 - step.e1
-        < _SUBSET_GAIN * fit.sigma * fit.sigma / max(float(fit.V[: fit.m].sum()), 1.0)
+        and e0 - step.e1 < _SUBSET_GAIN * fit.sigma * fit.sigma / max(fit.weight_sum, 1.0)
     ):
         settled = True
     return settled
@@ -622,7 +635,7 @@ def _loosely_constrained(fit: _Fit) -> bool:
     return bool(
         fit.m == fit.cap < len(fit.P_in)
         and fit.p.uncertainty_mm is not None
-        and _uncertainty(fit.H, fit.sigma, fit.V[: fit.m]) > fit.p.uncertainty_mm
+        and _uncertainty(fit.H, fit.sigma, fit.weight_sum) > fit.p.uncertainty_mm
     )
 
 
@@ -791,11 +804,10 @@ def _robust_scale(r: np.ndarray, v: np.ndarray, floor: float, sample: int = _SCA
     return max(_MAD_TO_SIGMA * median_abs(r, v, min(len(r), sample)), floor)
 
 
-def _uncertainty(H: np.ndarray, sigma: float, v: np.ndarray) -> float:
+def _uncertainty(H: np.ndarray, sigma: float, vs: float) -> float:
     """RMS displacement, mm, that the noise ``sigma`` leaves in the pose fitted
-    to the points with input weights ``v``, from the normal matrix ``H``
-    (normalised by the weight sum): ``sigma sqrt(trace(H^-1) / sum v)``."""
-    vs = float(v.sum())
+    to points whose input weights sum to ``vs``, from the normal matrix ``H``
+    (normalised by that sum): ``sigma sqrt(trace(H^-1) / vs)``."""
     tr = trace_inverse(H)
     if not np.isfinite(tr) or tr <= 0.0 or vs <= 0.0:
         return 0.0
