@@ -415,8 +415,8 @@ class Heartbeat:
     ----------
     session : zenoh.Session
     key : str
-    status : callable() -> dict
-        Returns the current status; ``time_ns`` is added.
+    status : callable() -> dict or None
+        Returns the current status (``time_ns`` is added), or None: nothing to say yet.
     period_s : float
     """
 
@@ -424,7 +424,7 @@ class Heartbeat:
         self,
         session: zenoh.Session,
         key: str,
-        status: Callable[[], dict[str, Any]],
+        status: Callable[[], dict[str, Any] | None],
         *,
         period_s: float = 1.0,
     ) -> None:
@@ -438,7 +438,10 @@ class Heartbeat:
 
     def publish(self) -> None:
         """Publish the status now."""
-        doc = dict(self._status())
+        status = self._status()
+        if status is None:
+            return
+        doc = dict(status)
         doc["time_ns"] = time.time_ns()
         try:
             put_json(self._session, self._key, json.dumps(doc))

@@ -482,42 +482,31 @@ class FiredCount:
     def __init__(
         self, session: zenoh.Session, key: str, ingest: Ingest, *, period_s: float = FIRED_EVERY_S
     ) -> None:
-        self._session = session
-        self._key = key
         self._ingest = ingest
-        self._period_s = period_s
+        self._beat = bus.Heartbeat(session, key, self._count, period_s=period_s)
         chained = ingest.on_trigger
 
         def after(fs: FrameSet) -> None:
             if chained is not None:
                 chained(fs)
-            self.publish()
+            self._beat.publish()
 
         ingest.on_trigger = after
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="fired", daemon=True)
-        self._thread.start()
+
+    def _count(self) -> dict[str, int] | None:
+        t_ns = self._ingest.last_triggered_ns
+        if t_ns is None:
+            return None  # nothing fired yet
+        return {"next_seq": self._ingest.seq, "triggered_ns": t_ns}
 
     def publish(self) -> None:
         """Send the count now (nothing before the first trigger)."""
-        t_ns = self._ingest.last_triggered_ns
-        if t_ns is None:
-            return
-        doc = {"next_seq": self._ingest.seq, "triggered_ns": t_ns, "time_ns": time.time_ns()}
-        try:
-            bus.put_json(self._session, self._key, json.dumps(doc))
-        except zenoh.ZError as exc:
-            log.warning("trigger count not published on %s: %s", self._key, exc)
-
-    def _run(self) -> None:
-        while not self._stop.wait(self._period_s):
-            self.publish()
+        self._beat.publish()
 
     def close(self) -> None:
         """Stop the periodic count, after sending it once more (stop the ingest first)."""
-        self._stop.set()
-        self._thread.join(5.0)
-        self.publish()
+        self._beat.close()
+        self._beat.publish()
 
 
 def store_sink(store: ResultStore) -> Callable[[Outcome, FrameSet | None], None]:
