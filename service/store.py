@@ -105,6 +105,8 @@ MAX_LIMIT = 1000
 
 T = TypeVar("T")
 
+_SQLITE_BUSY_S = 30.0  # how long a connection waits for another holding the file
+
 _ID_RE = re.compile(ID_PATTERN)
 
 _UPSERT = """
@@ -208,14 +210,28 @@ class _Sqlite:
             Path(path).parent.mkdir(parents=True, exist_ok=True)
         try:
             self._db = sqlite3.connect(
-                path, check_same_thread=False, isolation_level=None, timeout=30.0
+                path, check_same_thread=False, isolation_level=None, timeout=_SQLITE_BUSY_S
             )
-            self._db.execute("PRAGMA journal_mode=WAL")
+            self._wal()
             # In WAL mode NORMAL still survives a process crash; only an OS crash
             # can lose the last transactions.
             self._db.execute("PRAGMA synchronous=NORMAL")
         except sqlite3.DatabaseError as exc:
             raise StoreError(f"{path}: not a result store: {exc}") from exc
+
+    def _wal(self) -> None:
+        # Turning a new file to WAL takes its lock without waiting on the busy
+        # timeout: several processes opening one new store at once see "database
+        # is locked" here, so this waits for the others as the timeout would.
+        deadline = time.monotonic() + _SQLITE_BUSY_S
+        while True:
+            try:
+                self._db.execute("PRAGMA journal_mode=WAL")
+                return
+            except sqlite3.OperationalError as exc:
+                if "locked" not in str(exc) or time.monotonic() > deadline:
+                    raise
+                time.sleep(0.01)
 
     def execute(self, sql: str, params: Sequence[object] = ()) -> _Cursor:
         return self._db.execute(sql, params)
