@@ -554,7 +554,9 @@ def _deviations_at(
     _lap(timings, "deviations", t)
     if any(cp.kind in FEATURE_KINDS for cp in part.comparison_points):
         t = _mark()
-        devs = check_features(devs, part.comparison_points, part.cad, points_cad, T, *views)
+        devs = check_features(
+            devs, part.comparison_points, part.cad, points_cad, T, *views, tree=part.exact
+        )
         _lap(timings, "features", t)
     return devs
 
