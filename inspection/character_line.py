@@ -64,10 +64,10 @@ class LineParams:
     reject_sigma : float
     """
 
-    band_mm: float = 8.0
-    station_mm: float = 1.0
+    band_mm: float = 12.0
+    station_mm: float = 2.0
     max_distance_mm: float = 1.0
-    min_points: int = 15
+    min_points: int = 20
     min_turn: float = 0.05
     iterations: int = 3
     reject_sigma: float = 3.0
@@ -195,7 +195,9 @@ def measure_character_line(
         )
     measured = nominal[seen] + shift[seen, None] * e
     line = nominal_curve(nominal)
-    # One section per station: a span over fewer of them follows their scatter.
-    c = curve if curve is not None else CurveParams(points_per_span=5, min_span_mm=8.0)
+    # One point per section: spans over fewer of them, or less smoothing, follow the
+    # cloud's own wiggles at the crease.
+    c = CurveParams(points_per_span=5, min_span_mm=13.0, smoothing=1e-3)
+    c = curve if curve is not None else c
     return curve_offset(measured, line, nominal, np.tile(e, (len(nominal), 1)), c,
                         min_support=min_support)  # fmt: skip

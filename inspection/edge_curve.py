@@ -78,7 +78,7 @@ class CurveParams:
     reject_sigma: float = 3.0
     samples: int = 100
     tolerance: float = 1e-5
-    max_iterations: int = 300
+    max_iterations: int = 1000
 
 
 @dataclass(frozen=True)
@@ -183,7 +183,8 @@ def curve_offset(
         sample's.
     params : CurveParams
     min_support : int
-        Points needed (and at least those of the curve's control points).
+        Points needed (at least the curve's degree + 1); after the outliers
+        are dropped, the curve's degree + 1 must be left.
 
     Returns
     -------
@@ -206,8 +207,10 @@ def curve_offset(
     off = np.einsum("ij,ij->i", x - line[near], side)
     loc, spread = robust_location(off)
     x = x[np.abs(off - loc) <= p.reject_sigma * max(spread, _MIN_SPREAD_MM)]
-    if len(x) < need:
-        return None, f"{len(x)} edge points agree with one edge, {need} needed"
+    # The support asked for is of the points found; those left must still carry a curve.
+    least = p.degree + 1
+    if len(x) < least:
+        return None, f"{len(x)} edge points agree with one edge, {least} needed"
     fit, why = _fit(x, nominal, p)
     if fit is None:
         return None, why
@@ -220,8 +223,8 @@ def curve_offset(
         keep[fit.order] = fit.fit.distances <= p.reject_sigma * max(scale, 1e-3)
         if keep.all():
             break
-        if keep.sum() < need:
-            return None, f"{int(keep.sum())} edge points agree with one curve, {need} needed"
+        if keep.sum() < least:
+            return None, f"{int(keep.sum())} edge points agree with one curve, {least} needed"
         x = x[keep]
         fit, why = _fit(x, nominal, p)
         if fit is None:

@@ -76,6 +76,7 @@ def check_features(
     *,
     tree: ClosestPointQuery,
     params: EdgeParams | None = None,
+    line_points_cad: Points | None = None,
 ) -> Deviations:
     """``devs`` with each feature point's placeholder entry replaced by its characteristics'
     entries, and the part's verdict given again.
@@ -94,6 +95,9 @@ def check_features(
     cameras, images : the calibrated cameras and their frames, in order
     tree : the CAD's closest points, as the deviations were measured (a
         character line is found against it)
+    line_points_cad : (M, 3) float64, mm, CAD frame, optional
+        The cloud character lines are found in (default ``points_cad``): one
+        whose matching was not shaped by the CAD.
     """
     by_name = {cp.name: cp for cp in comparison_points}
     out: list[ComparisonResult] = []
@@ -108,7 +112,8 @@ def check_features(
         if cp.kind == "hole":
             out += _hole_entries(cp, points_cad, offset, T_cad_rig, cameras, images, seen, params)
         elif cp.kind == "character_line":
-            out += _line_entries(cp, tree, points_cad)
+            lines = points_cad if line_points_cad is None else line_points_cad
+            out += _line_entries(cp, tree, lines)
         else:
             out += _edge_entries(
                 cp, cad, offset, n_surface, T_cad_rig, cameras, images, seen, params
