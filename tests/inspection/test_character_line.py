@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 from inspection.deviations import ComparisonPoint, Verdict
+from inspection.errors import InvalidInput
 from inspection.measure import PartModel, measure_frames
 from inspection.panel import PanelSpec, move_character_line, sheet_metal_panel, surface_point
 from inspection.reconstruct import Reconstructor
@@ -103,3 +104,18 @@ def test_the_bend_fails_the_line_where_it_leaves_the_tolerance(measured):
     assert line.upper_mm == 0.3 and line.verdict is Verdict.FAIL
     top = entries["C1.line_max"]
     assert top.deviation_mm > line.deviation_mm and top.verdict is Verdict.FAIL
+
+
+def test_a_panel_with_its_line_moved_puts_the_step_there():
+    cad = move_character_line(SPEC, bend)
+    drawn = sheet_metal_panel(SPEC)
+    # The drawn mesh, its heights changed near the bent stretch of the line alone.
+    np.testing.assert_array_equal(cad.vertices[:, :2], drawn.vertices[:, :2])
+    v = drawn.vertices
+    at = np.flatnonzero((np.abs(v[:, 0] - X_BEND) < 1.0) & (np.abs(v[:, 1] - YC) < 5.0))
+    moved = cad.vertices[at, 2] - drawn.vertices[at, 2]
+    assert np.abs(moved).max() > 0.1
+    far = np.abs(v[:, 0] - X_BEND) > BEND_HALF_MM + 1.0
+    np.testing.assert_array_equal(cad.vertices[far], drawn.vertices[far])
+    with pytest.raises(InvalidInput, match="within"):
+        move_character_line(SPEC, lambda x: np.full_like(x, 2.0))
