@@ -195,9 +195,9 @@ def measure_character_line(
         )
     measured = nominal[seen] + shift[seen, None] * e
     line = nominal_curve(nominal)
-    # One point per section: spans over fewer of them, or less smoothing, follow the
-    # cloud's own wiggles at the crease.
-    c = CurveParams(points_per_span=5, min_span_mm=13.0, smoothing=1e-3)
+    # One point per section: shorter spans, or less smoothing, follow the cloud's own
+    # wiggles at the crease (tenths of a mm over a few mm) into the largest offset.
+    c = CurveParams(points_per_span=5, min_span_mm=20.0, smoothing=0.1)
     c = curve if curve is not None else c
     return curve_offset(measured, line, nominal, np.tile(e, (len(nominal), 1)), c,
                         min_support=min_support)  # fmt: skip
