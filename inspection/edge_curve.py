@@ -16,6 +16,7 @@ boundary near a trim-edge point, the projected line of a character line).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -40,6 +41,8 @@ _REJECT_ROUNDS = 3
 _DENSE = 400
 # A floor of the points' scatter for the first rejection (mm).
 _MIN_SPREAD_MM = 0.02
+# The smoothing of the one-span fit a folded curve is fitted again with.
+_STIFF = 1e-2
 
 
 @dataclass(frozen=True)
@@ -230,7 +233,14 @@ def curve_offset(
         if fit is None:
             return None, why
     if _folds(fit, nominal):
-        return None, "the curve fitted to the edge points folds back on itself"
+        # Few, scattered points can hold a loop in a curve of several spans: a single,
+        # stiffer span follows the edge's place and its gentle bend, not the loop.
+        stiff = dataclasses.replace(p, max_spans=1, smoothing=max(p.smoothing, _STIFF))
+        fit, why = _fit(x, nominal, stiff)
+        if fit is None:
+            return None, why
+        if _folds(fit, nominal):
+            return None, "the curve fitted to the edge points folds back on itself"
     dev = fit.deviation
     near = np.argmin(((dev.points[:, None, :] - samples[None, :, :]) ** 2).sum(-1), axis=1)
     off = np.einsum("ij,ij->i", dev.vectors, across[near])
