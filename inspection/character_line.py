@@ -21,6 +21,9 @@ projected onto the CAD. Per cross-section along it, every ``station_mm``:
 The crease's measured points (each section's nominal point moved by its
 ``s``) are fitted as a curve (:func:`inspection.edge_curve.curve_offset`):
 its mean offset across the line and its largest, and where.
+
+The cloud must not have been matched with windows shaped by the CAD (a
+guided pass): those follow the drawn crease and hide its bend.
 """
 
 from __future__ import annotations

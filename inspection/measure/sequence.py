@@ -537,8 +537,7 @@ def _deviations_at(
     ``deviations`` and ``features``); character lines in ``lines`` placed by ``T``.
 
     A guided pass takes its windows' shape from the CAD, which pulls a crease
-    towards its drawn place (a 0.36 mm bend of the demo panel's character line
-    comes out near 0.05 mm in it): lines are found in the unguided first pass."""
+    towards its drawn place: lines are found in the unguided first pass."""
     t = _mark()
     viewpoints = directions = None
     if cameras is not None:
