@@ -1,4 +1,4 @@
-"""Holes, slots and trim edges against the simulator's truth; RPS residuals beside the best fit's.
+"""Holes, slots, trim edges and character lines against the simulator's truth; RPS residuals.
 
 The demo panel with a slot, its holes drawn with a fine rim
 (``PanelSpec.hole_spacing_mm``): each part's holes are shifted and resized at
@@ -12,10 +12,18 @@ sequence) and, as the peer, from the cloud's rim alone
 and from the images at the true pose with the rig as built (what the edge
 search alone leaves, without the fit's and the calibration's errors).
 Trim edges: points on the round holes' rims, whose true offset follows from
-the hole's shift and radius. RPS: a hole fixing x and y, the slot fixing y,
-three surface points fixing z, and a second hole's x (seven directions, so
-the datums have residuals): the residuals after the RPS alignment beside
-those the best fit leaves at the same datums.
+the hole's shift and radius, varying along the rim: the curve fitted to the
+edge points (the ``.trim`` entry, its mean offset over the measured span)
+beside the single robust offset of the same points, both against the truth at
+the point and the fitted curve's ``.trim_max`` against the true largest offset
+over the span. Character lines: extra parts, the holes as drawn and the
+character line bent across itself near each point (a smooth bump 80 mm wide,
+up to 0.5 mm), ``.line`` and ``.line_max`` against the truth carried into
+the CAD frame by the fit's pose.
+RPS: a hole fixing x and y, the slot fixing y, three surface points fixing
+z, and a second hole's x (seven directions, so the datums have residuals):
+the residuals after the RPS alignment beside those the best fit leaves at the
+same datums.
 
 Goals: holes within 0.05 mm in position and diameter, trim edges within 0.1 mm.
 ``BENCH_FEATURE_POSES`` (default 6) and ``BENCH_FEATURE_SEEDS`` (default "11,12").
@@ -76,6 +84,11 @@ def scene():
                 axis=(math.cos(a), math.sin(a), 0.0),
             )  # fmt: skip
         )
+    for name, x in (("C1", -60.0), ("C2", 60.0)):
+        pos, _ = surface_point(spec, x, spec.character_line_y_mm)
+        cps.append(
+            ComparisonPoint(name, pos, (0.0, 1.0, 0.0), -0.3, 0.3, 20.0, kind="character_line")
+        )
     trims = []
     for name, h, ang in (("E1", spec.holes[0], 0.0), ("E2", spec.holes[0], 120.0),
                          ("E3", spec.holes[2], -90.0)):  # fmt: skip
@@ -91,15 +104,16 @@ def scene():
     for i, (x, y) in enumerate(zs):
         pos, n = surface_point(spec, x, y)
         cps.append(ComparisonPoint(f"Z{i + 1}", pos, n, -0.5, 0.5, 8.0))
+    by = {cp.name: cp for cp in cps}
     s2 = spec.holes[1]
     a = math.radians(s2.angle_deg)
     datums = (
         Datum("H1", cps[0].position, ("x", "y")),
         # The slot fixes the direction across its axis.
         Datum("S2", cps[1].position, ((-math.sin(a), math.cos(a), 0.0),)),
-        Datum("Z1", cps[6].position, ("z",)),
-        Datum("Z2", cps[7].position, ("z",)),
-        Datum("Z3", cps[8].position, ("z",)),
+        Datum("Z1", by["Z1"].position, ("z",)),
+        Datum("Z2", by["Z2"].position, ("z",)),
+        Datum("Z3", by["Z3"].position, ("z",)),
         Datum("H3", cps[2].position, ("x",)),
     )
     return spec, cps, trims, datums
@@ -107,8 +121,15 @@ def scene():
 
 def main() -> int:
     from inspection.alignment.rps import rps_align
+    from inspection.deviations import robust_location
     from inspection.feature_checks import hole_spec
-    from inspection.features import hole_frame, hole_from_cloud, measure_hole
+    from inspection.features import (
+        boundary_samples,
+        hole_frame,
+        hole_from_cloud,
+        measure_hole,
+        measure_trim_edge,
+    )
     from inspection.measure import PartModel, measure_frames
     from inspection.panel import sheet_metal_panel, vary_holes
     from inspection.reconstruct import Reconstructor
@@ -127,6 +148,8 @@ def main() -> int:
     cloud_err: dict[str, list[float]] = {"x": [], "y": [], "d": []}
     oracle_err: dict[str, list[float]] = {"x": [], "y": [], "d": []}
     trim_err: list[float] = []
+    robust_err: list[float] = []
+    trim_max_err: list[float] = []
     rps_res: list[float] = []
     bf_res: list[float] = []
     wall, cpu = [], []
@@ -188,6 +211,28 @@ def main() -> int:
                 e = entries[f"{name}.trim"]
                 if math.isfinite(e.deviation_mm):
                     trim_err.append(e.deviation_mm - true_trim)
+                # Both estimators on the same edge points: the fitted curve and the single
+                # robust offset, the surface's offset taken as the check takes it.
+                cp = by_name[name]
+                r = np.linalg.norm(pts_cad - np.asarray(cp.position), axis=1)
+                band = (r >= 2.0) & (r <= 8.0 + cp.radius_mm)
+                band &= np.abs(m.deviations.distances) <= 1.0
+                lift = robust_location(m.deviations.distances[band])[0] if band.sum() >= 10 else 0.0
+                smp, out, nrm = boundary_samples(part.cad.vertices, part.cad.faces,
+                                                 part.cad.face_normals, cp.position,
+                                                 cp.radius_mm, 0.5)  # fmt: skip
+                tm, _ = measure_trim_edge(smp, out, nrm, rec.rig.cameras, frames, m.transform,
+                                          surface_offset_mm=lift, min_support=5)  # fmt: skip
+                if tm is None:
+                    continue
+                robust_err.append(tm.robust_mm - true_trim)
+                # The true offset along the measured span: the hole's shift and radius seen
+                # along each nominal point's direction from the drawn centre.
+                h = spec.holes[hi]
+                d = tm.curve.points[:, :2] - [h.x_mm, h.y_mm]
+                d /= np.linalg.norm(d, axis=1, keepdims=True)
+                true_along = -(sh.dx_mm * d[:, 0] + sh.dy_mm * d[:, 1] + sh.dr_mm)
+                trim_max_err.append(tm.max_mm - true_along[np.argmax(np.abs(true_along))])
             # RPS: the measured datums in the rig frame, from the best fit's CAD frame.
             T_bf = m.transform
             measured_cad = []
@@ -234,7 +279,12 @@ def main() -> int:
     ]
     print("  images / cloud, median |e| (x, y, d): " + ", ".join(f"{r:.2f}" for r in ratio))
     print(f"  slot len  images {stats(img_err['len'])}")
-    print(f"  trim      images {stats(trim_err)}")
+    print(f"  trim      images, fitted curve (the entry)   {stats(trim_err)}")
+    print(f"            images, single robust offset       {stats(robust_err)}")
+    print(f"  trim_max  images, fitted curve's largest     {stats(trim_max_err)}")
+    line_err, line_max_err = character_lines(part, rec, spec, n_poses, seeds[0])
+    print(f"  line      cloud (first pass), fitted curve   {stats(line_err)}")
+    print(f"  line_max  cloud (first pass), its largest    {stats(line_max_err)}")
     print(
         f"\nRPS datum residuals, mm: median, max  RPS {stats(rps_res)}   best fit {stats(bf_res)}"
     )
@@ -253,3 +303,52 @@ def main() -> int:
         f"{met(trm, GOAL_TRIM_MM)}"
     )
     return 0
+
+
+def character_lines(part, rec, spec, n_poses: int, seed: int) -> tuple[list[float], list[float]]:
+    """The character lines' errors on parts whose line is bent across itself near each
+    point (a smooth bump of random size up to 0.5 mm and place), the truth carried into the
+    CAD frame by the fit's pose: ``.line`` minus the true mean offset over the measured
+    span, ``.line_max`` minus the true largest."""
+    from inspection.measure import measure_frames
+    from inspection.panel import move_character_line, surface_point
+    from inspection.rig import Rig, belt_pose
+    from inspection.simulate import simulate
+    from inspection.transforms import apply
+
+    yc = spec.character_line_y_mm
+    err: list[float] = []
+    err_max: list[float] = []
+    lines = [cp for cp in part.comparison_points if cp.kind == "character_line"]
+    for pi, pose in enumerate(POSES[:n_poses]):
+        rng = np.random.default_rng([seed, pi, 7])
+        bumps = [(cp.position[0] + rng.uniform(-10, 10), rng.uniform(-0.5, 0.5)) for cp in lines]
+
+        def shift(x: np.ndarray, bumps=bumps) -> np.ndarray:
+            out = np.zeros_like(x)
+            for xb, a in bumps:
+                u = np.clip((x - xb) / 40.0, -1.0, 1.0)
+                out += a * np.cos(0.5 * math.pi * u) ** 2
+            return out
+
+        T_rig_part = belt_pose(*pose)
+        frames = simulate(Rig.nominal(), move_character_line(spec, shift), T_rig_part, seed=seed)
+        m = measure_frames(part, rec, frames)
+        if m.deviations is None or m.transform is None:
+            continue
+        entries = {c.name: c for c in m.deviations.comparison}
+        T = m.transform @ T_rig_part
+        for cp in lines:
+            xs = np.linspace(cp.position[0] - cp.radius_mm, cp.position[0] + cp.radius_mm, 81)
+            nominal = np.array([surface_point(spec, x, yc)[0] for x in xs])
+            moved = yc + shift(xs)
+            made = np.array([surface_point(spec, x, y)[0] for x, y in zip(xs, moved, strict=True)])
+            true = (apply(T, made) - nominal) @ np.asarray(cp.normal)
+            line, top = entries[f"{cp.name}.line"], entries[f"{cp.name}.line_max"]
+            if math.isfinite(line.deviation_mm):
+                err.append(line.deviation_mm - float(true.mean()))
+                err_max.append(top.deviation_mm - float(true[np.argmax(np.abs(true))]))
+            print(f"{pi}/{seed:>7} {cp.name:>4} true mean {true.mean():6.3f} "
+                  f"max {true[np.argmax(np.abs(true))]:6.3f}  line {line.deviation_mm:6.3f} "
+                  f"max {top.deviation_mm:6.3f}")  # fmt: skip
+    return err, err_max

@@ -52,20 +52,22 @@ __all__ = [
     "warmup",
 ]
 
-KINDS = ("surface", "hole", "trim_edge", "gap_flush")
+KINDS = ("surface", "hole", "trim_edge", "gap_flush", "character_line")
 """Kinds of comparison point a spec may name."""
 MEASURED_KINDS = ("surface",)
 """Kinds measured from the cloud's signed distances here; the others are features of
 the outline (:data:`FEATURE_KINDS`), measured after the fit (:mod:`inspection.feature_checks`)."""
-FEATURE_KINDS = ("hole", "trim_edge", "gap_flush")
+FEATURE_KINDS = ("hole", "trim_edge", "gap_flush", "character_line")
 CHARACTERISTICS = {
     "surface": (),
     "hole": ("x", "y", "d"),
-    "trim_edge": ("trim",),
+    "trim_edge": ("trim", "trim_max"),
     "gap_flush": ("gap", "flush"),
+    "character_line": ("line", "line_max"),
 }
 """Each feature kind's characteristics: one comparison entry ``<point>.<characteristic>`` each
-(a slot adds ``len``)."""
+(a slot adds ``len``). A curve's ``_max`` is the largest deviation along the curve fitted to
+its measured points, the other its mean offset."""
 
 # Points whose CAD normal turns more than ~60 degrees away from the
 # comparison point's normal lie on another surface (a flange, the far side
@@ -104,7 +106,10 @@ class ComparisonPoint:
         its centre on the surface, ``normal`` its axis towards the cameras),
         ``"trim_edge"`` and ``"gap_flush"`` (``position`` on the CAD's edge,
         ``normal`` in the surface's plane, normal to the edge, out of the
-        material).
+        material); ``"character_line"`` (``position`` on the crease of the
+        CAD's surface, ``normal`` in the surface, across the line: the
+        direction of a positive offset; ``radius_mm`` the half length of the
+        line measured).
     min_support : int or None
         Points needed for a verdict at this point; None: the ``min_support``
         given to :func:`deviations`.
@@ -344,6 +349,9 @@ class ComparisonResult:
         ``<point>.<characteristic>``).
     sigma_mm : float
         1 sigma of ``deviation_mm`` where the measurement gives it (features), else NaN.
+    at_mm : (3,) tuple of float or None
+        Where a curve's largest deviation lies (the ``_max`` entries of trim
+        edges and character lines), on the nominal, CAD frame, mm.
     """
 
     name: str
@@ -356,6 +364,7 @@ class ComparisonResult:
     reason: str | None = None
     kind: str = "surface"
     sigma_mm: float = math.nan
+    at_mm: tuple[float, float, float] | None = None
 
     def to_dict(self) -> dict[str, object]:
         return {
@@ -369,6 +378,7 @@ class ComparisonResult:
             "reason": self.reason,
             "kind": self.kind,
             "sigma_mm": None if math.isnan(self.sigma_mm) else self.sigma_mm,
+            "at_mm": None if self.at_mm is None else list(self.at_mm),
         }
 
 

@@ -1,14 +1,19 @@
-"""The features' comparison entries: holes, trim edges and gap/flush, checked after the fit.
+"""The features' comparison entries: holes, trim edges, gap/flush and character lines,
+checked after the fit.
 
 A feature comparison point becomes one entry per characteristic, named
 ``<point>.<characteristic>`` with the point's ``kind``: ``H1.x``, ``H1.y``
 (the centre's offset along the hole's x and y), ``H1.d`` (the diameter's
 deviation) and for a slot ``H1.len``; ``E3.trim`` (the edge's offset out
-of the material); ``G2.gap`` and ``G2.flush`` (the gap to the mating part's
-nominal edge, and the surface's height against it, as deviations from the
-nominal). The outline is measured in the images (:mod:`inspection.features`);
-given only a cloud, a hole is measured from the cloud's rim, whose bias at
-edges the entry's reason states.
+of the material: the mean offset of the curve fitted to its points) and
+``E3.trim_max`` (that curve's largest offset, with where it lies); ``G2.gap``
+and ``G2.flush`` (the gap to the mating part's nominal edge, and the
+surface's height against it, as deviations from the nominal); ``C1.line`` and
+``C1.line_max`` (a character line's mean offset across itself in the surface,
+and its largest, with where). The outline is measured in the images
+(:mod:`inspection.features`), a character line in the cloud
+(:mod:`inspection.character_line`); given only a cloud, a hole is measured
+from the cloud's rim, whose bias at edges the entry's reason states.
 """
 
 from __future__ import annotations
@@ -21,6 +26,7 @@ import numpy as np
 
 from .arrays import Image, Points, Scalars, Transform
 from .cad import CadModel
+from .character_line import measure_character_line
 from .deviations import (
     FEATURE_KINDS,
     ComparisonPoint,
@@ -38,6 +44,7 @@ from .features import (
     measure_hole,
     measure_trim_edge,
 )
+from .protocols import ClosestPointQuery
 from .rig import Camera
 
 __all__ = ["check_features", "hole_spec"]
@@ -67,7 +74,9 @@ def check_features(
     cameras: Sequence[Camera] = (),
     images: Sequence[Image] = (),
     *,
+    tree: ClosestPointQuery,
     params: EdgeParams | None = None,
+    line_points_cad: Points | None = None,
 ) -> Deviations:
     """``devs`` with each feature point's placeholder entry replaced by its characteristics'
     entries, and the part's verdict given again.
@@ -84,6 +93,11 @@ def check_features(
         The fit's pose; with ``cameras`` and ``images`` the outline is
         measured in the images.
     cameras, images : the calibrated cameras and their frames, in order
+    tree : the CAD's closest points, as the deviations were measured (a
+        character line is found against it)
+    line_points_cad : (M, 3) float64, mm, CAD frame, optional
+        The cloud character lines are found in (default ``points_cad``): one
+        whose matching was not shaped by the CAD.
     """
     by_name = {cp.name: cp for cp in comparison_points}
     out: list[ComparisonResult] = []
@@ -97,6 +111,9 @@ def check_features(
         offset, n_surface = _surface_offset(cp, points_cad, d)
         if cp.kind == "hole":
             out += _hole_entries(cp, points_cad, offset, T_cad_rig, cameras, images, seen, params)
+        elif cp.kind == "character_line":
+            lines = points_cad if line_points_cad is None else line_points_cad
+            out += _line_entries(cp, tree, lines)
         else:
             out += _edge_entries(
                 cp, cad, offset, n_surface, T_cad_rig, cameras, images, seen, params
@@ -119,12 +136,18 @@ def _surface_offset(cp: ComparisonPoint, P: Points, d: Scalars) -> tuple[float, 
 
 
 def _entry(
-    cp: ComparisonPoint, key: str, dev: float, sigma: float, support: int, spread: float
+    cp: ComparisonPoint,
+    key: str,
+    dev: float,
+    sigma: float,
+    support: int,
+    spread: float,
+    at: tuple[float, float, float] | None = None,
 ) -> ComparisonResult:
     lo, hi = cp.limits(key)
     verdict = Verdict.PASS if lo <= dev <= hi else Verdict.FAIL
     return ComparisonResult(
-        f"{cp.name}.{key}", float(dev), support, verdict, lo, hi, spread, None, cp.kind, sigma
+        f"{cp.name}.{key}", float(dev), support, verdict, lo, hi, spread, None, cp.kind, sigma, at
     )
 
 
@@ -184,7 +207,10 @@ def _edge_entries(
     if m is None:
         return _unmeasured(cp, why or "not measured")
     if cp.kind == "trim_edge":
-        return [_entry(cp, "trim", m.deviation_mm, m.sigma_mm, m.support, m.spread_mm)]
+        return [
+            _entry(cp, "trim", m.deviation_mm, m.sigma_mm, m.support, m.spread_mm),
+            _entry(cp, "trim_max", m.max_mm, math.nan, m.support, m.spread_mm, m.at),
+        ]
     # The gap to the mate's nominal edge shrinks by as much as the edge reaches out; the
     # flush is the surface's height at the edge against the mate's nominal surface.
     if n_surface == 0:
@@ -195,4 +221,19 @@ def _edge_entries(
     return [
         _entry(cp, "gap", -m.deviation_mm, m.sigma_mm, m.support, m.spread_mm),
         _entry(cp, "flush", offset, math.nan, n_surface, math.nan),
+    ]
+
+
+def _line_entries(
+    cp: ComparisonPoint, tree: ClosestPointQuery, P: Points
+) -> list[ComparisonResult]:
+    need = cp.min_support if cp.min_support is not None else 10
+    m, why = measure_character_line(
+        tree, P, np.asarray(cp.position), np.asarray(cp.normal), cp.radius_mm, min_support=need
+    )
+    if m is None:
+        return _unmeasured(cp, why or "not measured")
+    return [
+        _entry(cp, "line", m.offset_mm, m.sigma_mm, m.support, m.rms_mm),
+        _entry(cp, "line_max", m.max_mm, math.nan, m.support, m.rms_mm, m.at),
     ]

@@ -19,8 +19,9 @@ show the outline sharply, so the outline is measured in them:
    surface as measured, not as drawn);
 4. a hole's rim points are fitted by a slot (two half circles joined by
    straight sides, a circle when its length is zero) in the hole's plane by
-   robust least squares; a trim edge's points give their offsets normal to
-   the edge, averaged robustly.
+   robust least squares; a trim edge's points are fitted by a smooth curve
+   (:mod:`inspection.edge_curve`), whose offset normal to the edge is averaged
+   over the measured span, and whose largest offset is the edge's shape.
 
 Each result carries its uncertainty (1 sigma, from the residual scatter)
 and its support (the edge points used). :func:`hole_from_cloud` measures a
@@ -40,6 +41,7 @@ import numpy.typing as npt
 from scipy.optimize import least_squares
 
 from .arrays import Image, Points, Transform
+from .edge_curve import CurveParams, EdgeCurve, curve_offset, nominal_curve
 from .errors import InvalidInput
 from .rig import Camera
 from .transforms import apply
@@ -163,13 +165,23 @@ class TrimMeasurement:
     Attributes
     ----------
     deviation_mm : float
-        Positive: the material reaches farther than drawn (along the edge's outward normal).
+        The curve fitted to the edge points: its mean offset over the measured
+        span. Positive: the material reaches farther than drawn (along the
+        edge's outward normal).
     sigma_mm : float
         1 sigma of the mean.
     spread_mm : float
-        Robust scatter of the single edge points.
+        Robust scatter of the single edge points' offsets.
     support : int
+        Edge points the curve was fitted to.
     cameras : int
+    max_mm : float
+        The fitted curve's signed offset of largest magnitude along the span.
+    at : (3,) tuple of float, mm, CAD frame
+        Where on the nominal edge it lies.
+    robust_mm : float
+        The single robust average of the points' offsets (no curve).
+    curve : EdgeCurve
     """
 
     deviation_mm: float
@@ -177,6 +189,10 @@ class TrimMeasurement:
     spread_mm: float
     support: int
     cameras: int
+    max_mm: float
+    at: tuple[float, float, float]
+    robust_mm: float
+    curve: EdgeCurve
 
 
 def hole_frame(
@@ -556,8 +572,13 @@ def measure_trim_edge(
     surface_offset_mm: float = 0.0,
     params: EdgeParams | None = None,
     min_support: int = 10,
+    curve: CurveParams | None = None,
 ) -> tuple[TrimMeasurement | None, str | None]:
     """A trim edge's offset along its outward normal, from its nominal ``samples``.
+
+    The edge points found in the images are fitted by a curve against the
+    nominal made from ``samples`` (:func:`inspection.edge_curve.curve_offset`);
+    too few points, or a fit that does not converge, leave the edge unmeasured.
 
     Parameters
     ----------
@@ -581,16 +602,26 @@ def measure_trim_edge(
     off = np.einsum("ij,ij->i", pts - samples[k], outward[k])
     from .deviations import robust_location  # the comparison points' own estimator
 
-    dev, spread = robust_location(off)
-    used = np.abs(off - dev) <= p.reject_sigma * max(spread, 1e-3)
-    n = int(used.sum())
+    robust, spread = robust_location(off)
+    try:
+        nominal = nominal_curve(samples)
+    except InvalidInput as exc:
+        return None, f"the CAD's edge near the point gives no curve: {exc}"
+    c = curve if curve is not None else CurveParams(reject_sigma=p.reject_sigma)
+    fitted, why = curve_offset(pts, nominal, samples, outward, c, min_support=min_support)
+    if fitted is None:
+        return None, why
     return (
         TrimMeasurement(
-            deviation_mm=dev,
-            sigma_mm=float(spread / math.sqrt(max(n, 1))),
+            deviation_mm=fitted.offset_mm,
+            sigma_mm=fitted.sigma_mm,
             spread_mm=spread,
-            support=n,
-            cameras=int(len(np.unique(cam[used]))),
+            support=fitted.support,
+            cameras=int(len(np.unique(cam))),
+            max_mm=fitted.max_mm,
+            at=fitted.at,
+            robust_mm=robust,
+            curve=fitted,
         ),
         None,
     )

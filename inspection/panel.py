@@ -16,7 +16,7 @@ rests on the plane z = 0 (on its flange) when placed flat on the conveyor.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -216,6 +216,39 @@ def sheet_metal_panel(spec: PanelSpec | None = None, *, name: str = "panel") -> 
     # Thickened from the cleaned skin (the grid's seams merged, slivers dropped).
     vertices, faces = _solid_sheet(skin.vertices, skin.faces, spec.thickness_mm)
     return CadModel.from_arrays(vertices, faces, name=name, source=f"<generated {name}>")
+
+
+def move_character_line(
+    spec: PanelSpec, shift: Callable[[np.ndarray], np.ndarray], *, name: str = "panel"
+) -> CadModel:
+    """The panel (the outer skin) as made with its character line moved across itself.
+
+    Parameters
+    ----------
+    spec : PanelSpec, with ``thickness_mm`` 0
+    shift : the line's shift along +y at panel x (mm, vectorised), at most
+        ``0.3 * character_line_radius_mm`` in size: the step's height is swapped for
+        the moved step's on the drawn mesh, whose fine rows follow the drawn line.
+    """
+    if spec.thickness_mm != 0:
+        raise InvalidInput("move_character_line draws the outer skin alone (thickness_mm 0)")
+    cad = sheet_metal_panel(spec, name=name)
+    v = cad.vertices.copy()
+    r, h, yc = (
+        spec.character_line_radius_mm,
+        spec.character_line_height_mm,
+        spec.character_line_y_mm,
+    )
+    # The top surface near the line: not the flange, which turns down at the ends.
+    near = (np.abs(v[:, 1] - yc) < 2 * r) & (
+        np.abs(v[:, 0]) < spec.length_mm / 2 - spec.bend_radius_mm
+    )
+    x, y = v[near, 0], v[near, 1]
+    s = np.asarray(shift(x), dtype=np.float64)
+    if not (np.all(np.isfinite(s)) and np.abs(s).max(initial=0.0) <= 0.3 * r):
+        raise InvalidInput(f"the line's shift must be finite and within {0.3 * r} mm")
+    v[near, 2] += h * (_smoothstep((y - yc - s) / r) - _smoothstep((y - yc) / r))
+    return CadModel.from_arrays(v, cad.faces, name=name, source=f"<generated {name}>")
 
 
 def panel_height(spec: PanelSpec, x: np.ndarray, y: np.ndarray) -> np.ndarray:

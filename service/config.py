@@ -65,13 +65,15 @@ class _Strict(BaseModel):
 
 
 class PointKind(StrEnum):
-    """What a comparison point measures: the surface along its normal, or a feature of the
-    outline (measured in the images after the fit, one entry per characteristic)."""
+    """What a comparison point measures: the surface along its normal, or a feature (of the
+    outline, measured in the images after the fit; a character line, in the cloud), one
+    entry per characteristic."""
 
     surface = "surface"
     hole = "hole"
     trim_edge = "trim_edge"
     gap_flush = "gap_flush"
+    character_line = "character_line"
 
 
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
@@ -112,8 +114,8 @@ class ComparisonPointSpec(_Strict):
     )
     tolerances: dict[str, Annotated[list[float], Field(min_length=2, max_length=2)]] = Field(
         default_factory=dict,
-        description="Limits [lower_mm, upper_mm] of single characteristics (d, len, trim, gap, "
-        "flush, x, y); the others take lower_mm and upper_mm.",
+        description="Limits [lower_mm, upper_mm] of single characteristics (d, len, trim, "
+        "trim_max, gap, flush, line, line_max, x, y); the others take lower_mm and upper_mm.",
     )
 
     @field_validator("normal")

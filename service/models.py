@@ -24,10 +24,10 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from inspection.deviations import Verdict
 from inspection.spc import ChartKind
 
-from .config import ComparisonPointSpec, Name, PartSpecBase
+from .config import ComparisonPointSpec, Name, PartSpecBase, Vec3
 from .names import ID_PATTERN, ID_SEPARATOR, NAME_MAX_LEN
 
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 """Version of :class:`InspectionResult`'s JSON."""
 
 MAX_ID_LEN = 2 * NAME_MAX_LEN + 2 * 19 + 3
@@ -69,7 +69,12 @@ class PointResult(_Model):
     kind: str = Field(
         default="surface",
         description="The comparison point's kind; a feature's entries (hole, trim_edge, "
-        "gap_flush) are named <point>.<characteristic>.",
+        "gap_flush, character_line) are named <point>.<characteristic>.",
+    )
+    at_mm: Vec3 | None = Field(
+        default=None,
+        description="Where the largest deviation along a fitted curve lies (the _max entries "
+        "of trim edges and character lines): on the nominal, CAD frame, mm.",
     )
 
 

@@ -169,6 +169,7 @@ def point_results(devs: Deviations) -> list[PointResult]:
             verdict=c.verdict,
             reason=c.reason,
             kind=c.kind,
+            at_mm=None if c.at_mm is None else list(c.at_mm),
         )
         for c in devs.comparison
     ]

@@ -163,7 +163,7 @@ def _measure_frames(
     cameras = np.array([cam.centre for cam in rec.rig.cameras], dtype=np.float64)
     return _judge(
         part, last.points, final, p, "rig", timings, t_start, tuple(passes), search,
-        cameras=cameras, views=(tuple(rec.rig.cameras), tuple(frames)),
+        cameras=cameras, views=(tuple(rec.rig.cameras), tuple(frames)), unguided=first.points,
     )  # fmt: skip
 
 
@@ -457,6 +457,7 @@ def _judge(
     *,
     cameras: np.ndarray | None = None,
     views: tuple[tuple[Camera, ...], tuple[npt.NDArray[np.uint8], ...]] = ((), ()),
+    unguided: np.ndarray | None = None,
 ) -> Measurement:
     """5.-8.: the fit's quality, the deviations over the cloud and the surface, the features,
     the datum alignment, and the verdict.
@@ -465,7 +466,8 @@ def _judge(
     it (the guided passes): its ambiguity is the part's. ``cameras`` are the
     rig's camera centres (rig frame), whose view of the CAD has its occlusion edges;
     ``views`` the calibrated cameras and their frames, in which the features'
-    outlines are measured."""
+    outlines are measured; ``unguided`` the first pass's cloud (``frame``), in which
+    character lines are found (None: ``points``)."""
     T = np.asarray(fit.transform, dtype=np.float64)
     quality = fit_quality(fit, search)
     if not np.isfinite(T).all():
@@ -484,7 +486,8 @@ def _judge(
             f"(score {quality.runner_up_score:.2f} of the chosen one's; a symmetric-looking part)"
         )
 
-    devs = _deviations_at(part, points, T, fit, p, frame, cameras, views, timings)
+    lines = points if unguided is None else unguided
+    devs = _deviations_at(part, points, T, fit, p, frame, cameras, views, timings, lines)
 
     # 8. The datum alignment, where the part has one: the part measured again at its pose.
     rps = None
@@ -499,7 +502,7 @@ def _judge(
             )  # fmt: skip
         rps = rps_align(part.rps.datums, measured, init=T, hold=part.rps.mode == "best_fit_rps")
         T = rps.transform
-        devs = _deviations_at(part, points, T, fit, p, frame, cameras, views, timings)
+        devs = _deviations_at(part, points, T, fit, p, frame, cameras, views, timings, lines)
         _lap(timings, "rps", t)
     _lap(timings, "total", t_start)
     return Measurement(
@@ -528,9 +531,13 @@ def _deviations_at(
     cameras: np.ndarray | None,
     views: tuple[tuple[Camera, ...], tuple[npt.NDArray[np.uint8], ...]],
     timings: _Laps,
+    lines: np.ndarray,
 ) -> Deviations:
     """6., 7. and the features: the deviations of ``points`` placed by ``T`` (laps
-    ``deviations`` and ``features``)."""
+    ``deviations`` and ``features``); character lines in ``lines`` placed by ``T``.
+
+    A guided pass takes its windows' shape from the CAD, which pulls a crease
+    towards its drawn place: lines are found in the unguided first pass."""
     t = _mark()
     viewpoints = directions = None
     if cameras is not None:
@@ -554,7 +561,10 @@ def _deviations_at(
     _lap(timings, "deviations", t)
     if any(cp.kind in FEATURE_KINDS for cp in part.comparison_points):
         t = _mark()
-        devs = check_features(devs, part.comparison_points, part.cad, points_cad, T, *views)
+        devs = check_features(
+            devs, part.comparison_points, part.cad, points_cad, T, *views, tree=part.exact,
+            line_points_cad=points_cad if lines is points else apply(T, lines),
+        )  # fmt: skip
         _lap(timings, "features", t)
     return devs
 

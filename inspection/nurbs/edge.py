@@ -56,6 +56,8 @@ def fit_edge(
     method: Method = "vp-gn",
     samples: int = 200,
     smoothing: float = 1e-6,
+    max_iterations: int = 1000,
+    tolerance: float = 1e-10,
 ) -> EdgeFit:
     """Fit measured edge points with a smooth curve and measure it against the nominal.
 
@@ -70,6 +72,9 @@ def fit_edge(
         Gauss-Newton is the fastest of them
     samples : int >= 2, nominal parameters the deviation is given at
     smoothing : the fit's penalty on the control points' second differences
+    max_iterations, tolerance : the fit's (:func:`.fit.fit_curve`): a looser
+        tolerance stops it once the curve's shape has settled, before the
+        foot points have finished sliding along it
 
     Returns
     -------
@@ -107,7 +112,10 @@ def fit_edge(
     knots = np.r_[np.zeros(degree + 1), np.linspace(0.0, 1.0, spans + 1)[1:-1], np.ones(degree + 1)]
     # The nominal's parameters, mapped onto the fit's domain, start the foot points.
     start = (t_sorted - lo) / (hi - lo)
-    fit = fit_curve(x[order], degree, knots, method=method, params=start, smoothing=smoothing)
+    fit = fit_curve(
+        x[order], degree, knots, method=method, params=start, smoothing=smoothing,
+        max_iterations=max_iterations, tolerance=tolerance,
+    )  # fmt: skip
     deviation = deviation_along(fit.curve, nominal, samples=samples, span=(lo, hi))
     d = deviation.distances
     return EdgeFit(

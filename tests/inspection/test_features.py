@@ -104,8 +104,9 @@ def measured(scene):
 
 def test_every_characteristic_is_its_own_entry_with_the_kind(measured):
     entries, m = measured
-    assert {"H1.x", "H1.y", "H1.d", "S2.len", "E1.trim", "G1.gap", "G1.flush"} <= set(entries)
-    assert "H1" not in entries and "H3.len" not in entries
+    want = {"H1.x", "H1.y", "H1.d", "S2.len", "E1.trim", "E1.trim_max", "G1.gap", "G1.flush"}
+    assert want <= set(entries)
+    assert "H1" not in entries and "H3.len" not in entries and "G1.gap_max" not in entries
     assert entries["H1.x"].kind == "hole" and entries["E1.trim"].kind == "trim_edge"
     assert entries["Z1"].kind == "surface"
     assert "features" in m.timings_ms
@@ -151,6 +152,12 @@ def test_gap_is_the_trim_edge_seen_from_the_mate(measured):
     assert trim.kind == "trim_edge" and gap.kind == "gap_flush"
     assert trim.verdict is not Verdict.NOT_MEASURABLE, trim.reason
     assert abs(gap.deviation_mm + trim.deviation_mm) < 1e-9
+    # The fitted curve's largest offset, at least its mean's size, and where on the rim.
+    top = entries["E1.trim_max"]
+    assert top.kind == "trim_edge" and top.at_mm is not None and trim.at_mm is None
+    assert abs(top.deviation_mm) >= abs(trim.deviation_mm) - 1e-9
+    centre = np.array(surface_point(spec_with(NOMINAL), NOMINAL[0].x_mm, NOMINAL[0].y_mm)[0])
+    assert abs(np.linalg.norm((np.asarray(top.at_mm) - centre)[:2]) - NOMINAL[0].radius_mm) < 0.05
     flush = entries["G1.flush"]
     assert flush.verdict is not Verdict.NOT_MEASURABLE and abs(flush.deviation_mm) < 0.1
 

@@ -26,6 +26,8 @@ POINTS = (
             "axis = [0, 1, 0]\n")
     + point("E1", "[50, 0, 1]", "[1, 0, 0]", 'kind = "trim_edge"\n')
     + point("G1", "[50, 10, 1]", "[1, 0, 0]", 'kind = "gap_flush"\nmate_mm = [54, 10, 1]\n')
+    + point("C1", "[0, 30, 1]", "[0, 1, 0]", 'kind = "character_line"\n'
+            "tolerances = { line_max = [-1.0, 1.0] }\n")
     + point("Z1", "[-40, -30, 1]") + point("Z2", "[40, -30, 1]") + point("Z3", "[0, 40, 1]")
 )  # fmt: skip
 
@@ -57,6 +59,9 @@ def test_feature_points_and_their_tolerances(tmp_path):
     assert cps["S2"].characteristics() == ("x", "y", "d", "len")
     assert cps["S2"].axis == (0.0, 1.0, 0.0)
     assert cps["G1"].mate == (54.0, 10.0, 1.0) and cps["G1"].characteristics() == ("gap", "flush")
+    assert cps["E1"].characteristics() == ("trim", "trim_max")
+    assert cps["C1"].characteristics() == ("line", "line_max")
+    assert cps["C1"].limits("line_max") == (-1.0, 1.0) and cps["C1"].limits("line") == (-0.5, 0.5)
     assert rps_scheme(spec) is None
 
 
@@ -101,6 +106,7 @@ def test_the_features_demo_line_loads_its_part_with_checks_and_rps():
     spec = load_part_spec(path)
     kinds = {cp.name: cp.kind for cp in comparison_points(spec)}
     assert {kinds[n] for n in ("H1", "S2", "H3")} == {"hole"} and kinds["E1"] == "trim_edge"
+    assert kinds["C1"] == "character_line"
     scheme = rps_scheme(spec)
     assert scheme is not None and scheme.mode == "rps"
     # The line file is line.toml but for its part, its holes made off their place and a

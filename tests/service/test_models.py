@@ -78,6 +78,20 @@ def test_a_surface_not_checked_is_null_not_none_found():
         result(path="holes")
 
 
+def test_a_curves_largest_deviation_says_where_it_lies():
+    top = PointResult(
+        name="E1.trim_max", deviation_mm=0.3, lower_mm=-0.5, upper_mm=0.5, support=40,
+        verdict="pass", kind="trim_edge", at_mm=[1.0, 2.0, 3.0],
+    )  # fmt: skip
+    r = result(comparison=[top])
+    data = json.loads(r.model_dump_json())
+    assert data["comparison"][0]["at_mm"] == [1.0, 2.0, 3.0]
+    assert json.loads(result().model_dump_json())["comparison"][0]["at_mm"] is None
+    assert InspectionResult.model_validate_json(r.model_dump_json()) == r
+    with pytest.raises(ValueError, match="at_mm"):
+        PointResult(**{**top.model_dump(), "at_mm": [1.0, 2.0]})
+
+
 def test_json_round_trip_is_identical():
     r = result()
     text = r.model_dump_json()
