@@ -204,7 +204,8 @@ def ring_pair(
         left, right, sat_l, sat_r, seen, d_min, d_max, p
     )
     cols = np.arange(roi[1].start, roi[1].stop) % p.stride == 0
-    py, px = np.nonzero(seen[roi] & ~sat_l[roi] & cols[None, :])
+    rows = np.arange(roi[0].start, roi[0].stop) % p.row_stride == 0
+    py, px = np.nonzero(seen[roi] & ~sat_l[roi] & cols[None, :] & rows[:, None])
     d_init = g[roi][py, px].astype(np.float32)
     shift = float(rx0 - x0)
     d_sq = np.empty(len(px), np.float32)

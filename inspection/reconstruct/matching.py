@@ -11,7 +11,8 @@ The first pass over a pair, in order:
    (:func:`.pairs.belt_disparity` at ``z_min_mm``); the conveyor is dropped
    here, before the expensive steps, and the refinement works on crops
    around what is left (:func:`crops`).
-4. **Square windows**: each pixel of every ``stride``-th column is refined
+4. **Square windows**: each pixel of every ``stride``-th column of every
+   ``row_stride``-th row is refined
    at full resolution from its coarse disparity (:func:`.kernels.refine_pixels`
    or, with ``symmetric``, :func:`.kernels.refine_cyclopean`), on images
    normalised by their local mean and contrast (:func:`local_normalise`),
@@ -285,7 +286,7 @@ def match_pair(
         # columns), every stride-th column; the coarse disparity of each comes
         # from the left pixel that maps to it.
         c = np.rint((px + x0) - 0.5 * d_init).astype(np.int64)
-        sel = c % p.stride == 0
+        sel = (c % p.stride == 0) & ((py + y0) % p.row_stride == 0)
         c, py_, d_init = c[sel], py[sel], d_init[sel]
         cl = (c - x0).astype(np.float64)
         cr = (c - rx0).astype(np.float64)
@@ -311,9 +312,10 @@ def match_pair(
         x_left = c + 0.5 * d_ref.astype(np.float64)
         rows = py_ + y0
     else:
-        if p.stride > 1:
-            # Refine every stride-th column only (the windows overlap anyway).
-            sel = (px + x0) % p.stride == 0
+        if p.stride > 1 or p.row_stride > 1:
+            # Refine every stride-th column of every row_stride-th row only (the
+            # windows overlap anyway).
+            sel = ((px + x0) % p.stride == 0) & ((py + y0) % p.row_stride == 0)
             px, py, d_init = px[sel], py[sel], d_init[sel]
         # In the crops, a left pixel x matches right x - d', with d' = d - x0 + rx0.
         shift = float(rx0 - x0)
@@ -422,7 +424,7 @@ def triangulate_pair(
         kept_score,
     )
     # The disparity map of the left view, for the other pair's consistency check.
-    fill_gaps(full, p.stride)
+    fill_gaps(full, p)
     pts = pts[:n_out].copy()
     score = kept_score[:n_out].copy()
     rep = replace(frame.report, refined=int(n_good), in_volume=len(pts))
@@ -432,10 +434,14 @@ def triangulate_pair(
 _NO_KEEP = np.zeros(0, np.bool_)
 
 
-def fill_gaps(disparity: npt.NDArray[np.float32], stride: int) -> None:
-    """Fill short gaps along rows (the columns not refined), in place, from measured neighbours."""
-    # A row scan in numba: three box filters per pass over the whole image cost ~50x more.
-    kernels.fill_row_gaps(disparity, stride)
+def fill_gaps(disparity: npt.NDArray[np.float32], p: ReconstructParams) -> None:
+    """Fill the gaps the refinement leaves (the columns and rows not refined), in place,
+    from measured neighbours: along rows, then along columns."""
+    # Row and column scans in numba: three box filters per pass over the whole image cost
+    # ~50x more.
+    kernels.fill_row_gaps(disparity, p.stride)
+    if p.row_stride > 1:
+        kernels.fill_column_gaps(disparity, p.row_stride - 1)
 
 
 __all__ = [

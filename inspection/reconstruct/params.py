@@ -58,6 +58,11 @@ class ReconstructParams:
         ignored with ``ring_pairs``, which matches them in every pass.
     stride : int
         Refine every ``stride``-th column of the rectified left image (1: every pixel).
+    row_stride : int
+        ... of every ``row_stride``-th row (1: every row). The windows span
+        ``window`` rows, so the rows left out cost the averages at the
+        comparison points little; the fitted pose, which rests on the bends
+        and outlines, loses a little more.
     warp_passes : int
         Passes of warped refinement after the square-window one (0: none):
         windows whose disparity field bends or slopes are fitted again with
@@ -121,6 +126,7 @@ class ReconstructParams:
     window: int = 9
     iterations: int = 5
     stride: int = 2
+    row_stride: int = 1
     converged_px: float = 0.05
     symmetric: bool = False
     warp_passes: int = 2
@@ -161,11 +167,16 @@ class ReconstructParams:
             ("warp_iterations", 50),
             ("threads", 8),
             ("sparse_rows", 16),
+            ("row_stride", 8),
         ):
             v = getattr(self, name)
             low = 0 if name == "warp_passes" else 1
             if not (isinstance(v, int) and low <= v <= top):
                 raise InvalidInput(f"ReconstructParams.{name} must be an int in [{low}, {top}]")
+        if self.sparse_rows % self.row_stride:
+            raise InvalidInput(
+                "ReconstructParams.sparse_rows must be a multiple of row_stride (the rows refined)"
+            )
         if not (
             isinstance(self.warp_smooth, int) and self.warp_smooth >= 1 and self.warp_smooth % 2
         ):

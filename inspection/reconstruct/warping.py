@@ -143,7 +143,7 @@ def warped_passes(
         fit = ok if only is None else ok & only
         field_ = np.full(left_n.shape, np.nan, np.float32)
         field_[py[ok], px[ok]] = d_ref[ok]
-        fill_gaps(field_, p.stride)
+        fill_gaps(field_, p)
         known = np.isfinite(field_)
         mask = known.astype(np.float32)
         v = np.where(known, field_, 0.0).astype(np.float32)

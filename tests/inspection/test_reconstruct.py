@@ -27,7 +27,7 @@ from inspection.reconstruct import (
     kernels,
     reconstruct,
 )
-from inspection.reconstruct.matching import local_normalise, spline_rows
+from inspection.reconstruct.matching import fill_gaps, local_normalise, spline_rows
 from inspection.registration import register
 from inspection.rig import Rig, belt_pose
 from inspection.simulate import simulate
@@ -355,10 +355,12 @@ def test_a_sparse_first_pass_places_the_guide_and_matches_the_same(
 ) -> None:
     cad, tree, T, frames, plain = panel_scene
     sparse, matching = reconstructor.match(frames, sparse=True)
-    # Points from every sparse_rows-th rectified row only: a quarter of the cloud,
-    # on the whole part (each pair, the same extent).
+    # Points from every sparse_rows-th rectified row only: of the rows refined (every
+    # row_stride-th), the share row_stride / sparse_rows, on the whole part (each pair,
+    # the same extent).
     rows = reconstructor.params.sparse_rows
-    assert 0.15 * len(plain) < len(sparse) < 0.35 * len(plain)
+    share = reconstructor.params.row_stride / rows
+    assert 0.6 * share * len(plain) < len(sparse) < 1.4 * share * len(plain)
     for k, pair in enumerate(reconstructor.pairs):
         mine = sparse.points[sparse.pair == k]
         _, y, _ = pair.project(mine)
@@ -404,6 +406,38 @@ def test_field_slopes_against_numpy() -> None:
         want = np.moveaxis(total / np.maximum(count, 1), -1, axis)
         np.testing.assert_allclose(got, want, atol=1e-6)
         assert (got[~on] == 0).all()
+
+
+def _fill_once_along(a: np.ndarray, axis: int) -> np.ndarray:
+    """One pass of the gap fill along ``axis``, in numpy: a NaN takes the mean of its
+    measured neighbours (of the values before the pass)."""
+    m = np.moveaxis(a, axis, -1)
+    on = np.isfinite(m)
+    v = np.where(on, m, 0.0)
+    total = np.zeros_like(m)
+    count = np.zeros(m.shape)
+    total[..., 1:] += v[..., :-1]
+    count[..., 1:] += on[..., :-1]
+    total[..., :-1] += v[..., 1:]
+    count[..., :-1] += on[..., 1:]
+    out = np.where(~on & (count > 0), total / np.maximum(count, 1), m)
+    return np.moveaxis(out, -1, axis)
+
+
+def test_the_gaps_between_refined_rows_and_columns_close_as_numpy_closes_them() -> None:
+    rng = np.random.default_rng(5)
+    measured = rng.normal(100.0, 5.0, size=(60, 70)).astype(np.float32)
+    measured[::2, :] = np.nan  # the rows not refined
+    measured[:, 1::2] = np.nan  # the columns not refined
+    measured[20:30, 30:40] = np.nan  # a hole in the part
+    p = ReconstructParams(stride=2, row_stride=2)
+    want = _fill_once_along(_fill_once_along(_fill_once_along(measured, 1), 1), 0)
+    got = measured.copy()
+    fill_gaps(got, p)
+    np.testing.assert_allclose(got, want, rtol=1e-6)
+    # Every row and column gap is closed; the hole only shrinks by the passes' reach.
+    assert np.isfinite(got[:20]).all() and np.isfinite(got[40:]).all()
+    assert np.isnan(got[23:28, 33:37]).all()
 
 
 @pytest.mark.parametrize(("deg", "shift"), [(0.05, (0.2, 0.0, 0.0)), (-0.05, (0.0, 0.2, 0.0))])
@@ -768,6 +802,8 @@ def test_bad_params() -> None:
         {"guide_tolerance_px": -1.0},
         {"guide_passes": 0},
         {"shading_bend": -0.01},
+        {"row_stride": 0},
+        {"row_stride": 3},  # sparse_rows (4) is not a multiple of it
     ):
         with pytest.raises(InvalidInput):
             ReconstructParams(**bad)
