@@ -54,7 +54,15 @@ def _random_surface(rng, p, q, nu, nv, clamped=True):  # type: ignore[no-untyped
     return Surface(p, q, knots(nu, p), knots(nv, q), cp, rng.uniform(0.4, 2.5, (nu, nv)))
 
 
-CASES = [(3, 3, 8, 7, True), (2, 3, 5, 9, True), (1, 2, 4, 4, True), (3, 2, 9, 6, False)]
+# Degrees up to 3 along v run the grid's fixed four-term contraction (padded);
+# (4, 5) runs its general one.
+CASES = [
+    (3, 3, 8, 7, True),
+    (2, 3, 5, 9, True),
+    (1, 2, 4, 4, True),
+    (3, 2, 9, 6, False),
+    (4, 5, 7, 8, True),
+]
 
 
 @pytest.fixture(
@@ -136,6 +144,21 @@ def test_grid_evaluation_equals_point_evaluation(surface):  # type: ignore[no-un
         assert np.abs(g.reshape(-1, 3) - e).max() < 1e-9
     # Points alone are the same points.
     assert np.abs(surface.evaluate_grid(us, vs) - grid[0]).max() < 1e-9
+
+
+def test_grid_parameters_in_any_order_give_the_same_points(surface):  # type: ignore[no-untyped-def]
+    # Unsorted, repeated parameters: a row's runs of one v-span are then short.
+    rng = np.random.default_rng(6)
+    us = rng.uniform(*surface.domain_u, 9)
+    vs = np.r_[rng.uniform(*surface.domain_v, 25), surface.domain_v[::-1], surface.domain_v[1]]
+    vs[5] = vs[11]
+    grid = surface.evaluate_grid(us, vs, derivatives=1)
+    uu, vv = np.meshgrid(us, vs, indexing="ij")
+    point = surface.evaluate(uu.ravel(), vv.ravel(), derivatives=1)
+    for g, e in zip(grid, point, strict=True):
+        assert np.abs(g.reshape(-1, 3) - e).max() < 1e-9
+    order = np.argsort(vs)
+    assert np.abs(surface.evaluate_grid(us, vs[order]) - grid[0][:, order]).max() < 1e-9
 
 
 def _circle(radius: float) -> Curve:
