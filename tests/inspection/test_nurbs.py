@@ -281,6 +281,17 @@ def test_flop_counts_follow_the_loops():
     assert large.per_point == 100 * small.per_point
     assert large.grid < 100 * small.grid
     assert large.ratio > small.ratio > 1.0
+    # One grid point of a bicubic, 4 control columns: both bases, the row's
+    # contraction (8 sums of 4 terms per column), 12 sums of 4 terms, the quotient.
+    row = 4 * 8 * 4 * 2
+    one = 2 * 4 * 12 + 4 + 18
+    assert evaluation_flops(3, 3, 1, 1, 4, 1).grid == 2 * basis_flops(3, 1) + row + one
+    # Below degree 3 along v the grid runs four terms all the same; above, q + 1.
+    low = basis_flops(3, 1) + basis_flops(1, 1) + row + one
+    assert evaluation_flops(3, 1, 1, 1, 4, 1).grid == low
+    assert evaluation_flops(3, 5, 1, 1, 4, 1).grid - evaluation_flops(3, 3, 1, 1, 4, 1).grid == (
+        basis_flops(5, 1) - basis_flops(3, 1) + 2 * 2 * 12
+    )
     with pytest.raises(InvalidInput):
         evaluation_flops(3, 3, 0, 10, 12)
 
