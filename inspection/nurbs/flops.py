@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from ..errors import InvalidInput
+from .kernels import GRID_TERMS
 from .knots import check_degree, check_derivatives
 
 
@@ -45,8 +46,10 @@ class EvaluationFlops:
     """Operation counts of evaluating an ``m x k`` parameter grid.
 
     ``per_point``: every point on its own (:func:`.kernels.surface_points`);
-    ``grid``: the basis once per grid line and the row contraction once per
-    control column (:func:`.kernels.surface_grid`).
+    ``grid``: the basis once per grid line, the row contraction once per
+    control column, and per grid point ``max(q + 1, GRID_TERMS)`` terms of
+    each homogeneous sum (:func:`.kernels.surface_grid`: a degree below 3
+    runs the four-term loop with zero terms).
     """
 
     per_point: int
@@ -85,10 +88,11 @@ def evaluation_flops(
         + rational
     )
     per_point = m * k * point
+    terms = max(q + 1, GRID_TERMS)
     grid = (
         m * basis_flops(p, nd)
         + k * basis_flops(q, nd)
         + m * n_ctrl_v * (p + 1) * 8 * (1 + nd)
-        + m * k * ((q + 1) * 8 * (1 + 2 * nd) + rational)
+        + m * k * (terms * 8 * (1 + 2 * nd) + rational)
     )
     return EvaluationFlops(per_point=per_point, grid=grid)

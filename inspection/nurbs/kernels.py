@@ -9,14 +9,19 @@ B-spline, and the point and its first derivatives follow by the quotient rule
     S = A / w,    S_u = (A_u - w_u S) / w,    S_v = (A_v - w_v S) / w.
 
 Two ways of evaluating many parameters share the same basis kernel
-(:func:`.basis.ders_basis`) and the same rational step:
+(:func:`.basis.ders_basis`) and the same quotient rule:
 
 - :func:`surface_points`: each parameter pair on its own: two span searches,
   two basis evaluations and the full ``(p+1) x (q+1)`` contraction per point;
 - :func:`surface_grid`: a regular grid ``us x vs``: the basis of every grid
   line is computed once (:func:`.basis.basis_table`), and along a grid row
   ``u = us[i]`` the contraction over ``k`` is done once per control column,
-  ``Q_l = sum_k N_k(u) Pw_kl``, leaving ``q + 1`` terms per grid point.
+  ``Q_l = sum_k N_k(u) Pw_kl`` and ``R_l = sum_k N'_k(u) Pw_kl``. The grid
+  points of the row on one v-span then read the same ``q + 1`` columns: that
+  ``(q+1) x 8`` block times the run's v-basis gives A and A_u, the block's Q
+  half times the v-basis' derivative gives A_v, ``q + 1`` terms per sum and
+  point, and the quotient rule forms ``1 / w`` and S once for both
+  derivatives.
 
 Their operation counts are in :mod:`.flops`. The kernels run on one thread
 (no ``prange``): callers may evaluate from several threads of their own.
@@ -26,7 +31,7 @@ Callers are trusted: shapes, knots and parameters are checked by the classes.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, uint64
 
 from .basis import basis_table, ders_basis, find_span
 
@@ -272,73 +277,141 @@ def closest_newton(
         uv[i, 1] = v
 
 
-@njit(cache=True, nogil=True, fastmath=True)
+# A run of grid points along a row that share their v-span reads the same
+# control columns: with a fixed count of terms per point the contraction's loop
+# has a length known when compiling and is unrolled (degree_v <= 3, the missing
+# terms padded with zeros); higher degrees take a loop of q + 1 terms.
+GRID_TERMS = 4
+
+# The grid kernels index with unsigned integers: numba wraps a negative signed
+# index around, and that branch in every access keeps the compiler from
+# treating a run's reads as contiguous. Their division cannot raise
+# (error_model="numpy"): the weights are positive, so the denominator is too,
+# and the loop carries no exception branch.
+
+
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy", inline="always")
+def _run_points(terms, w, bv, j0, j1, base, pf):  # pragma: no cover
+    """Points of the grid points ``j0 <= j < j1`` of a row: ``w`` (terms, 8)
+    holds the run's control columns contracted over u, ``bv`` (2, terms, k)
+    the v-basis along the row; ``pf`` is the flat output, from ``base``."""
+    for j in range(j0, j1):
+        a0 = a1 = a2 = a3 = 0.0
+        for l in range(uint64(terms)):
+            b = bv[0, l, j]
+            a0 += b * w[l, 0]
+            a1 += b * w[l, 1]
+            a2 += b * w[l, 2]
+            a3 += b * w[l, 3]
+        inv = 1.0 / a3
+        o = base + uint64(3) * j
+        pf[o] = a0 * inv
+        pf[o + uint64(1)] = a1 * inv
+        pf[o + uint64(2)] = a2 * inv
+
+
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy", inline="always")
+def _run_derivatives(terms, w, bv, j0, j1, base, pf, uf, vf):  # pragma: no cover
+    """As :func:`_run_points`, with the first derivatives: ``w[:, 4:]`` holds
+    the columns contracted with the u-basis' derivative, ``bv[1]`` the
+    v-basis' derivative. The homogeneous sums A, A_u, A_v are formed once and
+    the quotient rule reuses S and 1 / w for both derivatives."""
+    for j in range(j0, j1):
+        a0 = a1 = a2 = a3 = 0.0
+        u0 = u1 = u2 = u3 = 0.0
+        v0 = v1 = v2 = v3 = 0.0
+        for l in range(uint64(terms)):
+            b = bv[0, l, j]
+            d = bv[1, l, j]
+            a0 += b * w[l, 0]
+            a1 += b * w[l, 1]
+            a2 += b * w[l, 2]
+            a3 += b * w[l, 3]
+            u0 += b * w[l, 4]
+            u1 += b * w[l, 5]
+            u2 += b * w[l, 6]
+            u3 += b * w[l, 7]
+            v0 += d * w[l, 0]
+            v1 += d * w[l, 1]
+            v2 += d * w[l, 2]
+            v3 += d * w[l, 3]
+        inv = 1.0 / a3
+        x = a0 * inv
+        y = a1 * inv
+        z = a2 * inv
+        o = base + uint64(3) * j
+        pf[o] = x
+        pf[o + uint64(1)] = y
+        pf[o + uint64(2)] = z
+        uf[o] = (u0 - u3 * x) * inv
+        uf[o + uint64(1)] = (u1 - u3 * y) * inv
+        uf[o + uint64(2)] = (u2 - u3 * z) * inv
+        vf[o] = (v0 - v3 * x) * inv
+        vf[o + uint64(1)] = (v1 - v3 * y) * inv
+        vf[o + uint64(2)] = (v2 - v3 * z) * inv
+
+
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy", inline="always")
+def _grid(terms, p, q, knots_u, knots_v, pw, us, vs, nd, pts, d_du, d_dv):  # pragma: no cover
+    """:func:`surface_grid` with ``terms >= q + 1`` terms per grid point."""
+    ncol = pw.shape[1]
+    m = us.shape[0]
+    k = vs.shape[0]
+    spans_u, table_u = basis_table(p, knots_u, pw.shape[0] - 1, us, nd)
+    spans_v, table_v = basis_table(q, knots_v, ncol - 1, vs, nd)
+    # The v-basis transposed, so that a run reads each term's values contiguously.
+    bv = np.zeros((2, terms, k))
+    for j in range(k):
+        for d in range(nd + 1):
+            for l in range(q + 1):
+                bv[d, l, j] = table_v[j, d, l]
+    # Runs of consecutive grid points on one v-span (one per span for sorted vs).
+    starts = np.empty(k + 1, dtype=np.uint64)
+    runs = 0
+    for j in range(k):
+        if j == 0 or spans_v[j] != spans_v[j - 1]:
+            starts[runs] = j
+            runs += 1
+    starts[runs] = k
+    width = 4 * (nd + 1)
+    # Per control column, the row's contraction over u: Q = sum_k N_k(u) Pw_k
+    # (and R with N'_k), then the run's q + 1 columns of it, zero-padded.
+    rq = np.empty((ncol, 8))
+    w = np.zeros((terms, 8))
+    pf = pts.reshape(-1)
+    uf = d_du.reshape(-1)
+    vf = d_dv.reshape(-1)
+    for i in range(m):
+        su = spans_u[i]
+        for c in range(ncol):
+            for h in range(width):
+                d = h // 4
+                acc = 0.0
+                for kk in range(p + 1):
+                    acc += table_u[i, d, kk] * pw[su - p + kk, c, h % 4]
+                rq[c, h] = acc
+        base = uint64(3 * i * k)
+        for r in range(runs):
+            j0 = starts[r]
+            first = spans_v[j0] - q
+            for l in range(q + 1):
+                for h in range(width):
+                    w[l, h] = rq[first + l, h]
+            if nd:
+                _run_derivatives(terms, w, bv, j0, starts[r + 1], base, pf, uf, vf)
+            else:
+                _run_points(terms, w, bv, j0, starts[r + 1], base, pf)
+
+
+@njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
 def surface_grid(p, q, knots_u, knots_v, pw, us, vs, nd, pts, d_du, d_dv):  # pragma: no cover
     """Points (and with ``nd = 1`` first derivatives) on the grid ``us x vs``;
     outputs are (len(us) * len(vs), 3), row ``i * len(vs) + j`` for
     ``(us[i], vs[j])``."""
-    nu = pw.shape[0] - 1
-    nv = pw.shape[1] - 1
-    ncol = nv + 1
-    spans_u, table_u = basis_table(p, knots_u, nu, us, nd)
-    spans_v, table_v = basis_table(q, knots_v, nv, vs, nd)
-    # The row's contraction over k, per control column: Q (value) and R (u-derivative).
-    rq = np.empty((ncol, 4))
-    rr = np.empty((ncol, 4))
-    m = vs.shape[0]
-    for i in range(us.shape[0]):
-        su = spans_u[i]
-        for c in range(ncol):
-            t0 = t1 = t2 = t3 = 0.0
-            s0 = s1 = s2 = s3 = 0.0
-            for k in range(p + 1):
-                row = su - p + k
-                b = table_u[i, 0, k]
-                t0 += b * pw[row, c, 0]
-                t1 += b * pw[row, c, 1]
-                t2 += b * pw[row, c, 2]
-                t3 += b * pw[row, c, 3]
-                if nd:
-                    b = table_u[i, 1, k]
-                    s0 += b * pw[row, c, 0]
-                    s1 += b * pw[row, c, 1]
-                    s2 += b * pw[row, c, 2]
-                    s3 += b * pw[row, c, 3]
-            rq[c, 0] = t0
-            rq[c, 1] = t1
-            rq[c, 2] = t2
-            rq[c, 3] = t3
-            rr[c, 0] = s0
-            rr[c, 1] = s1
-            rr[c, 2] = s2
-            rr[c, 3] = s3
-        base = i * m
-        for j in range(m):
-            sv = spans_v[j]
-            c0 = c1 = c2 = c3 = 0.0
-            u0 = u1 = u2 = u3 = 0.0
-            v0 = v1 = v2 = v3 = 0.0
-            for l in range(q + 1):
-                c = sv - q + l
-                b = table_v[j, 0, l]
-                c0 += b * rq[c, 0]
-                c1 += b * rq[c, 1]
-                c2 += b * rq[c, 2]
-                c3 += b * rq[c, 3]
-                if nd:
-                    u0 += b * rr[c, 0]
-                    u1 += b * rr[c, 1]
-                    u2 += b * rr[c, 2]
-                    u3 += b * rr[c, 3]
-                    b = table_v[j, 1, l]
-                    v0 += b * rq[c, 0]
-                    v1 += b * rq[c, 1]
-                    v2 += b * rq[c, 2]
-                    v3 += b * rq[c, 3]
-            x, y, z, inv = _rational(c0, c1, c2, c3, pts, base + j)
-            if nd:
-                _rational_derivative(u0, u1, u2, u3, x, y, z, inv, d_du, base + j)
-                _rational_derivative(v0, v1, v2, v3, x, y, z, inv, d_dv, base + j)
+    if q < GRID_TERMS:
+        _grid(GRID_TERMS, p, q, knots_u, knots_v, pw, us, vs, nd, pts, d_du, d_dv)
+    else:
+        _grid(q + 1, p, q, knots_u, knots_v, pw, us, vs, nd, pts, d_du, d_dv)
 
 
 @njit(cache=True, nogil=True, fastmath=True)

@@ -54,7 +54,15 @@ def _random_surface(rng, p, q, nu, nv, clamped=True):  # type: ignore[no-untyped
     return Surface(p, q, knots(nu, p), knots(nv, q), cp, rng.uniform(0.4, 2.5, (nu, nv)))
 
 
-CASES = [(3, 3, 8, 7, True), (2, 3, 5, 9, True), (1, 2, 4, 4, True), (3, 2, 9, 6, False)]
+# Degrees up to 3 along v run the grid's fixed four-term contraction (padded);
+# (4, 5) runs its general one.
+CASES = [
+    (3, 3, 8, 7, True),
+    (2, 3, 5, 9, True),
+    (1, 2, 4, 4, True),
+    (3, 2, 9, 6, False),
+    (4, 5, 7, 8, True),
+]
 
 
 @pytest.fixture(
@@ -136,6 +144,21 @@ def test_grid_evaluation_equals_point_evaluation(surface):  # type: ignore[no-un
         assert np.abs(g.reshape(-1, 3) - e).max() < 1e-9
     # Points alone are the same points.
     assert np.abs(surface.evaluate_grid(us, vs) - grid[0]).max() < 1e-9
+
+
+def test_grid_parameters_in_any_order_give_the_same_points(surface):  # type: ignore[no-untyped-def]
+    # Unsorted, repeated parameters: a row's runs of one v-span are then short.
+    rng = np.random.default_rng(6)
+    us = rng.uniform(*surface.domain_u, 9)
+    vs = np.r_[rng.uniform(*surface.domain_v, 25), surface.domain_v[::-1], surface.domain_v[1]]
+    vs[5] = vs[11]
+    grid = surface.evaluate_grid(us, vs, derivatives=1)
+    uu, vv = np.meshgrid(us, vs, indexing="ij")
+    point = surface.evaluate(uu.ravel(), vv.ravel(), derivatives=1)
+    for g, e in zip(grid, point, strict=True):
+        assert np.abs(g.reshape(-1, 3) - e).max() < 1e-9
+    order = np.argsort(vs)
+    assert np.abs(surface.evaluate_grid(us, vs[order]) - grid[0][:, order]).max() < 1e-9
 
 
 def _circle(radius: float) -> Curve:
@@ -258,6 +281,17 @@ def test_flop_counts_follow_the_loops():
     assert large.per_point == 100 * small.per_point
     assert large.grid < 100 * small.grid
     assert large.ratio > small.ratio > 1.0
+    # One grid point of a bicubic, 4 control columns: both bases, the row's
+    # contraction (8 sums of 4 terms per column), 12 sums of 4 terms, the quotient.
+    row = 4 * 8 * 4 * 2
+    one = 2 * 4 * 12 + 4 + 18
+    assert evaluation_flops(3, 3, 1, 1, 4, 1).grid == 2 * basis_flops(3, 1) + row + one
+    # Below degree 3 along v the grid runs four terms all the same; above, q + 1.
+    low = basis_flops(3, 1) + basis_flops(1, 1) + row + one
+    assert evaluation_flops(3, 1, 1, 1, 4, 1).grid == low
+    assert evaluation_flops(3, 5, 1, 1, 4, 1).grid - evaluation_flops(3, 3, 1, 1, 4, 1).grid == (
+        basis_flops(5, 1) - basis_flops(3, 1) + 2 * 2 * 12
+    )
     with pytest.raises(InvalidInput):
         evaluation_flops(3, 3, 0, 10, 12)
 
