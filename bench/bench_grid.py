@@ -18,11 +18,12 @@ Times are medians over repeats after a warm-up; the near queries of all
 methods are timed in interleaved rounds, so that load from elsewhere hits
 them alike, and the median of the rounds' own cKDTree / GridTree ratios is
 printed too. Ratios are peer time / grid time; the first line starting
-``RATIO`` gives the headline one (against cKDTree, both on every core), the
-second the same pair with one thread each (numba's threads set to 1,
-``workers=1``): on a shared machine a parallel launch of a few milliseconds
-waits for a core held elsewhere far longer than one of a second does, so the
-one-thread pair is the one that compares the searches alike under load.
+``RATIO`` gives the headline one: against cKDTree with one thread each
+(numba's threads set to 1, ``workers=1``), wall and CPU time; the second the
+same pair on every core. On a shared machine a parallel launch of a few
+milliseconds waits for a core held elsewhere far longer than one of a second
+does (and OpenMP's threads spin while they wait, which counts as CPU time),
+so only the one-thread pair compares the searches alike under load.
 Exit status 1 when, and only when, an accuracy check fails: speed and build
 times are printed beside their goals, never asserted, as they depend on the
 machine's load.
@@ -147,14 +148,16 @@ def _single_threaded(tree, kd, near: np.ndarray) -> dict[str, list[float]]:  # t
             "kd": lambda: kd.query(near, workers=1),
         }
         out: dict[str, list[float]] = {name: [] for name in runs}
+        out.update({f"{name} cpu": [] for name in runs})
         for fn in runs.values():
             fn()
         for _ in range(ROUNDS):
             for name, fn in runs.items():
                 for _ in range(GRID_PER_ROUND if name == "grid" else 1):
-                    start = time.perf_counter()
+                    start, cpu = time.perf_counter(), time.process_time()
                     fn()
                     out[name].append(time.perf_counter() - start)
+                    out[f"{name} cpu"].append(time.process_time() - cpu)
     finally:
         numba.set_num_threads(threads)
     return out
@@ -298,19 +301,22 @@ def main() -> int:
     s_ratio = float(np.median(s_kd) / np.median(s_grid))
     s_best = float(s_kd.min() / s_grid.min())
     s_paired = float(np.median(s_kd / np.median(s_grid.reshape(ROUNDS, GRID_PER_ROUND), axis=1)))
+    s_cpu = float(np.median(single["kd cpu"]) / np.median(single["grid cpu"]))
     threads = os.cpu_count()
     print(
-        f"\nRATIO  GridTree.query is {kd_ratio:.1f}x faster than scipy cKDTree(workers=-1) "
-        f"on {N_NEAR // 1000}k queries within 3 mm (medians; {kd_best:.1f}x best repeats; "
-        f"{kd_paired:.1f}x median of the {ROUNDS} rounds' own ratios; {kd_cpu:.1f}x in CPU "
-        f"time), both on every core ({threads}: numba's threads, cKDTree's workers); "
-        f"goal >= {RATIO_GOAL:g}x: {'met' if kd_ratio >= RATIO_GOAL else 'NOT met'} at load "
-        f"{os.getloadavg()[0]:.1f}"
+        f"\nRATIO  one thread each (numba 1 thread, cKDTree workers=1): GridTree.query is "
+        f"{s_ratio:.1f}x faster than scipy cKDTree on {N_NEAR // 1000}k queries within 3 mm "
+        f"(medians {np.median(s_grid) * 1e3:.2f} ms and {np.median(s_kd) * 1e3:.1f} ms; "
+        f"{s_cpu:.1f}x in CPU time; {s_best:.1f}x best repeats; {s_paired:.1f}x median of the "
+        f"rounds' own ratios); goal >= {RATIO_GOAL:g}x: "
+        f"{'met' if s_ratio >= RATIO_GOAL else 'NOT met'} at load {os.getloadavg()[0]:.1f}"
     )
     print(
-        f"RATIO  one thread each (numba 1 thread, cKDTree workers=1): {s_ratio:.1f}x "
-        f"(medians {np.median(s_grid) * 1e3:.2f} ms and {np.median(s_kd) * 1e3:.1f} ms; "
-        f"{s_best:.1f}x best repeats; {s_paired:.1f}x median of the rounds' own ratios)"
+        f"RATIO  every core: GridTree.query is {kd_ratio:.1f}x faster than scipy "
+        f"cKDTree(workers=-1) on {N_NEAR // 1000}k queries within 3 mm (medians; "
+        f"{kd_best:.1f}x best repeats; "
+        f"{kd_paired:.1f}x median of the {ROUNDS} rounds' own ratios; {kd_cpu:.1f}x in CPU "
+        f"time), both on every core ({threads}: numba's threads, cKDTree's workers)"
     )
     off = e_near > 1e-3
     print(
@@ -332,10 +338,10 @@ def main() -> int:
     ]
     g = RATIO_GOAL
     goals = [
-        (f"near speed >= {g:g}x cKDTree, medians (got {kd_ratio:.1f}x)", kd_ratio >= g),
+        (f"near speed >= {g:g}x cKDTree, one thread each (got {s_ratio:.1f}x)", s_ratio >= g),
+        (f"near speed >= {g:g}x cKDTree, every core, medians (got {kd_ratio:.1f}x)", kd_ratio >= g),
         (f"near speed >= {g:g}x cKDTree, best repeats (got {kd_best:.1f}x)", kd_best >= g),
         (f"near speed >= {g:g}x cKDTree, paired rounds (got {kd_paired:.1f}x)", kd_paired >= g),
-        (f"near speed >= {g:g}x cKDTree, one thread each (got {s_ratio:.1f}x)", s_ratio >= g),
     ]
     if len(builds) > 1:
         cb = builds[1][2]

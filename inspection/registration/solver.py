@@ -130,6 +130,9 @@ _FAR_MM = 1e30
 # the rule, as a part tilted far over an outline is when its overhanging
 # points count as unseen and no longer pull it back.
 _VIEW_STUCK_LAMBDA = 1.0
+# A damped step within this fraction of its length of one the cost just
+# rejected is taken as rejected too, without evaluating it.
+_SAME_STEP = 1e-3
 # Steps moving the points by less than this (RMS, mm) are evaluated against
 # each point's last closest face rather than with a fresh query.
 _FIXED_FACE_STEP_MM = 0.02
@@ -513,6 +516,7 @@ def _trust_region_step(fit: _Fit, e0: float, g: np.ndarray) -> _Step:
     H, L, center = fit.H, fit.L, fit.center
     small = False
     delta = np.zeros(6)
+    rejected: np.ndarray | None = None
     for _trial in range(fit.p.max_rejections + 1):
         # Predicted reduction of the quadratic IRLS model (a lower bound of
         # the true reduction where the linearisation holds).
@@ -529,6 +533,12 @@ def _trust_region_step(fit: _Fit, e0: float, g: np.ndarray) -> _Step:
             small = float(np.sqrt(omega @ omega)) < tol_rad and float(np.sqrt(t @ t)) < tol_mm
         if pred <= 1e-15 * max(e0, 1e-300) or (small and fit.lam <= 1e-3):
             return _Step(accepted=False, tiny=True, small=small, e1=e0, delta=delta)
+        if rejected is not None and _same_step(delta, rejected):
+            # While lambda is small against diag(H) the damped step barely
+            # changes: it would be rejected again, and its query is spared.
+            fit.lam *= 4.0
+            fit.rejected += 1
+            continue
         T1 = compose(fit.T, omega, t, center)
         m1 = fit.trial(T1, float(np.sqrt(delta @ delta)))
         e1 = robust_cost(
@@ -552,7 +562,14 @@ def _trust_region_step(fit: _Fit, e0: float, g: np.ndarray) -> _Step:
             return _Step(accepted=True, tiny=False, small=small, e1=e1, delta=delta)
         fit.lam *= 4.0
         fit.rejected += 1
+        rejected = delta
     return _Step(accepted=False, tiny=False, small=small, e1=e0, delta=delta)
+
+
+def _same_step(delta: np.ndarray, rejected: np.ndarray) -> bool:
+    """Whether ``delta`` is the rejected step to within ``_SAME_STEP`` of its length."""
+    d = delta - rejected
+    return float(d @ d) <= _SAME_STEP * _SAME_STEP * float(rejected @ rejected)
 
 
 def _extend(

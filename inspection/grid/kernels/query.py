@@ -142,8 +142,9 @@ def query_grid(
         # Memory, not arithmetic, sets the pace: each pass issues loads that
         # do not depend on one another, so their cache misses overlap, and
         # the next pass finds the lines in cache. Pass 1 reads the chunk's
-        # cell codes (and those of the subcells of mixed cells), pass 2
-        # prefetches the hot records they name, pass 3 answers every query
+        # cell codes (and those of the subcells of mixed cells, then the
+        # first entries of their lists), pass 2 prefetches the hot records
+        # they name, pass 3 answers every query
         # it can and prefetches the record of the face a walk steps to (or
         # of the faces across the sharp edges of a subcell's face or of a
         # list's best candidate), passes 4 and 5 finish those.
@@ -198,6 +199,12 @@ def query_grid(
                         else:
                             sub[j] = -1
                     codes[j] = code
+            # The lists' first entries: the next pass reads them to fetch
+            # the candidates' records, and would otherwise wait on each.
+            for j in range(j1 - j0):
+                code = codes[j]
+                if code < CELL_UNKNOWN:
+                    prefetch(mixed_faces, mixed_ptr[-code - 2])
         for j in range(j1 - j0):
             code = codes[j]
             if code >= 0:
