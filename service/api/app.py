@@ -28,6 +28,7 @@ from .errors import install_error_handlers
 from .events import ResultHub
 from .gate import MeasureGate
 from .limits import BodySizeLimit
+from .measurer import UploadMeasurer
 from .methods import MethodRouting
 from .metrics import Metrics, RequestMetrics
 from .routes import inspections as inspection_routes
@@ -44,6 +45,7 @@ def create_app(
     store: ResultStore,
     parts: PartRegistry,
     pipeline: Pipeline | None = None,
+    measurer: UploadMeasurer | None = None,
     bus: ResultHub | None = None,
     archive: DeviationArchive | None = None,
     checks: Mapping[str, Callable[[], bool]] | None = None,
@@ -59,8 +61,13 @@ def create_app(
     parts : PartRegistry
         The parts and their trees (the caller preloads and closes it).
     pipeline : callable, optional
-        ``pipeline(part, points, trigger, *, frame) -> Outcome``;
-        default :func:`service.results.measure_upload`.
+        ``pipeline(part, points, trigger, *, frame) -> Outcome``, run on a thread of
+        this process; default: :func:`service.results.measure_upload` in measuring
+        processes of their own (``measurer``).
+    measurer : UploadMeasurer, optional
+        The measuring processes of the uploads (the caller closes one it passes);
+        default: ``[http] max_measurements`` of them, started with the first upload
+        and ended with the app. Not used with a ``pipeline``.
     bus : ResultHub, optional
         Fan-out of new results to ``/v1/stream``. Pass the one the worker or
         a zenoh subscriber publishes into; default: a new one, fed by the
@@ -76,13 +83,16 @@ def create_app(
         The process's metrics, served on ``/metrics`` (a worker in the same
         process adds its own to them); default: a new set.
     """
-    if pipeline is None:
-        pipeline = measure_upload
     hub = bus if bus is not None else ResultHub()
     if archive is None:
         archive = DeviationArchive(
             settings.storage.deviations_path(), max_bytes=settings.deviations_max_bytes()
         )
+    own_measurer = None
+    if pipeline is not None:
+        measurer = None
+    elif measurer is None:
+        measurer = own_measurer = UploadMeasurer(settings.http.max_measurements)
     if metrics is None:
         metrics = Metrics()
     http = settings.http
@@ -96,7 +106,8 @@ def create_app(
         settings=settings,
         store=store,
         parts=parts,
-        pipeline=pipeline,
+        pipeline=pipeline or measure_upload,
+        measurer=measurer,
         hub=hub,
         archive=archive,
         metrics=metrics,
@@ -106,9 +117,13 @@ def create_app(
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        if own_measurer is not None:
+            own_measurer.start()
         yield
         hub.close()  # ends open event streams so the server can stop
         gate.close()
+        if own_measurer is not None:
+            own_measurer.close()
 
     app = FastAPI(
         title="Inspection",
@@ -210,7 +225,8 @@ def _document_access(app: FastAPI, auth: AuthScope, *, keys_needed: bool) -> Non
                 if path == "/v1/inspections" and method == "post":
                     responses.setdefault(
                         "503", {"description": "As many uploads as the API measures at once "
-                                "are measuring or waiting: retry after Retry-After",
+                                "are measuring or waiting (busy), or the process measuring "
+                                "this one died (measurer_died): retry after Retry-After",
                                 "content": error},
                     )  # fmt: skip
         app.openapi_schema = schema

@@ -16,6 +16,7 @@ from ..parts import PartRegistry
 from ..store import DeviationArchive, ResultStore
 from .events import ResultHub
 from .gate import MeasureGate
+from .measurer import UploadMeasurer
 from .metrics import Metrics
 
 log = logging.getLogger(__name__)
@@ -54,6 +55,7 @@ class Services:
     archive: DeviationArchive | None
     metrics: Metrics
     gate: MeasureGate
+    measurer: UploadMeasurer | None
     checks: Mapping[str, Callable[[], bool]] = field(default_factory=dict)
 
     def record(self, result: InspectionResult, points: Any = None, distances: Any = None) -> None:

@@ -1,4 +1,5 @@
-"""Fixtures of the line's tests: one tree cache and one PostgreSQL server for the session."""
+"""Fixtures of the line's tests: one tree cache, one PostgreSQL server and one set of
+upload-measuring processes for the session."""
 
 from __future__ import annotations
 
@@ -7,6 +8,8 @@ from pathlib import Path
 
 import pytest
 from pgserver import PgServer, ServerUnavailable
+
+from service.api.measurer import UploadMeasurer
 
 
 @pytest.fixture(scope="session")
@@ -26,6 +29,15 @@ def pg_server() -> Iterator[PgServer]:
         pytest.skip(str(exc))
     yield server
     server.stop()
+
+
+@pytest.fixture(scope="session")
+def upload_measurer() -> Iterator[UploadMeasurer]:
+    """The process that measures the API's uploads, shared by the apps of the session:
+    started once (the first upload pays its start), as one app starts it for its life."""
+    measurer = UploadMeasurer(1)
+    yield measurer
+    measurer.close()
 
 
 @pytest.fixture(params=["sqlite", "postgresql"])

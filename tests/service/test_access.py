@@ -8,6 +8,8 @@ API's measuring capacity refused at once (503 with Retry-After).
 
 from __future__ import annotations
 
+import os
+import signal
 import threading
 from contextlib import contextmanager
 
@@ -19,6 +21,8 @@ from test_api import PART, line, npy_bytes  # noqa: F401 - the module's built pa
 
 from service.api import ResultHub, create_app
 from service.api.access import KEYS_ENV
+from service.api.gate import NICE
+from service.api.measurer import UploadMeasurer
 from service.results import measure_upload
 from service.store import DeviationArchive, ResultStore
 
@@ -26,14 +30,15 @@ KEY = "k3y-0f-the-line"
 
 
 @contextmanager
-def serve(cfg, reg, tmp_path, *, pipeline=None, **http):
-    """The API with ``[http]`` changed by ``http``, on a real server on a loopback port."""
+def serve(cfg, reg, tmp_path, *, pipeline=None, measurer=None, **http):
+    """The API with ``[http]`` changed by ``http``, on a real server on a loopback port;
+    uploads measured by ``pipeline`` on a thread, or by ``measurer``'s processes."""
     cfg = cfg.model_copy(
         update={"http": type(cfg.http).model_validate(cfg.http.model_dump() | http)}
     )
     store = ResultStore(tmp_path / "results.sqlite")
     hub = ResultHub()
-    app = create_app(cfg, store=store, parts=reg, bus=hub, pipeline=pipeline,
+    app = create_app(cfg, store=store, parts=reg, bus=hub, pipeline=pipeline, measurer=measurer,
                      archive=DeviationArchive(tmp_path / "deviations"))  # fmt: skip
     try:
         with uvicorn_server(app, before_stop=hub.close) as port:
@@ -55,9 +60,9 @@ def code(r) -> str:
     return r.json()["error"]["code"]
 
 
-def test_writes_need_a_key_reads_do_not(line, tmp_path, monkeypatch):  # noqa: F811
+def test_writes_need_a_key_reads_do_not(line, tmp_path, monkeypatch, upload_measurer):  # noqa: F811
     monkeypatch.setenv(KEYS_ENV, f"other-key, {KEY}")
-    with serve(*line, tmp_path) as (client, _):
+    with serve(*line, tmp_path, measurer=upload_measurer) as (client, _):
         r = upload(client)
         assert r.status_code == 401 and code(r) == "unauthorized"
         assert r.headers["www-authenticate"].startswith("Bearer")
@@ -80,23 +85,31 @@ def test_with_auth_all_reads_need_a_key_too_but_probes_do_not(line, tmp_path, mo
         assert r.status_code == 200
 
 
-def test_without_keys_writes_are_refused_beyond_loopback(line, tmp_path, monkeypatch):  # noqa: F811
+def test_without_keys_writes_are_refused_beyond_loopback(
+    line,  # noqa: F811
+    tmp_path,
+    monkeypatch,
+    upload_measurer,
+):
     monkeypatch.delenv(KEYS_ENV, raising=False)
-    with serve(*line, tmp_path, host="0.0.0.0") as (client, _):
+    with serve(*line, tmp_path, host="0.0.0.0", measurer=upload_measurer) as (client, _):
         r = upload(client)
         assert r.status_code == 403 and code(r) == "writes_disabled"
         assert KEYS_ENV in r.json()["error"]["message"]
-    with serve(*line, tmp_path, host="127.0.0.1") as (client, _):
+    with serve(*line, tmp_path, host="127.0.0.1", measurer=upload_measurer) as (client, _):
         assert upload(client).status_code == 200  # this machine's own user, as `make run` has it
 
 
-def test_a_write_from_another_origin_is_refused(line, tmp_path, monkeypatch):  # noqa: F811
+def test_a_write_from_another_origin_is_refused(line, tmp_path, monkeypatch, upload_measurer):  # noqa: F811
     """A page an operator opens cannot post to the line, key or not; the API's own pages
     and the configured origins can, and only those get CORS headers on reads."""
     monkeypatch.setenv(KEYS_ENV, KEY)
     auth = {"Authorization": f"Bearer {KEY}"}
     friend = "https://qa-desk.plant.example"
-    with serve(*line, tmp_path, allowed_origins=[friend]) as (client, base):
+    with serve(*line, tmp_path, allowed_origins=[friend], measurer=upload_measurer) as (
+        client,
+        base,
+    ):
         r = upload(client, {**auth, "Origin": "https://evil.example"})
         assert r.status_code == 403 and code(r) == "origin_refused"
         r = client.delete(f"/v1/parts/{PART}", headers={"Origin": "null"})
@@ -216,3 +229,48 @@ def test_the_schema_states_what_access_asks_for(line, tmp_path, monkeypatch):  #
         spec = client.get("/openapi.json").json()
     assert "security" not in spec["paths"]["/v1/inspections"]["post"]
     assert "securitySchemes" not in spec.get("components", {})
+
+
+def test_an_upload_is_measured_in_a_process_of_its_own_at_a_lower_priority(
+    line,  # noqa: F811
+    tmp_path,
+    monkeypatch,
+    upload_measurer,
+):
+    """The line shares its process with the API: an upload measured there would hold the
+    interpreter's lock the line's threads need. It is measured in a measuring process,
+    niced, with the same result as on a thread of the API's own."""
+    monkeypatch.delenv(KEYS_ENV, raising=False)
+    with serve(*line, tmp_path, measurer=upload_measurer) as (client, _):
+        r = upload(client, n=5000)
+        assert r.status_code == 200, r.text
+        by_process = r.json()
+    (pid,) = upload_measurer.pids()
+    assert pid != os.getpid()
+    assert os.getpriority(os.PRIO_PROCESS, pid) == os.getpriority(os.PRIO_PROCESS, 0) + NICE
+    with serve(*line, tmp_path / "thread", pipeline=measure_upload) as (client, _):
+        by_thread = upload(client, n=5000).json()
+    for key in ("status", "transform", "rms_mm", "comparison", "defects", "field"):
+        assert by_process[key] == by_thread[key], key
+
+
+def test_a_measuring_process_that_dies_costs_its_upload_a_503_and_no_more(
+    line,  # noqa: F811
+    tmp_path,
+    monkeypatch,
+):
+    monkeypatch.delenv(KEYS_ENV, raising=False)
+    measurer = UploadMeasurer(1)
+    try:
+        with serve(*line, tmp_path, measurer=measurer) as (client, _):
+            assert upload(client).status_code == 200
+            (pid,) = measurer.pids()
+            os.kill(pid, signal.SIGKILL)
+            r = upload(client)
+            assert r.status_code == 503 and code(r) == "measurer_died", r.text
+            assert int(r.headers["retry-after"]) > 0
+            assert upload(client).status_code == 200  # a new process, the place given back
+            assert measurer.pids() and measurer.pids() != [pid]
+            assert client.get("/v1/health/live").status_code == 200
+    finally:
+        measurer.close()

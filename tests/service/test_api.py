@@ -134,7 +134,7 @@ BOTH_STORES = pytest.mark.parametrize("api_store_target", ["sqlite", "postgresql
 
 
 @pytest.fixture
-def app_parts(line, tmp_path, api_store_target):
+def app_parts(line, tmp_path, api_store_target, upload_measurer):
     """A fresh store, archive and app per test, sharing the module's built part."""
     cfg, reg = line
     store = ResultStore(api_store_target)
@@ -148,6 +148,7 @@ def app_parts(line, tmp_path, api_store_target):
         bus=hub,
         archive=archive,
         checks={"zenoh": lambda: zenoh_up["value"]},
+        measurer=upload_measurer,
     )
     yield app, store, archive, hub, zenoh_up
     store.close()

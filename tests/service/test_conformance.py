@@ -95,7 +95,7 @@ def openapi_document() -> dict:
 
 
 @pytest.fixture(scope="module")
-def api(tmp_path_factory: pytest.TempPathFactory, trees: Path):
+def api(tmp_path_factory: pytest.TempPathFactory, trees: Path, upload_measurer):
     """The app with the demo part, a SQLite store and an archive, on a real uvicorn server."""
     root = tmp_path_factory.mktemp("conformance")
     registry = PartRegistry(trees, root / "data" / "parts")
@@ -110,6 +110,7 @@ def api(tmp_path_factory: pytest.TempPathFactory, trees: Path):
         parts=registry,
         bus=hub,
         archive=DeviationArchive(root / "data" / "deviations"),
+        measurer=upload_measurer,
     )
     with uvicorn_server(app, before_stop=hub.close) as port:
         yield SimpleNamespace(url=f"http://127.0.0.1:{port}", root=root, store=store)

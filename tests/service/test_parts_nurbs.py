@@ -81,13 +81,13 @@ max_upload_mb = 2.0
 
 
 @pytest.fixture(scope="module")
-def client(line, tmp_path_factory):
+def client(line, tmp_path_factory, upload_measurer):
     cfg, reg, _ = line
     d = tmp_path_factory.mktemp("nurbs-api")
     store = ResultStore(d / "results.sqlite")
     app = create_app(
         cfg, store=store, parts=reg, bus=ResultHub(), archive=DeviationArchive(d / "dev"),
-        checks={"zenoh": lambda: True},
+        checks={"zenoh": lambda: True}, measurer=upload_measurer,
     )  # fmt: skip
     with TestClient(app) as c:
         yield c

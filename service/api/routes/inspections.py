@@ -6,13 +6,13 @@ import itertools
 import re
 import time
 from datetime import UTC, datetime
-from typing import Any
+from typing import Any, cast
 
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import HTMLResponse, Response
 from starlette.requests import ClientDisconnect
 
-from inspection.measure import validate_cloud
+from inspection.measure import Frame, validate_cloud
 
 from ...models import ErrorBody, InspectionResult, Page, Recording, Status, new_upload_id
 from ...names import NAME_MAX_LEN, NAME_PATTERN, NAME_RULE, is_valid_name
@@ -28,6 +28,7 @@ from ..deps import NameQuery, PartQuery, Services, ServicesDep
 from ..errors import ApiError
 from ..forms import file_field, only_fields, read_multipart, text_field
 from ..gate import Busy
+from ..measurer import MeasurerDied
 from ..params import known_parameters
 from ..tables import CSV_COLUMNS, results_csv, wants_csv
 
@@ -189,27 +190,41 @@ async def _inspect_upload(svc: Services, request: Request) -> InspectionResult:
             raise ApiError(422, "validation_error", f"serial {serial!r} is not a name: {NAME_RULE}")
         part = svc.parts.get(part_name)  # 404 unknown / 409 not ready, before reading the cloud
         data, _ = await file_field(form, "file")
-        # InvalidInput (NaN, too few points, truncated file) goes to the 422
-        # handler: nothing is stored for a cloud that cannot be measured at all.
-        # Parsed on the gate's low-priority threads, as it is measured: a large
-        # cloud costs CPU the line needs, and would stall the event loop here.
-        try:
-            points = await svc.gate.run(lambda: validate_cloud(parse_cloud(data)))
-        except UnsupportedCloudFormat as exc:
-            raise ApiError(415, "unsupported_cloud_format", str(exc)) from exc
-        trigger = upload_trigger(
-            part,
-            id=new_upload_id(),
-            line=svc.settings.line.name,
-            station=UPLOAD_STATION,
-            serial=serial,
-            triggered_ns=time.time_ns(),
-        )
     finally:
         await form.close()
-    outcome = await svc.gate.run(svc.pipeline, part, points, trigger, frame=frame)
-    await svc.gate.run(lambda: svc.record(outcome.result, outcome.points_cad(), outcome.distances))
-    return outcome.result
+    trigger = upload_trigger(
+        part,
+        id=new_upload_id(),
+        line=svc.settings.line.name,
+        station=UPLOAD_STATION,
+        serial=serial,
+        triggered_ns=time.time_ns(),
+    )
+    # InvalidInput (NaN, too few points, truncated file) goes to the 422 handler:
+    # nothing is stored for a cloud that cannot be measured at all. A large cloud
+    # costs CPU the line needs: it is parsed where it is measured, at a lower priority.
+    try:
+        if svc.measurer is not None:
+            kept = svc.archive.max_points if svc.archive is not None else 0
+            done = await svc.measurer.measure(
+                part, data, trigger, frame=cast(Frame, frame), trees_dir=svc.parts.trees_dir,
+                keep_points=kept,
+            )  # fmt: skip
+            result, points_cad, distances = done.result, done.points_cad, done.distances
+        else:
+            points = await svc.gate.run(lambda: validate_cloud(parse_cloud(data)))
+            outcome = await svc.gate.run(svc.pipeline, part, points, trigger, frame=frame)
+            result, points_cad, distances = (
+                outcome.result, outcome.points_cad(), outcome.distances
+            )  # fmt: skip
+    except UnsupportedCloudFormat as exc:
+        raise ApiError(415, "unsupported_cloud_format", str(exc)) from exc
+    except MeasurerDied as exc:
+        raise ApiError(
+            503, "measurer_died", f"{exc}; retry shortly", headers={"Retry-After": "5"}
+        ) from exc
+    await svc.gate.run(lambda: svc.record(result, points_cad, distances))
+    return result
 
 
 @router.get(
