@@ -883,18 +883,14 @@ class ResultStore:
         revision = self._run(work, transaction=True)
         return StoredPart(name, revision, key, spec, cad, now)
 
-    def retire_part(self, name: str) -> bool:
+    def retire_part(self, name: str, key: str | None = None) -> bool:
         """Retire the current revision of part ``name`` (kept, for the results measured with
-        it); whether there was one."""
-        n = self._run(
-            lambda db: (
-                db.execute(
-                    "UPDATE parts SET retired_ns = ? WHERE name = ? AND retired_ns IS NULL",
-                    (time.time_ns(), name),
-                ).rowcount
-            )
-        )
-        return bool(n)
+        it), only if its key is ``key`` when given; whether one was retired."""
+        sql = "UPDATE parts SET retired_ns = ? WHERE name = ? AND retired_ns IS NULL"
+        params: tuple[object, ...] = (time.time_ns(), name)
+        if key is not None:
+            sql, params = sql + " AND key = ?", (*params, key)
+        return bool(self._run(lambda db: db.execute(sql, params).rowcount))
 
     def part(self, name: str, revision: int | None = None) -> StoredPart | None:
         """The current revision of part ``name`` (or revision ``revision``, retired or not),
