@@ -852,6 +852,11 @@ class StorageSection(_Strict):
         """The ingest's next seq: kept across its restarts so no seq is used twice."""
         return self.data_path() / self.state_dir / line / station / "ingest-seq"
 
+    def station_parts_path(self, line: str, station: str) -> Path:
+        """A station worker's copies of the parts it took from the store (its own, apart
+        from the uploads folder an API of the same data directory keeps)."""
+        return self.data_path() / self.state_dir / line / station / "parts"
+
 
 class RecordPolicy(StrEnum):
     all = "all"
@@ -934,6 +939,13 @@ class SimulatorSection(_Strict):
         default=0.0, ge=0, le=1, description="... and their radius differs by up to this, mm."
     )
     seed: int = Field(default=0, ge=0)
+    parts: list[Name] = Field(
+        default_factory=list,
+        max_length=100,
+        description="The parts the simulated ingest sends, one drawn at random per trigger "
+        "(default: the station's parts). A name that is not a part of the station is a part "
+        "created over the API, read from the result store when the ingest starts.",
+    )
     drift_point: Name | None = Field(
         default=None,
         description="A comparison point of the station's first part where a dent grows part "

@@ -17,9 +17,14 @@ comes back. On the cluster:
   the scheduler and does the same before it takes a job.
 - :func:`measure_on_worker` is the task: the station's one
   :meth:`~service.pipeline.Pipeline.run` on the FrameSet it is given. A part
-  the plugin did not carry travels with the job, scattered once to the
-  cluster under its hash; each Dask worker fetches it with its first job of
-  that part and keeps it.
+  the plugin did not carry (one created over the API, which the dispatcher
+  took from the store) travels with the job, scattered once to the cluster
+  under its hash; each Dask worker fetches it with its first job of that
+  part and keeps it, and measures each job with the very revision the job
+  names. Scattered data lives on the workers that hold it: when they die it
+  is lost, and the dispatcher, told so by a job that failed on it (or by its
+  reference before it sends one), scatters the part again and sends that
+  job once more.
 - A Dask worker that dies mid-job has its jobs run again elsewhere by the
   scheduler; a job whose worker died ``distributed.scheduler.allowed-failures``
   times, or that raised ``RETRIES + 1`` times, comes back failed, and the
@@ -38,7 +43,7 @@ import os
 import threading
 import time
 import uuid
-from concurrent.futures import Future
+from concurrent.futures import CancelledError, Future
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -187,7 +192,7 @@ class StationPlugin(WorkerPlugin):
             )
         self._trees = self._tree_cache(local_directory)
         self._lock = threading.Lock()
-        self._keys = {b.spec.name: b.key for b in self.parts}
+        self._bundled: dict[str, tuple[str, LoadedPart]] = {}
         parts = {b.spec.name: b.load(self._trees) for b in self.parts}
         pipeline = Pipeline(stages, parts, line=self.line, station=self.station)
         if self.warm_up is not None:
@@ -212,22 +217,31 @@ class StationPlugin(WorkerPlugin):
         return own
 
     def measure(self, fs: FrameSet, bundle: PartBundle | None) -> tuple[Outcome, float]:
-        """The station's pipeline on ``fs``; ``bundle``: its part, when the plugin lacked it."""
+        """The station's pipeline on ``fs``; ``bundle``: its part, when the plugin lacked it
+        (the job is measured with that revision, whatever other jobs bring)."""
         if self.pipeline is None:
             raise StationNotLoaded(f"station {self.station} is not loaded on {self.address}")
-        if bundle is not None and self._keys.get(bundle.spec.name) != bundle.key:
-            with self._lock:
-                if self._keys.get(bundle.spec.name) != bundle.key:
-                    log.info("part %s arrived with a job: loading it", bundle.spec.name)
-                    parts = {**self.pipeline.parts, bundle.spec.name: bundle.load(self._trees)}
-                    self.pipeline = Pipeline(
-                        self.pipeline.stages, parts, line=self.line, station=self.station
-                    )
-                    self._keys[bundle.spec.name] = bundle.key
         pipeline = self.pipeline
+        if bundle is not None:
+            part = self._part_of(bundle)
+            pipeline = Pipeline(
+                pipeline.stages, {**pipeline.parts, bundle.spec.name: part},
+                line=self.line, station=self.station, version=pipeline.version,
+            )  # fmt: skip
         t0 = time.perf_counter()
         outcome = pipeline.run(fs)
         return outcome, time.perf_counter() - t0
+
+    def _part_of(self, bundle: PartBundle) -> LoadedPart:
+        """The loaded part of ``bundle``: the one held (the newest revision seen of its
+        name), else loaded now (its tree from the cache, or built once)."""
+        with self._lock:
+            held = self._bundled.get(bundle.spec.name)
+            if held is None or held[0] != bundle.key:
+                log.info("part %s arrived with a job: loading it", bundle.spec.name)
+                held = (bundle.key, bundle.load(self._trees))
+                self._bundled[bundle.spec.name] = held
+            return held[1]
 
 
 def measure_on_worker(plugin: str, fs: FrameSet, bundle: PartBundle | None) -> Remote:
@@ -306,7 +320,7 @@ class DaskExecutor:
         )  # fmt: skip
         self._carried = {b.key for b in bundles}
         self._lock = threading.Lock()
-        self._scattered: dict[str, Any] = {}
+        self._scattered: dict[str, tuple[str, Any]] = {}  # part name -> (bundle key, data)
         self._running: dict[str, Any] = {}
         t0 = time.perf_counter()
         try:
@@ -391,18 +405,27 @@ class DaskExecutor:
     def submit(self, fs: FrameSet) -> Future[Measured]:
         done: Future[Measured] = Future()
         t0 = time.perf_counter()
-        if self.pipeline.refusal(fs) is not None:
+        part = self.pipeline.parts.get(fs.part)
+        if part is None or self.pipeline.refusal(fs) is not None:
             outcome = self.pipeline.run(fs)
             seconds = time.perf_counter() - t0
             done.set_result(Measured(outcome, IN_PROCESS, seconds, seconds))
             return done
-        bundle = self._bundle(self.pipeline.parts[fs.part])
+        self._send(fs, PartBundle.of(part), done, t0, again=False)
+        return done
+
+    def _send(
+        self, fs: FrameSet, bundle: PartBundle, done: Future[Measured], t0: float, *, again: bool
+    ) -> None:
+        """Submit the job of ``fs``; its outcome goes to ``done``. ``again``: its first
+        sending failed because the part it carried was lost: send the part anew too."""
+        data = self._bundle(bundle, anew=again)
         # The result id names the job (the events, the scheduler's view); a
-        # suffix keeps a job of a restarted dispatcher apart from an old one.
+        # suffix keeps a job of a restarted dispatcher, or sent again, apart.
         rid = make_result_id(fs.line, fs.station, fs.seq, fs.triggered_ns)
         key = f"measure-{rid}-{uuid.uuid4().hex[:8]}"
         fut = self.client.submit(
-            measure_on_worker, self.plugin.name, fs, bundle, key=key, pure=False, retries=RETRIES
+            measure_on_worker, self.plugin.name, fs, data, key=key, pure=False, retries=RETRIES
         )
         with self._lock:
             self._running[key] = fut
@@ -411,6 +434,14 @@ class DaskExecutor:
             try:
                 remote: Remote = f.result()
             except BaseException as exc:  # the trigger is answered either way
+                if data is not None and not again and _part_lost(exc, data):
+                    log.warning("seq %d: the cluster lost part %s with the worker that held it "
+                                "(%s): sending both again", fs.seq, fs.part, exc)  # fmt: skip
+                    try:
+                        self._send(fs, bundle, done, t0, again=True)
+                    except Exception as resend:
+                        done.set_exception(resend)
+                    return
                 done.set_exception(exc if isinstance(exc, Exception) else RuntimeError(repr(exc)))
             else:
                 back = time.perf_counter() - t0
@@ -420,7 +451,6 @@ class DaskExecutor:
                     self._running.pop(key, None)
 
         fut.add_done_callback(settle)
-        return done
 
     def status(self) -> dict[str, Any]:
         with self._lock:
@@ -443,18 +473,22 @@ class DaskExecutor:
 
     # ------------------------------------------------------------------ helpers
 
-    def _bundle(self, part: LoadedPart) -> Any:
-        """None for a part every worker has; else its bundle, scattered once."""
-        bundle = PartBundle.of(part)
+    def _bundle(self, bundle: PartBundle, *, anew: bool = False) -> Any:
+        """None for a part every worker has (the plugin's); else the bundle on the cluster,
+        scattered once, and again when ``anew`` or when the cluster no longer holds it (the
+        workers that held it died). One revision per part is kept there: the newest."""
         if bundle.key in self._carried:
             return None
         with self._lock:
-            ref = self._scattered.get(bundle.key)
-        if ref is None:
-            ref = self.client.scatter({f"part-{bundle.key}": bundle})[f"part-{bundle.key}"]
-            with self._lock:
-                self._scattered[bundle.key] = ref
-        return ref
+            held = self._scattered.get(bundle.spec.name)
+        if held is not None and held[0] == bundle.key and not anew and held[1].status == "finished":
+            return held[1]
+        # A name of its own each time: the lost data's key may linger on the scheduler.
+        name = f"part-{bundle.key}-{uuid.uuid4().hex[:8]}"
+        data = self.client.scatter({name: bundle})[name]
+        with self._lock:
+            self._scattered[bundle.spec.name] = (bundle.key, data)
+        return data
 
     def _watch(self) -> None:
         while not self._closing.wait(CLUSTER_VIEW_S):
@@ -477,6 +511,12 @@ class DaskExecutor:
             for addr, w in sorted(info.get("workers", {}).items())
         }
         return {"workers": workers, "threads": sum(w["threads"] for w in workers.values())}
+
+
+def _part_lost(exc: BaseException, data: Any) -> bool:
+    """Whether a job failed because the part it carried is gone from the cluster: the job
+    was cancelled (its dependency lost), or the part's data is no longer there."""
+    return isinstance(exc, CancelledError) or data.status != "finished"
 
 
 def _close(client: Client | None, cluster: LocalCluster | None) -> None:

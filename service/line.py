@@ -19,7 +19,7 @@ import json
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -51,12 +51,13 @@ from .ingest import (
 from .journal import Journal
 from .metrics import Metrics
 from .models import Alarm, software_version
-from .parts import LoadedPart, PartRegistry, load_part_cad, panel_spec
+from .parts import LoadedPart, PartRegistry, load_part_cad, panel_spec, stored_cad
 from .pipeline import HoloRig, Outcome, Pipeline, Stages, flash_stages, holography_stages
 from .protocol import FrameSet, Keys
 from .recorder import PartScene, Recorder, Retention
 from .retention import Janitor
 from .spc import SpcMonitor, SpcSettings
+from .station_parts import StationParts
 from .store import DeviationArchive, ResultStore
 from .worker import ZenohWorker, result_from_json, zenoh_alarm_sink
 
@@ -72,6 +73,9 @@ class Station:
 
     ``parts`` are the objects of ``registry`` (when there is one): the worker
     measures with the very tree, alignment model and spec the REST API serves.
+    They start as the station's configured parts; a running worker adds those
+    created over the API as it takes them from the store
+    (:mod:`service.station_parts`).
     """
 
     cfg: LineConfig
@@ -96,23 +100,33 @@ class Station:
         build_trees: bool = True,
         warm_up: bool = True,
         talk: Callable[[str], None] | None = None,
+        store: ResultStore | None = None,
     ) -> Station:
         """Load every part of the station (tree, alignment model, spec) and warm the kernels up.
 
         Returns only once the station can measure at full speed. ``build_trees=False``
-        loads the CAD only (enough for the ingest's simulator). ``talk`` is told
-        each phase as it starts, with its progress and whether it is a first
-        start (:mod:`service.startup`); without it the phases are logged.
+        loads the CAD only (enough for the ingest's simulator: the parts of
+        ``[simulator] parts``, those created over the API read from the store).
+        ``talk`` is told each phase as it starts, with its progress and whether
+        it is a first start (:mod:`service.startup`); without it the phases are
+        logged. ``store``: the station's registry serves an API of this process
+        too, and holds the parts created over it (:meth:`PartRegistry.sync_store`);
+        without it, the registry keeps the parts the worker takes from the
+        store in the station's own folder.
 
         Raises
         ------
         service.parts.PartError
             A part of the station could not be loaded.
+        ConfigError
+            A part of ``[simulator] parts`` is not to be had.
         """
         say = talk if talk is not None else (lambda line: log.info("start-up: %s", line))
         say(startup.kernels_line())
         with startup.kernel_compiles(say):
-            return cls._load(cfg, stages, say, build_trees=build_trees, warm_up=warm_up)
+            return cls._load(
+                cfg, stages, say, build_trees=build_trees, warm_up=warm_up, store=store
+            )
 
     @classmethod
     def _load(
@@ -123,6 +137,7 @@ class Station:
         *,
         build_trees: bool,
         warm_up: bool,
+        store: ResultStore | None,
     ) -> Station:
         if stages is None:
             t0 = time.perf_counter()
@@ -130,16 +145,18 @@ class Station:
             stages = stages_for(cfg)
             say(f"rig: ready in {time.perf_counter() - t0:.1f} s")
         if not build_trees:
-            cads = {}
-            for path in cfg.part_spec_paths():
-                spec = load_part_spec(path)
-                say(f"part {spec.name}: loading CAD")
-                cads[spec.name] = (spec, load_part_cad(spec, path.parent))
-            station = cls(cfg, stages, {}, cads=cads)
+            station = cls(cfg, stages, {}, cads=simulated_cads(cfg, {}, say))
             if warm_up:
                 station.warm_up(measure=False, talk=say)
             return station
-        registry = PartRegistry.from_config(cfg)
+        line, name = cfg.line.name, cfg.station.name
+        registry = (
+            PartRegistry.from_config(cfg, store=store)
+            if store is not None
+            else PartRegistry.from_config(
+                cfg, uploads=False, uploads_dir=cfg.storage.station_parts_path(line, name)
+            )
+        )
         try:
             t0 = time.perf_counter()
             say(f"station {cfg.station.name}: loading its parts (tree cache {registry.trees_dir})")
@@ -152,7 +169,8 @@ class Station:
                 + (f"trees built for {', '.join(new)} (first start)" if new
                    else "every tree loaded from the cache")
             )  # fmt: skip
-            station = cls(cfg, stages, parts, registry)
+            cads = simulated_cads(cfg, parts, say) if cfg.simulator.parts else {}
+            station = cls(cfg, stages, parts, registry, cads=cads)
             if warm_up:
                 station.warm_up(talk=say)
         except BaseException:
@@ -166,7 +184,7 @@ class Station:
         say = talk if talk is not None else (lambda line: log.info("start-up: %s", line))
         say("warm-up: rendering one frame set (the simulator's kernels load or compile)")
         t0 = time.perf_counter()
-        fs = self.simulated_rig().capture(0, time.time_ns())
+        fs = self.warm_up_frames()
         t1 = time.perf_counter()
         if not measure:
             say(f"warm-up: rendered in {t1 - t0:.1f} s")
@@ -195,8 +213,14 @@ class Station:
     def missed_part(self) -> str:
         return next(iter(self.parts)) if len(self.parts) == 1 else "unknown"
 
-    def simulated_rig(self) -> FrameSource:
-        """The station's simulated sensor: the flash rig, or the holographic head."""
+    def warm_up_frames(self) -> FrameSet:
+        """One simulated FrameSet of a part the station holds (the kernels' warm-up)."""
+        own = [n for n in self.cads if n in self.parts]
+        return self.simulated_rig(own or None).capture(0, time.time_ns())
+
+    def simulated_rig(self, names: list[str] | None = None) -> FrameSource:
+        """The station's simulated sensor: the flash rig, or the holographic head, sending
+        the parts ``names`` (default: all of :attr:`cads`)."""
         sim = self.cfg.simulator
         # The generated panel's own design, so that the simulator can move its holes.
         parts = [
@@ -207,6 +231,7 @@ class Station:
                 panel=panel_spec(spec.panel) if spec.cad == GENERATED_PANEL else None,
             )  # fmt: skip
             for n, (spec, cad) in self.cads.items()
+            if names is None or n in names
         ]
         if self.cfg.station.sensor is Sensor.holography:
             head = self.cfg.head()
@@ -308,6 +333,45 @@ class Station:
             image_encoding=st.mcap_image_encoding,
             compression=st.mcap_compression,
         )
+
+
+def simulated_cads(
+    cfg: LineConfig, loaded: Mapping[str, LoadedPart], say: Callable[[str], None]
+) -> dict[str, tuple[PartSpec, CadModel]]:
+    """The spec and CAD of each part the simulated ingest sends (``[simulator] parts``, else
+    the station's): from ``loaded``, the station's spec files, or, for a part created over
+    the API, the result store.
+
+    Raises
+    ------
+    ConfigError
+        A part neither of the station nor of the store.
+    """
+    own = {p.stem: p for p in cfg.part_spec_paths()}
+    cads: dict[str, tuple[PartSpec, CadModel]] = {}
+    store: ResultStore | None = None
+    try:
+        for name in cfg.simulator.parts or cfg.station.parts:
+            if name in loaded:
+                cads[name] = (loaded[name].spec, loaded[name].cad)
+            elif name in own:
+                spec = load_part_spec(own[name])
+                say(f"part {name}: loading CAD")
+                cads[name] = (spec, load_part_cad(spec, own[name].parent))
+            else:
+                store = store or ResultStore(cfg.storage.store_target())
+                stored = store.part(name)
+                if stored is None:
+                    raise ConfigError(
+                        f"[simulator] parts: {name!r} is neither a part of station "
+                        f"{cfg.station.name} nor one created over the API (none in {store.where})"
+                    )
+                say(f"part {name}: loading CAD (revision {stored.revision}, from the store)")
+                cads[name] = stored_cad(stored)
+    finally:
+        if store is not None:
+            store.close()
+    return cads
 
 
 def fixture_pose(cfg: LineConfig) -> np.ndarray:
@@ -449,7 +513,7 @@ def make_executor(cfg: LineConfig, station: Station) -> Executor:
         return InProcessExecutor(pipeline)
     from .dask_executor import DaskExecutor
 
-    warm_up = station.simulated_rig().capture(0, time.time_ns()) if station.cads else None
+    warm_up = station.warm_up_frames() if station.cads else None
     return DaskExecutor.connect(
         address, pipeline, warm_up=warm_up, trees_dir=cfg.storage.trees_path()
     )
@@ -606,11 +670,16 @@ def make_app(
     """The app of :func:`service.api.create_app`, or None when it could not be built.
 
     ``registry``: the station's (already loaded) part registry, shared with the
-    worker. Without one (the API as its own process) a registry is made and
-    its trees are built in the background; readiness waits for them.
+    worker. Without one (the API as its own process) a registry is made with
+    the parts of ``store`` and its trees are built in the background;
+    readiness waits for them.
     """
     own = registry is None
-    reg = PartRegistry.from_config(cfg) if registry is None else registry
+    try:
+        reg = PartRegistry.from_config(cfg, store=store) if registry is None else registry
+    except Exception:
+        log.exception("the REST API's parts could not be read; running without it")
+        return None
     try:
         if own:
             reg.start()
@@ -629,10 +698,41 @@ def spc_monitor(
 ) -> SpcMonitor:
     """Charts each measured part of the station; run rules that fire go to ``alarms``."""
     return SpcMonitor(
-        store,
-        SpcSettings.from_config(cfg.spc),
-        subgroups={name: p.spec.subgroup_size for name, p in station.parts.items()},
-        alarms=alarms,
+        store, SpcSettings.from_config(cfg.spc), subgroups=Subgroups(station.parts), alarms=alarms
+    )
+
+
+class Subgroups(Mapping[str, int]):
+    """Each part's subgroup size, read from the station's parts as they are now."""
+
+    def __init__(self, parts: Mapping[str, LoadedPart]) -> None:
+        self.parts = parts
+
+    def __getitem__(self, name: str) -> int:
+        return int(self.parts[name].spec.subgroup_size)
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(list(self.parts))
+
+    def __len__(self) -> int:
+        return len(self.parts)
+
+
+def follow_store_parts(station: Station, store: ResultStore, recorder: Recorder) -> StationParts:
+    """The station's worker takes the parts created over the API from the store, and its
+    recordings show them."""
+
+    def show(name: str, part: LoadedPart | None) -> None:
+        scene = (
+            None
+            if part is None
+            else PartScene(part.cad.vertices, part.cad.faces, part.model.comparison_points)
+        )
+        recorder.set_part(name, scene)
+
+    assert station.registry is not None, "a station that measures has a part registry"
+    return StationParts(
+        station.parts, store, station.registry, station=station.name, listeners=[show]
     )
 
 
@@ -663,6 +763,7 @@ class LineHandles:
     janitor: Janitor | None = None
     executor: Executor | None = None
     fired: FiredCount | None = None
+    parts: StationParts | None = None
 
     def close(self) -> None:
         """Stop triggering, let the worker finish what was triggered, close everything."""
@@ -673,6 +774,8 @@ class LineHandles:
         if last >= 0 and not self.counter.wait_seq(last, 60.0):
             log.warning("stopping before the result of seq %d arrived", last)
         self.worker.close()
+        if self.parts is not None:
+            self.parts.close()
         if self.executor is not None:
             self.executor.close()
         self.recorder.close()
@@ -699,23 +802,32 @@ def start_line(
 ) -> LineHandles:
     """Start the whole line in this process; see :func:`run_line`."""
     log.info("line config %s: %s", cfg.hash()[:12], json.dumps(cfg.effective()))
-    # Measuring here warms the kernels up; a station measured on Dask warms its workers.
-    station = Station.load(cfg, stages, warm_up=cfg.station.dask_address() is None, talk=talk)
+    store = ResultStore(cfg.storage.store_target())
+    try:
+        # Measuring here warms the kernels up; a station measured on Dask warms its workers.
+        # With the API, the station's registry is the API's too: the parts of the store.
+        station = Station.load(
+            cfg, stages, warm_up=cfg.station.dask_address() is None, talk=talk,
+            store=store if http else None,
+        )  # fmt: skip
+    except BaseException:
+        store.close()
+        raise
     try:
         executor = make_executor(cfg, station)
     except BaseException:
         station.close()
+        store.close()
         raise
     try:
         session = bus.open_session(bus_settings(cfg, "peer"))
     except BaseException:
         executor.close()
         station.close()
+        store.close()
         raise
-    opened: list[Any] = [station, executor, session]
+    opened: list[Any] = [station, executor, session, store]
     try:
-        store = ResultStore(cfg.storage.store_target())
-        opened.append(store)
         recorder = station.recorder()
         opened.append(recorder)
         counter = ResultCounter(parts_limit)
@@ -730,6 +842,8 @@ def start_line(
         alarms = [store.put_alarm, hub.publish, recorder.record_alarm]
         published = [zenoh_alarm_sink(session, station.keys), *alarms]
         monitor = spc_monitor(cfg, station, store, published)
+        parts = follow_store_parts(station, store, recorder)
+        opened.append(parts)
         worker = ZenohWorker(
             session,
             station.keys,
@@ -744,6 +858,7 @@ def start_line(
             metrics=metrics,
             executor=executor,
             alarms=alarms,
+            parts=parts,
             **worker_state(cfg, store),
         )
         opened.append(worker)
@@ -777,7 +892,7 @@ def start_line(
         raise
     return LineHandles(
         session, station, store, recorder, worker, ingest, counter, api, hub, made, janitor,
-        executor, fired,
+        executor, fired, parts,
     )  # fmt: skip
 
 
@@ -857,6 +972,7 @@ def run_worker(
         )
         janitor = Janitor(store, archive, cfg.retention)
         recorder = station.recorder()
+        parts = follow_store_parts(station, store, recorder)
         metrics = Metrics()
         served = None
         if cfg.station.metrics_port is not None:
@@ -885,12 +1001,14 @@ def run_worker(
             metrics=metrics,
             executor=executor,
             alarms=[store.put_alarm, recorder.record_alarm],
+            parts=parts,
             **worker_state(cfg, store),
         )
         try:
             stop.wait()
         finally:
             worker.close()
+            parts.close()
             recorder.close()
             janitor.close()
             store.close()

@@ -240,6 +240,7 @@ def executor_collector(
             ("threads", "Measurements the executor's workers run at once."),
             ("slots", "Measurements the worker keeps in flight at most."),
             ("in_flight", "Measurements handed out and not yet answered."),
+            ("waiting_for_part", "FrameSets waiting for their part to be taken from the store."),
         ):
             g = GaugeMetricFamily(f"inspection_executor_{key}", help_, labels=STATION_LABELS)
             g.add_metric(own, st.get(key, 0))

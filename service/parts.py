@@ -1,10 +1,13 @@
 """The part registry: specs, CAD models and their closest-point trees, ready to inspect with.
 
 A part comes from a spec file in ``configs/parts/`` (the station's parts) or
-from an upload through the API (kept under ``<data_dir>/parts/<name>/`` so it
-survives a restart). Its tree is built once and cached under the trees
-directory, keyed by the CAD geometry hash, the build parameters and the
-tree's format version; a cached tree that no longer matches is rebuilt.
+from an upload through the API. An upload is kept in the result store (its
+spec and CAD bytes, :class:`~service.store.StoredPart`), where every API and
+station's worker finds it whatever host it runs on, and written under
+``<data_dir>/parts/<name>/``, each process's own copy that the loaders read.
+Its tree is built once and cached under the trees directory, keyed by the
+CAD geometry hash, the build parameters and the tree's format version; a
+cached tree that no longer matches is rebuilt.
 
 A STEP CAD whose every face is a B-spline face, in millimetres (or of no
 declared unit), is read as NURBS (:func:`inspection.nurbs.read_step_nurbs`):
@@ -28,6 +31,7 @@ Errors::
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import shutil
 import tempfile
@@ -65,6 +69,7 @@ from .config import (
 )
 from .models import Job, JobState, PartPublic, PartState
 from .names import NAME_RULE, is_valid_name
+from .store import PartExists, ResultStore, StoredPart, StoreError, part_key
 
 log = logging.getLogger(__name__)
 
@@ -217,6 +222,8 @@ class _Entry:
     job: str | None = None
     loaded: LoadedPart | None = None
     error: str | None = None
+    key: str | None = None
+    """An upload's revision in the store (:attr:`StoredPart.key`); None: not stored."""
 
 
 # --------------------------------------------------------------------------- building blocks
@@ -501,6 +508,45 @@ def hide_paths(message: str, names: dict[Path, str]) -> str:
     return message
 
 
+def stored_spec(stored: StoredPart) -> PartSpec:
+    """The spec of a part revision the store holds, checked to name a plain CAD file.
+
+    Raises
+    ------
+    ValueError
+        Not a part spec, another name than the revision's, or a CAD that is
+        not a file name with a CAD suffix.
+    """
+    spec = PartSpec.model_validate_json(stored.spec)
+    if spec.name != stored.name:
+        raise ValueError(f"the store's part {stored.name!r} has a spec named {spec.name!r}")
+    if Path(spec.cad).name != spec.cad or Path(spec.cad).suffix.lower() not in UPLOAD_SUFFIXES:
+        raise ValueError(f"the store's part {stored.name!r} names a CAD file {spec.cad!r}")
+    return spec
+
+
+def stored_cad(stored: StoredPart) -> tuple[PartSpec, CadModel]:
+    """The spec and CAD model of a part revision the store holds (what a simulator renders),
+    read from a temporary copy of its CAD file.
+
+    Raises
+    ------
+    ValueError, inspection.CadLoadError
+    """
+    spec = stored_spec(stored)
+    with tempfile.TemporaryDirectory(prefix="inspection-part-") as folder:
+        (Path(folder) / spec.cad).write_bytes(stored.cad)
+        return spec, load_part_cad(spec, Path(folder))
+
+
+def _spec_in(folder: Path) -> PartSpec | None:
+    """The spec an uploads folder holds, or None."""
+    try:
+        return PartSpec.model_validate_json((folder / SPEC_FILE).read_text())
+    except (OSError, ValueError):
+        return None
+
+
 class PartRegistry:
     """The parts a service knows, their trees and the jobs that build them.
 
@@ -516,6 +562,10 @@ class PartRegistry:
     path : {"cloud", "comparison_points"}
         The station's measuring path: a part it cannot judge as its spec asks
         is refused (:class:`PathConflict`).
+    store : ResultStore, optional
+        Where uploads are kept for every process: :meth:`create` writes a part
+        there, :meth:`delete` retires it, :meth:`sync_store` takes the parts
+        other processes created. None: the uploads folder alone.
     """
 
     def __init__(
@@ -525,9 +575,11 @@ class PartRegistry:
         *,
         alignment: bool = True,
         path: str = "cloud",
+        store: ResultStore | None = None,
     ) -> None:
         self.alignment = alignment
         self.path = path
+        self.store = store
         self.trees_dir = Path(trees_dir)
         self.uploads_dir = Path(uploads_dir)
         self._lock = threading.RLock()
@@ -542,17 +594,38 @@ class PartRegistry:
         self._watchers: list[Callable[[Job], None]] = []
 
     @classmethod
-    def from_config(cls, cfg: Any) -> PartRegistry:
-        """A registry with the station's parts of a :class:`~service.config.LineConfig` and uploads.
+    def from_config(
+        cls,
+        cfg: Any,
+        *,
+        store: ResultStore | None = None,
+        uploads: bool = True,
+        uploads_dir: Path | None = None,
+    ) -> PartRegistry:
+        """A registry with the station's parts of a :class:`~service.config.LineConfig` and,
+        with ``uploads``, the parts created over the API: those of ``store`` (see
+        :meth:`sync_store`), else those of the uploads folder (``uploads_dir``, default
+        ``<data_dir>/parts``).
 
         Nothing is built yet: call :meth:`preload` (blocking) or :meth:`start`.
+
+        Raises
+        ------
+        StoreError
+            ``store`` cannot be read.
         """
         reg = cls(
-            cfg.storage.trees_path(), Path(cfg.storage.data_dir) / "parts", path=cfg.station.path
+            cfg.storage.trees_path(),
+            Path(cfg.storage.data_dir) / "parts" if uploads_dir is None else uploads_dir,
+            path=cfg.station.path,
+            store=store,
         )
         for path in cfg.part_spec_paths():
             reg.add(load_part_spec(path), path.parent, configured=True)
-        reg.add_uploaded()
+        if uploads:
+            reg.add_uploaded()
+            if store is not None:
+                reg.sync_store()
         return reg
 
     def close(self) -> None:
@@ -705,21 +778,40 @@ class PartRegistry:
             (staging / SPEC_FILE).write_text(full.model_dump_json(indent=2))
             if target.exists() or target.is_symlink():
                 raise PartConflict(f"part {spec.name!r}: a folder of that name appeared meanwhile")
+            if self.store is not None:
+                # Last before the rename: a part the store refuses leaves no folder here.
+                try:
+                    stored = self.store.add_part(full.name, full.model_dump_json(), cad_bytes)
+                except PartExists as exc:  # created meanwhile through another API
+                    raise PartConflict(str(exc)) from exc
+                self._entries[spec.name].key = stored.key
             staging.rename(target)
         except BaseException:
             with self._lock:
-                self._entries.pop(spec.name, None)
+                entry = self._entries.pop(spec.name, None)
+            if entry is not None and entry.key is not None and self.store is not None:
+                with contextlib.suppress(StoreError):
+                    self.store.retire_part(spec.name, entry.key)
             if staging is not None and staging.exists():
                 shutil.rmtree(staging, ignore_errors=True)
             raise
         return self.start(spec.name)
 
     def delete(self, name: str) -> None:
-        """Forget an uploaded part and remove the files the service wrote for it.
+        """Forget an uploaded part, retire it in the store and remove the files the
+        service wrote for it.
 
         Removes the part's ``spec.json`` and the CAD file it names, then the
         folder if nothing else is left in it; never a folder's whole tree.
-        Its cached tree stays, keyed by hash.
+        Its cached tree stays, keyed by hash; its revision stays in the store,
+        retired (the results measured with it name it).
+
+        Raises
+        ------
+        PartConflict
+            A configured part, one still being built, or one not in its folder.
+        StoreError
+            The store cannot be written: nothing was deleted.
         """
         with self._lock:
             entry = self._get_entry(name)
@@ -732,8 +824,28 @@ class PartRegistry:
             folder = self._upload_dir(name)
             if folder != entry.base_dir.resolve():
                 raise PartConflict(f"part {name!r} is not kept in its uploads folder")
+        if self.store is not None and entry.key is not None:
+            # Its own revision only: another API may have created the part again meanwhile.
+            self.store.retire_part(name, entry.key)
+        self.forget(name, entry)
+
+    def forget(self, name: str, entry: _Entry | None = None) -> None:
+        """Drop uploaded part ``name`` (``entry``: only if it is still that one) and the
+        files the service wrote for it, leaving the store alone (it was retired there)."""
+        with self._lock:
+            current = self._entries.get(name)
+            if (
+                current is None
+                or current.configured
+                or (entry is not None and current is not entry)
+            ):
+                return
             del self._entries[name]
-        for written in (entry.spec.cad, SPEC_FILE):
+        self._remove_files(name, current.spec)
+
+    def _remove_files(self, name: str, spec: PartSpec) -> None:
+        folder = self._upload_dir(name)
+        for written in (spec.cad, SPEC_FILE):
             path = folder / written
             # A spec edited by hand could name another file: remove only a plain file in place.
             if Path(written).name == written and path.parent == folder and not path.is_symlink():
@@ -745,6 +857,117 @@ class PartRegistry:
         except OSError:
             log.warning(
                 "part %s deleted; %s kept, it holds files the service did not write", name, folder
+            )
+
+    # ------------------------------------------------------------------ the store's parts
+
+    def sync_store(self) -> None:
+        """Make the registry's uploads those of the store (at a start).
+
+        An upload of the uploads folder that the store never had (made before
+        parts were kept there) is written to it; one whose name the store
+        knows otherwise (deleted, or created again, through another API) gives
+        way to the store's. Every current part of the store is then registered,
+        written into the uploads folder where it is missing.
+
+        Raises
+        ------
+        StoreError
+        """
+        store = self.store
+        if store is None:
+            return
+        keys = store.part_keys()
+        known = {n for n, _ in store.part_revisions()}
+        with self._lock:
+            uploads = [(n, e) for n, e in self._entries.items() if not e.configured]
+        for name, entry in uploads:
+            spec_json = entry.spec.model_dump_json()
+            try:
+                cad = entry.spec.cad_path(entry.base_dir).read_bytes()
+            except OSError as exc:
+                log.error("ignoring uploaded part %s: %s", name, exc)
+                self.forget(name, entry)
+                continue
+            key = part_key(spec_json, cad)
+            if keys.get(name) == key:
+                entry.key = key
+            elif name in known:
+                log.info("uploaded part %s: the store holds another revision; taking that", name)
+                self.forget(name, entry)
+            else:
+                log.info("uploaded part %s: written to the store %s", name, store.where)
+                entry.key = store.add_part(name, spec_json, cad).key
+                keys[name] = entry.key
+        for name in sorted(keys):
+            with self._lock:
+                entry_now = self._entries.get(name)
+            if entry_now is not None:
+                if entry_now.configured:
+                    log.warning("the store's part %s is shadowed by a configured one", name)
+                continue
+            stored = store.part(name)
+            if stored is not None:
+                try:
+                    self._register(stored)
+                except (PartError, ValueError, OSError) as exc:
+                    log.error("ignoring the store's part %s: %s", name, exc)
+
+    def adopt(self, stored: StoredPart) -> Job | None:
+        """Make revision ``stored`` this registry's part of its name and build it.
+
+        Returns the job that builds it (one done or failed already when the
+        registry holds that revision), or None when it is loaded. A revision
+        replacing another is written over the old one's files; the old part's
+        loaded objects stay valid for whoever holds them.
+
+        Raises
+        ------
+        PartConflict
+            A configured part has that name (the station's own wins).
+        PathConflict
+            The station's path cannot judge the part as its spec asks.
+        ValueError
+            The stored spec is not a valid part spec.
+        """
+        with self._lock:
+            entry = self._entries.get(stored.name)
+            if entry is not None and entry.configured:
+                raise PartConflict(
+                    f"part {stored.name!r} is defined in the line configuration; "
+                    "the store's part of that name is not used here"
+                )
+            if entry is not None and entry.key == stored.key:
+                if entry.loaded is not None:
+                    return None
+                if entry.job is not None:
+                    return self._jobs[entry.job]
+        self._register(stored)
+        return self._submit(stored.name)
+
+    def _register(self, stored: StoredPart) -> None:
+        """Write ``stored`` into the uploads folder (over an older revision) and register it."""
+        spec = stored_spec(stored)
+        self._check_path(spec)
+        target = self._upload_dir(spec.name)
+        self.uploads_dir.mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=self.uploads_dir.resolve()))
+        try:
+            (staging / spec.cad).write_bytes(stored.cad)
+            (staging / SPEC_FILE).write_text(spec.model_dump_json(indent=2))
+            with self._lock:
+                old = self._entries.pop(spec.name, None)
+            if old is not None:
+                self._remove_files(spec.name, old.spec)
+            elif target.exists():  # a copy from an earlier run
+                self._remove_files(spec.name, _spec_in(target) or spec)
+            staging.rename(target)
+        except BaseException:
+            shutil.rmtree(staging, ignore_errors=True)
+            raise
+        with self._lock:
+            self._entries[spec.name] = _Entry(
+                spec=spec, base_dir=target, configured=False, key=stored.key
             )
 
     # ------------------------------------------------------------------ building

@@ -335,8 +335,7 @@ class Pipeline:
     station: str | None = None
     version: str = field(default_factory=software_version)
 
-    def _trigger(self, fs: FrameSet) -> Trigger:
-        part = self.parts.get(fs.part)
+    def _trigger(self, fs: FrameSet, part: LoadedPart | None) -> Trigger:
         return Trigger(
             id=make_result_id(fs.line, fs.station, fs.seq, fs.triggered_ns),
             line=fs.line,
@@ -355,12 +354,15 @@ class Pipeline:
     def run(self, fs: FrameSet) -> Outcome:
         """Measure one FrameSet; never raises for bad data (status ``error`` instead)."""
         t_start = time.perf_counter()
-        trigger = self._trigger(fs)
+        # Looked up once: a part replaced meanwhile (a new revision) is measured and
+        # reported as one revision, not half of each.
+        part = self.parts.get(fs.part)
+        trigger = self._trigger(fs, part)
         try:
-            refused = self.refusal(fs)
-            if refused is not None:
-                return self._error(trigger, refused, t_start)
-            measured = self.stages.measure(self.parts[fs.part], fs.images)
+            refused = self._refusal(fs, part)
+            if refused is not None or part is None:
+                return self._error(trigger, refused or "unknown part", t_start)
+            measured = self.stages.measure(part, fs.images)
             return outcome(measured, trigger)
         except (InspectionError, ValueError, np.linalg.LinAlgError) as exc:
             reason = f"{type(exc).__name__}: {exc}"
@@ -372,13 +374,16 @@ class Pipeline:
     def refusal(self, fs: FrameSet) -> str | None:
         """Why this pipeline does not measure ``fs`` (wrong station, unknown part, other
         calibration), or None."""
+        return self._refusal(fs, self.parts.get(fs.part))
+
+    def _refusal(self, fs: FrameSet, part: LoadedPart | None) -> str | None:
         if self.line is not None and fs.line != self.line:
             return f"FrameSet of line {fs.line!r}, this is {self.line!r}"
         if self.station is not None and fs.station != self.station:
             return f"FrameSet of station {fs.station!r}, this is {self.station!r}"
         if fs.sensor != self.stages.sensor:
             return f"FrameSet of the {fs.sensor} sensor, this station measures {self.stages.sensor}"
-        if fs.part not in self.parts:
+        if part is None:
             known = ", ".join(sorted(self.parts)) or "none"
             return f"unknown part {fs.part!r} (known: {known})"
         if fs.calibration_id and fs.calibration_id != self.stages.calibration_id:

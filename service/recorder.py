@@ -389,6 +389,18 @@ class Recorder:
             p.unlink(missing_ok=True)
         return removed
 
+    def set_part(self, name: str, scene: PartScene | None) -> None:
+        """Show part ``name`` as ``scene`` from now on (None: no more): a part the station
+        took from the store while it runs, or a new revision of one (its CAD is written
+        again)."""
+        with self._lock:
+            if scene is None:
+                self.parts.pop(name, None)
+            else:
+                self.parts[name] = scene
+            if self._file is not None:
+                self._file.cads.discard(name)
+
     # ------------------------------------------------------------------ records
 
     def record(self, outcome: Outcome, fs: FrameSet | None) -> bool:

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -339,6 +339,8 @@ class SpcMonitor:
         Holds the result already (the monitor runs after the store's sink).
     settings : SpcSettings
     subgroups : mapping of part name to subgroup size
+        Read at each result (a station's parts change as it takes new ones); 1 for a
+        part it lacks.
     alarms : iterable of callable(Alarm)
         Where alarms go (zenoh, the store, the streams, the recording).
     """
@@ -348,12 +350,12 @@ class SpcMonitor:
         store: ResultStore,
         settings: SpcSettings,
         *,
-        subgroups: dict[str, int] | None = None,
+        subgroups: Mapping[str, int] | None = None,
         alarms: Iterable[AlarmSink] = (),
     ) -> None:
         self.store = store
         self.settings = settings
-        self.subgroups = dict(subgroups or {})
+        self.subgroups: Mapping[str, int] = subgroups if subgroups is not None else {}
         self.alarms = list(alarms)
 
     def __call__(self, outcome: Outcome, fs: FrameSet | None) -> None:

@@ -12,13 +12,22 @@ result is kept as JSON beside indexed columns used for filtering; a
 ``schema_version`` table and the :data:`MIGRATIONS` list take a database from
 any earlier layout to the current one when it is opened.
 
+Parts created over the API are kept here too (:class:`StoredPart`: the spec
+and the CAD file's bytes), so that a station's worker and its Dask workers
+on hosts that share no filesystem with the API measure them. Each creation
+is a new *revision* of its name; deleting a part retires its revision but
+keeps it, so a result measured with it (its ``spec_version``, ``cad_hash``,
+``tree_hash``) can still be traced to the very spec and CAD it was measured
+against.
+
 Per-point deviations are too large for a row; :class:`DeviationArchive`
 keeps them as one ``.npz`` per inspection in the data directory.
 
 Errors::
 
     StoreError       a database from a newer version, not a store at all,
-                     a server that cannot be reached, a statement that failed
+     │               a server that cannot be reached, a statement that failed
+     └── PartExists  creating a part whose name has a current revision
 """
 
 from __future__ import annotations
@@ -27,6 +36,7 @@ import base64
 import binascii
 import builtins
 import contextlib
+import hashlib
 import logging
 import os
 import re
@@ -93,6 +103,21 @@ MIGRATIONS: list[str] = [
     );
     CREATE INDEX results_serial ON results (serial, triggered_ns, id);
     """,
+    # 4: parts created over the API, every revision of each; the current one (not retired)
+    # is unique per name. BYTEA: PostgreSQL's bytes; SQLite keeps bytes under any type.
+    """
+    CREATE TABLE parts (
+        name          TEXT NOT NULL,
+        revision      BIGINT NOT NULL,
+        key           TEXT NOT NULL,
+        spec          TEXT NOT NULL,
+        cad           BYTEA NOT NULL,
+        created_ns    BIGINT NOT NULL,
+        retired_ns    BIGINT,
+        PRIMARY KEY (name, revision)
+    );
+    CREATE UNIQUE INDEX parts_current ON parts (name) WHERE retired_ns IS NULL;
+    """,
 ]
 """Schema migrations, in order; the database's version is the number applied.
 
@@ -121,13 +146,63 @@ _UPSERT = """
 """
 
 
+_PUT_ALARM = """
+    INSERT INTO alarms (id, line, station, kind, raised_ns, acknowledged, body)
+    VALUES (?, ?, ?, ?, ?, ?, ?) ON CONFLICT (id) DO UPDATE SET
+        acknowledged = excluded.acknowledged, body = excluded.body
+"""
+
+
 class StoreError(Exception):
     """The store cannot be used: newer than this software, not a result store,
     unreachable, or a statement failed in the database."""
 
 
+class PartExists(StoreError):
+    """A part of that name has a current revision already (retire it first)."""
+
+
 class InvalidCursor(ValueError):
     """A pagination cursor that this store did not hand out."""
+
+
+@dataclass(frozen=True, eq=False)
+class StoredPart:
+    """One revision of a part created over the API, as the store keeps it.
+
+    Attributes
+    ----------
+    name : str
+    revision : int
+        1 for the first creation of ``name``, then one more each time it is created again.
+    key : str
+        Hash of ``spec`` and ``cad`` (:func:`part_key`): the same content, the same key.
+    spec : str
+        The part spec as JSON (``service.config.PartSpec``); its ``cad`` names the file
+        ``cad`` holds (its suffix says the format).
+    cad : bytes
+        The CAD file as uploaded.
+    created_ns : int
+        When it was created, ns since the epoch.
+    retired_ns : int or None
+        When it was deleted (or created again); None: the current revision.
+    """
+
+    name: str
+    revision: int
+    key: str
+    spec: str
+    cad: bytes
+    created_ns: int
+    retired_ns: int | None = None
+
+
+def part_key(spec: str, cad: bytes) -> str:
+    """The content hash of a part revision: its spec JSON and its CAD bytes (24 hex digits)."""
+    h = hashlib.sha256()
+    h.update(hashlib.sha256(spec.encode()).digest())
+    h.update(hashlib.sha256(cad).digest())
+    return h.hexdigest()[:24]
 
 
 @dataclass(frozen=True)
@@ -184,6 +259,8 @@ class _Backend(Protocol):
     """The database, for messages: a file name, or the URL without its password."""
     errors: tuple[type[Exception], ...]
     """The driver's exceptions, which the store reports as :class:`StoreError`."""
+    integrity: type[Exception]
+    """The driver's exception for a statement that broke a key or a unique index."""
 
     def execute(self, sql: str, params: Sequence[object] = ()) -> _Cursor: ...
 
@@ -203,6 +280,7 @@ class _Backend(Protocol):
 
 class _Sqlite:
     errors: tuple[type[Exception], ...] = (sqlite3.Error,)
+    integrity: type[Exception] = sqlite3.IntegrityError
 
     def __init__(self, path: str) -> None:
         self.where = path
@@ -265,6 +343,7 @@ class _Postgres:
 
         self._psycopg = psycopg
         self.errors: tuple[type[Exception], ...] = (psycopg.Error,)
+        self.integrity: type[Exception] = psycopg.IntegrityError
         self.url = url
         self.where = redact_url(url)
         try:
@@ -684,14 +763,35 @@ class ResultStore:
             alarm.id, alarm.line, alarm.station, alarm.kind.value, alarm.raised_ns,
             int(alarm.acknowledged_ns is not None), alarm.model_dump_json(),
         )  # fmt: skip
-        self._run(
-            lambda db: db.execute(
-                "INSERT INTO alarms (id, line, station, kind, raised_ns, acknowledged, body) "
-                "VALUES (?, ?, ?, ?, ?, ?, ?) ON CONFLICT (id) DO UPDATE SET "
-                "acknowledged = excluded.acknowledged, body = excluded.body",
-                row,
+        self._run(lambda db: db.execute(_PUT_ALARM, row))
+
+    def put_alarms(self, alarms: Iterable[Alarm]) -> int:
+        """:meth:`put_alarm` each of ``alarms``, all in one transaction; returns how many."""
+        rows = [
+            (a.id, a.line, a.station, a.kind.value, a.raised_ns,
+             int(a.acknowledged_ns is not None), a.model_dump_json())
+            for a in alarms
+        ]  # fmt: skip
+        if rows:
+            self._run(lambda db: db.executemany(_PUT_ALARM, rows), transaction=True)
+        return len(rows)
+
+    def iter_alarms(self, *, page: int = 500) -> Iterator[Alarm]:
+        """Every alarm, acknowledged or not, oldest first, fetched a page at a time."""
+        after: tuple[int, str] = (-1, "")
+        while True:
+            params = (after[0], after[0], after[1], page)
+            rows = self._run(
+                lambda db: db.execute(
+                    "SELECT raised_ns, id, body FROM alarms WHERE raised_ns > ? "
+                    "OR (raised_ns = ? AND id > ?) ORDER BY raised_ns, id LIMIT ?",
+                    params,  # noqa: B023 (run before the loop goes on)
+                ).fetchall()
             )
-        )
+            yield from (Alarm.model_validate_json(r[2]) for r in rows)
+            if len(rows) < page:
+                return
+            after = (int(rows[-1][0]), str(rows[-1][1]))
 
     def alarm(self, id_: str) -> Alarm | None:
         row = self._run(
@@ -734,6 +834,153 @@ class ResultStore:
             lambda db: db.execute("DELETE FROM baselines WHERE part = ?", (part,)).rowcount
         )
         return bool(n)
+
+    def baselines(self) -> builtins.list[Baseline]:
+        """Every frozen baseline, by part name."""
+        rows = self._run(
+            lambda db: db.execute("SELECT body FROM baselines ORDER BY part").fetchall()
+        )
+        return [Baseline.model_validate_json(r[0]) for r in rows]
+
+    # ------------------------------------------------------------------ parts
+
+    def add_part(self, name: str, spec: str, cad: bytes) -> StoredPart:
+        """Keep a new revision of part ``name`` as its current one.
+
+        Parameters
+        ----------
+        name : str
+        spec : str
+            The part spec as JSON.
+        cad : bytes
+            The CAD file the spec's ``cad`` names.
+
+        Raises
+        ------
+        PartExists
+            ``name`` has a current revision (another process may just have created it).
+        """
+        key, now = part_key(spec, cad), time.time_ns()
+
+        def work(db: _Backend) -> int:
+            row = db.execute(
+                "SELECT revision FROM parts WHERE name = ? AND retired_ns IS NULL", (name,)
+            ).fetchone()
+            if row is not None:
+                raise PartExists(f"part {name!r} exists (revision {row[0]}); delete it first")
+            last = db.execute("SELECT MAX(revision) FROM parts WHERE name = ?", (name,)).fetchone()
+            revision = 1 if last[0] is None else int(last[0]) + 1
+            try:
+                db.execute(
+                    "INSERT INTO parts (name, revision, key, spec, cad, created_ns, retired_ns) "
+                    "VALUES (?, ?, ?, ?, ?, ?, NULL)",
+                    (name, revision, key, spec, cad, now),
+                )
+            except db.integrity as exc:  # a process creating the same name at this moment
+                raise PartExists(f"part {name!r} was created meanwhile; delete it first") from exc
+            return revision
+
+        revision = self._run(work, transaction=True)
+        return StoredPart(name, revision, key, spec, cad, now)
+
+    def retire_part(self, name: str, key: str | None = None) -> bool:
+        """Retire the current revision of part ``name`` (kept, for the results measured with
+        it), only if its key is ``key`` when given; whether one was retired."""
+        sql = "UPDATE parts SET retired_ns = ? WHERE name = ? AND retired_ns IS NULL"
+        params: tuple[object, ...] = (time.time_ns(), name)
+        if key is not None:
+            sql, params = sql + " AND key = ?", (*params, key)
+        return bool(self._run(lambda db: db.execute(sql, params).rowcount))
+
+    def part(self, name: str, revision: int | None = None) -> StoredPart | None:
+        """The current revision of part ``name`` (or revision ``revision``, retired or not),
+        or None."""
+        which, params = (
+            ("retired_ns IS NULL", (name,))
+            if revision is None
+            else ("revision = ?", (name, revision))
+        )
+        row = self._run(
+            lambda db: db.execute(
+                "SELECT name, revision, key, spec, cad, created_ns, retired_ns FROM parts "
+                f"WHERE name = ? AND {which}",
+                params,
+            ).fetchone()
+        )
+        if row is None:
+            return None
+        return StoredPart(
+            str(row[0]), int(row[1]), str(row[2]), str(row[3]), bytes(row[4]), int(row[5]),
+            None if row[6] is None else int(row[6]),
+        )  # fmt: skip
+
+    def part_keys(self) -> dict[str, str]:
+        """The key of every current part revision, by name: what a station polls to learn
+        that a part it measures changed."""
+        rows = self._run(
+            lambda db: db.execute("SELECT name, key FROM parts WHERE retired_ns IS NULL").fetchall()
+        )
+        return {str(r[0]): str(r[1]) for r in rows}
+
+    def part_revisions(self) -> builtins.list[tuple[str, int]]:
+        """``(name, revision)`` of every part revision kept, retired ones included."""
+        rows = self._run(
+            lambda db: db.execute("SELECT name, revision FROM parts ORDER BY name, revision")
+            .fetchall()
+        )  # fmt: skip
+        return [(str(r[0]), int(r[1])) for r in rows]
+
+    def put_part_revision(self, part: StoredPart) -> None:
+        """Write ``part`` as it is, revision number included (a copy from another store);
+        a revision of that name and number is replaced."""
+        row = (
+            part.name, part.revision, part.key, part.spec, part.cad, part.created_ns,
+            part.retired_ns,
+        )  # fmt: skip
+        self._run(
+            lambda db: db.execute(
+                "INSERT INTO parts (name, revision, key, spec, cad, created_ns, retired_ns) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?) ON CONFLICT (name, revision) DO UPDATE SET "
+                "key = excluded.key, spec = excluded.spec, cad = excluded.cad, "
+                "created_ns = excluded.created_ns, retired_ns = excluded.retired_ns",
+                row,
+            )
+        )
+
+
+@dataclass(frozen=True)
+class Copied:
+    """What :func:`copy_store` copied: how many of each kind of row."""
+
+    results: int
+    alarms: int
+    baselines: int
+    parts: int
+    """Part revisions, retired ones included."""
+
+
+def copy_store(source: ResultStore, target: ResultStore, *, page: int = 500) -> Copied:
+    """Upsert everything ``source`` holds into ``target``: results, alarms, frozen
+    baselines and every part revision. Each row keeps its key (an id, a part name, a part's
+    revision), so copying twice copies nothing twice."""
+    results = copy_results(source, target, page=page)
+    alarms = 0
+    batch: builtins.list[Alarm] = []
+    for alarm in source.iter_alarms(page=page):
+        batch.append(alarm)
+        if len(batch) == page:
+            alarms += target.put_alarms(batch)
+            batch = []
+    alarms += target.put_alarms(batch)
+    baselines = source.baselines()
+    for b in baselines:
+        target.put_baseline(b)
+    revisions = source.part_revisions()
+    for name, revision in revisions:  # one at a time: a CAD file may weigh megabytes
+        part = source.part(name, revision)
+        if part is not None:
+            target.put_part_revision(part)
+    return Copied(results, alarms, len(baselines), len(revisions))
 
 
 def copy_results(source: ResultStore, target: ResultStore, *, page: int = 500) -> int:

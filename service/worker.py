@@ -31,6 +31,11 @@ What happens to every trigger, and why none is silently lost:
   ``max_seq_jump``, a seq already answered, and the seq of a FrameSet that
   cannot be decoded are answered with an ``error`` result and an
   :class:`~service.models.Alarm`, never expanded into missed records;
+- a FrameSet naming a part the station does not hold yet (created over the
+  API: :mod:`service.station_parts`) waits, with its journal entry, while the
+  part is taken from the store off this thread; it is then measured, or
+  answered ``error`` when the part is unknown there too. At most the queue's
+  capacity of them wait; beyond that the oldest is answered ``missed``;
 - a trigger delivered twice (same id) is answered once;
 - a FrameSet that cannot be decoded becomes an ``error`` result with the
   reason; a failure in a sink (publishing, storing, recording) is logged and
@@ -85,6 +90,14 @@ class Dropped:
     reason: str
     journal_key: str | None = None
     replayed: bool = False
+
+
+class PartSource(Protocol):
+    """Where a worker gets a part its pipeline lacks (:mod:`service.station_parts`)."""
+
+    def request(self, name: str, done: Callable[[str | None], None]) -> None:
+        """Get part ``name`` into the pipeline's parts (any thread); ``done(None)`` once it
+        is there, ``done(reason)`` when it cannot be had."""
 
 
 class JobSource(Protocol):
@@ -434,6 +447,9 @@ class Worker:
         on ``pipeline``.
     fired_grace_s : float
         See :data:`FIRED_GRACE_S` and :meth:`note_fired`.
+    parts : PartSource, optional
+        Asked for the part of a FrameSet of this station that ``pipeline``
+        does not know; without one such a FrameSet is answered ``error`` at once.
     """
 
     def __init__(
@@ -454,8 +470,10 @@ class Worker:
         cameras: list[tuple[str, int, int]] | None = None,
         executor: Executor | None = None,
         fired_grace_s: float = FIRED_GRACE_S,
+        parts: PartSource | None = None,
     ) -> None:
         self.pipeline = pipeline
+        self.parts = parts
         self.executor: Executor = executor if executor is not None else InProcessExecutor(pipeline)
         self.metrics = metrics
         self.cameras = cameras
@@ -484,6 +502,10 @@ class Worker:
         self._changed = threading.Condition(self._lock)
         self._in_flight: dict[str, InFlight] = {}
         self._finished: collections.deque[tuple[str, Future[Measured]]] = collections.deque()
+        # FrameSets waiting for their part (oldest first), and the answers about parts that
+        # came (result id, None or why the part cannot be had).
+        self._waiting: collections.OrderedDict[str, InFlight] = collections.OrderedDict()
+        self._parts_came: collections.deque[tuple[str, str | None]] = collections.deque()
         self._stop = threading.Event()
         self._closed = False
         self._thread: threading.Thread | None = None
@@ -544,12 +566,15 @@ class Worker:
                         "the journal", len(self._in_flight))  # fmt: skip
 
     def _wait_for_slot(self, timeout_s: float) -> bool:
-        """Hand out finished measurements until the executor has a free slot (or timeout)."""
+        """Hand out finished measurements, and measure the FrameSets whose part came, until
+        the executor has a free slot (or timeout)."""
         with self._changed:
-            return self._changed.wait_for(
-                lambda: self._hand_out_finished() or len(self._in_flight) < self.executor.slots(),
-                timeout_s,
-            )
+            return self._changed.wait_for(self._slot_free, timeout_s)
+
+    def _slot_free(self) -> bool:
+        self._hand_out_finished()
+        self._measure_waiting()
+        return len(self._in_flight) < self.executor.slots()
 
     def _hand_out(self) -> None:
         """The results thread: every measurement as it finishes, to the sinks."""
@@ -584,12 +609,16 @@ class Worker:
             self._hand_out_finished()
 
     def drain(self, timeout_s: float) -> bool:
-        """Wait until every measurement handed out has gone to the sinks (tests and replay,
-        without :meth:`start`); whether none is left."""
+        """Wait until every measurement handed out, and every FrameSet waiting for its part,
+        has gone to the sinks (tests and replay, without :meth:`start`); whether none is left."""
+
+        def empty() -> bool:
+            self._hand_out_finished()
+            self._measure_waiting(every=True)
+            return not self._in_flight and not self._waiting
+
         with self._changed:
-            return self._changed.wait_for(
-                lambda: self._hand_out_finished() or not self._in_flight, timeout_s
-            )
+            return self._changed.wait_for(empty, timeout_s)
 
     def note_fired(self, next_seq: int, triggered_ns: int) -> None:
         """The trigger source's word: it has fired every seq below ``next_seq``, the last
@@ -719,15 +748,91 @@ class Worker:
                 )  # fmt: skip
                 self._emit(Outcome(result), fs)
                 return False
-        self._in_flight[id_] = InFlight(fs, item.journal_key)
+        flight = InFlight(fs, item.journal_key)
+        if self.parts is not None and self._lacks_part(fs):
+            self._wait_for_part(id_, flight)
+            return True
+        return self._submit(id_, flight)
+
+    def _submit(self, id_: str, flight: InFlight) -> bool:
+        """Hand ``flight`` to the executor (lock held); whether it took it (else answered)."""
+        self._in_flight[id_] = flight
         try:
-            future = self.executor.submit(fs)
+            future = self.executor.submit(flight.fs)
         except Exception as exc:  # an executor that cannot take it: still one result
             del self._in_flight[id_]
-            self._emit(self._lost(fs, exc), fs)
+            self._emit(self._lost(flight.fs, exc), flight.fs)
             return False
         future.add_done_callback(lambda f: self._on_finished(id_, f))
         return True
+
+    # ------------------------------------------------------------------ parts not held yet
+
+    def _lacks_part(self, fs: FrameSet) -> bool:
+        """A FrameSet this station would measure, but of a part its pipeline does not hold."""
+        return (
+            (fs.line, fs.station) == (self.line, self.station)
+            and fs.sensor == self.pipeline.stages.sensor
+            and fs.part not in self.pipeline.parts
+        )
+
+    def _wait_for_part(self, id_: str, flight: InFlight) -> None:
+        """Park ``flight`` until its part comes (lock held); the oldest parked one is
+        answered ``missed`` when as many wait as the queue holds."""
+        assert self.parts is not None
+        if len(self._waiting) >= self.source.capacity:
+            _, oldest = self._waiting.popitem(last=False)
+            reason = (f"worker queue full ({self.source.capacity} frame sets waiting for "
+                      "their part to load)")  # fmt: skip
+            self._alarm(AlarmKind.queue_overflow, reason, oldest.fs.triggered_ns, oldest.fs.seq)
+            self._answer_unmeasured(oldest, missed_result, reason, "queue_full")
+        log.info("seq %d: part %s is not loaded here; asked for it", flight.fs.seq, flight.fs.part)
+        self._waiting[id_] = flight
+        self.parts.request(flight.fs.part, lambda why: self._on_part(id_, why))
+
+    def _on_part(self, id_: str, why: str | None) -> None:
+        """The part of waiting FrameSet ``id_`` came (``why`` None) or cannot come (any thread)."""
+        with self._changed:
+            self._parts_came.append((id_, why))
+            self._changed.notify_all()
+
+    def _measure_waiting(self, *, every: bool = False) -> bool:
+        """Hand the FrameSets whose part came to the executor while it has free slots
+        (``every``: all of them), and answer those whose part cannot come (lock held).
+
+        Returns False, so that it can sit in a wait's condition.
+        """
+        while self._parts_came and (every or len(self._in_flight) < self.executor.slots()):
+            id_, why = self._parts_came.popleft()
+            flight = self._waiting.pop(id_, None)
+            if flight is None:  # answered missed meanwhile
+                continue
+            if why is not None:
+                self._answer_unmeasured(flight, error_result, why)
+            elif not self._submit(id_, flight) and self.journal is not None:
+                self.journal.remove(flight.journal_key)
+            self._hand_out_finished()
+        return False
+
+    def _answer_unmeasured(
+        self,
+        flight: InFlight,
+        make: Callable[..., InspectionResult],
+        reason: str,
+        cause: str | None = None,
+    ) -> None:
+        """Answer a parked FrameSet without measuring it (lock held)."""
+        fs = flight.fs
+        result = make(
+            line=fs.line, station=fs.station, seq=fs.seq, triggered_ns=fs.triggered_ns,
+            part=fs.part, serial=fs.serial, calibration_id=fs.calibration_id or None,
+            reason=reason,
+        )  # fmt: skip
+        try:
+            self._emit(Outcome(result), fs, cause)
+        finally:
+            if self.journal is not None:
+                self.journal.remove(flight.journal_key)
 
     def _on_finished(self, id_: str, future: Future[Measured]) -> None:
         """Called by the executor's future, in whatever thread finished it."""
@@ -809,6 +914,7 @@ class Worker:
         if (
             id_ not in self._recent
             and id_ not in self._in_flight
+            and id_ not in self._waiting
             and not (self.is_stored is not None and self.is_stored(id_))
         ):
             return False
@@ -908,12 +1014,18 @@ class Worker:
         # No lock: the heartbeat and a scrape must not wait for an in-process measurement.
         # Snapshots of the dicts suffice; a count one job behind is no harm.
         in_flight = len(self._in_flight)
+        waiting = len(self._waiting)
         jobs = {
             where: {"jobs": t.jobs, "mean_s": t.total_s / t.jobs, "last_s": t.last_s}
             for where, t in sorted(dict(self.stats.by_worker).items())
             if t.jobs
         }
-        return {**self.executor.status(), "in_flight": in_flight, "jobs": jobs}
+        return {
+            **self.executor.status(),
+            "in_flight": in_flight,
+            "waiting_for_part": waiting,
+            "jobs": jobs,
+        }
 
     def status(self, worker_id: str, state: str) -> dict[str, Any]:
         return {
@@ -964,10 +1076,11 @@ class ZenohWorker:
 
     ``sinks`` run before the result is published, ``after_publish`` after it.
 
-    With a ``store`` (the one ``sinks`` write to), the worker goes on counting
-    from the station's last stored seq, answers a trigger already stored
-    once, and serves the stored results on the station's history queryable
-    (:mod:`service.history`). With a ``journal``, what it had accepted before
+    With ``parts``, a FrameSet of a part the pipeline lacks waits for it (see
+    :class:`Worker`). With a ``store`` (the one ``sinks`` write to), the worker
+    goes on counting from the station's last stored seq, answers a trigger
+    already stored once, and serves the stored results on the station's
+    history queryable (:mod:`service.history`). With a ``journal``, what it had accepted before
     a kill is measured first. Alarms go to ``<prefix>/<line>/<station>/alarm``, then
     to ``alarms`` (the store, the streams, the recording).
     """
@@ -991,6 +1104,7 @@ class ZenohWorker:
         executor: Executor | None = None,
         alarms: Iterable[AlarmSink] = (),
         fired_grace_s: float = FIRED_GRACE_S,
+        parts: PartSource | None = None,
     ) -> None:
         self.id = bus.worker_id(station)
         self.session = session
@@ -1021,6 +1135,7 @@ class ZenohWorker:
             cameras=[(c["name"], c["width"], c["height"]) for c in cals] or None,
             executor=executor,
             fired_grace_s=fired_grace_s,
+            parts=parts,
         )
         if metrics is not None:
             own = {"line": keys.line, "station": station}

@@ -84,15 +84,17 @@ def _say(line: str) -> None:
 
 
 def _on_bus(run: Any) -> int:
-    """Run a piece of the line; a zenoh session or a result store that cannot open, or a
-    Dask cluster that cannot be reached, is said, not a traceback."""
+    """Run a piece of the line; a zenoh session or a result store that cannot open, a
+    Dask cluster that cannot be reached, or a simulated part that is not to be had, is
+    said, not a traceback."""
     from service.bus import BusError
+    from service.config import ConfigError
     from service.executor import ExecutorError
     from service.store import StoreError
 
     try:
         return int(run())
-    except (BusError, ExecutorError, StoreError) as exc:
+    except (BusError, ConfigError, ExecutorError, StoreError) as exc:
         print(f"inspection: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
 

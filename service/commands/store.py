@@ -16,11 +16,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     actions = p.add_subparsers(dest="action", metavar="ACTION", required=True)
     m = actions.add_parser(
         "migrate",
-        help="copy an SQLite store's results into a PostgreSQL database",
-        description="Copy every result of an SQLite store into the PostgreSQL database at "
-        "--to, creating its schema there. A result already in the database is written "
-        "again as the same row, so running it twice copies nothing twice. An older store "
-        "file is first brought to the current schema, as when the line opens it. The "
+        help="copy an SQLite store into a PostgreSQL database",
+        description="Copy everything an SQLite store holds (results, alarms, frozen control "
+        "limits, and every revision of the parts created over the API) into the PostgreSQL "
+        "database at --to, creating its schema there. A row already in the database is "
+        "written again as the same row, so running it twice copies nothing twice. An older "
+        "store file is first brought to the current schema, as when the line opens it. The "
         "per-point deviations stay in the data directory.",
     )
     m.add_argument(
@@ -42,7 +43,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def cmd_migrate(args: argparse.Namespace) -> int:
     from service.config import StorageSection
-    from service.store import ResultStore, StoreError, copy_results
+    from service.store import ResultStore, StoreError, copy_store
     from service.store_url import check_postgres_url
 
     def bad(message: str) -> int:
@@ -61,12 +62,13 @@ def cmd_migrate(args: argparse.Namespace) -> int:
     try:
         with ResultStore(source) as src, ResultStore(url) as dst:
             before = dst.count()
-            copied = copy_results(src, dst)
+            copied = copy_store(src, dst)
             after = dst.count()
     except StoreError as exc:
         return bad(str(exc))
     print(
-        f"copied {copied} results from {source} to {dst.where} "
-        f"({after - before} new; the database holds {after})"
+        f"copied {copied.results} results from {source} to {dst.where} "
+        f"({after - before} new; the database holds {after}), {copied.alarms} alarms, "
+        f"{copied.baselines} frozen baselines and {copied.parts} part revisions"
     )
     return 0

@@ -30,7 +30,7 @@ from inspection.panel import PanelSpec, panel_height, sheet_metal_panel
 from inspection.rig import belt_pose
 from inspection.transforms import apply
 from service.api import ResultHub, create_app
-from service.config import PartSpecBase, load_line_config
+from service.config import PartSpec, PartSpecBase, load_line_config
 from service.models import (
     InspectionResult,
     PointResult,
@@ -236,6 +236,40 @@ def test_create_part_builds_tree_as_a_job_then_delete(client, line, tmp_path):
     assert_error(client.get("/v1/parts/uploaded"), 404, "unknown_part")
     assert_error(client.delete(f"/v1/parts/{PART}"), 409, "part_conflict")  # configured
     assert_error(client.get("/v1/jobs/job-0"), 404, "unknown_job")
+
+
+@BOTH_STORES
+def test_a_part_created_over_the_api_is_kept_in_the_store_for_every_process(
+    line, tmp_path, api_store_target
+):
+    """The API writes a part it creates to its store, spec and CAD bytes, where an API with
+    uploads of its own (another host) finds it; a delete retires it there, kept for the
+    results measured with it."""
+    cfg, _ = line
+    stl = tmp_path / "p.stl"
+    sheet_metal_panel(PanelSpec().scaled(120.0, 80.0)).to_trimesh().export(stl)
+    spec = {"name": "stored", "version": "7", "tree": {"spacing_mm": 2.0}}
+    with (
+        ResultStore(api_store_target) as store,
+        PartRegistry.from_config(cfg, store=store) as reg,
+        TestClient(create_app(cfg, store=store, parts=reg, archive=None)) as c,
+    ):
+        r = c.post(
+            "/v1/parts",
+            files={"cad": ("p.stl", stl.read_bytes(), "model/stl")},
+            data={"spec": json.dumps(spec)},
+        )
+        assert r.status_code == 202, r.text
+        reg.wait(r.headers["location"].rsplit("/", 1)[1], timeout_s=120)
+        kept = store.part("stored")
+        assert kept.revision == 1 and kept.cad == stl.read_bytes()
+        assert PartSpec.model_validate_json(kept.spec).version == "7"
+        elsewhere = tmp_path / "elsewhere"
+        with PartRegistry.from_config(cfg, store=store, uploads_dir=elsewhere) as other:
+            assert "stored" in other.names() and other.public("stored").version == "7"
+            assert (elsewhere / "stored" / "cad.stl").read_bytes() == stl.read_bytes()
+        assert c.delete("/v1/parts/stored").status_code == 204
+        assert "stored" not in store.part_keys() and store.part("stored", 1).retired_ns
 
 
 def test_a_point_off_the_cad_surface_is_refused_with_its_distance(client, tmp_path):

@@ -11,6 +11,8 @@ finishes by hand.
 from __future__ import annotations
 
 import dataclasses
+import os
+import signal
 import threading
 from concurrent.futures import Future
 
@@ -201,6 +203,39 @@ def test_stages_that_cannot_travel_and_unreachable_schedulers_are_refused(cluste
     nobody = parse_dask_address(f"tcp://127.0.0.1:{free_port()}")
     with pytest.raises(ExecutorError, match="cannot be reached"):
         DaskExecutor.connect(nobody, cluster.pipeline, timeout_s=2)
+
+
+def test_a_part_lost_with_the_workers_that_held_it_is_sent_again(small, cluster):
+    """A part the plugin did not carry lives on the Dask workers that hold it: SIGKILL them
+    all, and the next jobs of that part are still measured, on the workers the nannies
+    start again. The dispatcher sends the part anew, and a job sent before it knew of the
+    loss (it failed on the lost part) once more. Last of the cluster's tests: it restarts
+    its workers."""
+    stages, part, sets = small
+    other = "demo-panel-lost"
+    copy = LoadedPart(part.spec.model_copy(update={"name": other}), part.model, part.tree_hash,
+                      part.params)  # fmt: skip
+    cluster.pipeline.parts[other] = copy
+    try:
+        first = cluster.submit(dataclasses.replace(sets[1], part=other)).result(timeout=300)
+        assert first.where != IN_PROCESS and first.outcome.result.status is not Status.error
+        _, data = cluster._scattered[other]
+        holders = cluster.client.who_has([data])[data.key]
+        pids = cluster.client.run(os.getpid)
+        assert holders and set(holders) <= set(pids)
+        for address in holders:
+            os.kill(pids[address], signal.SIGKILL)
+        # At once: the scheduler may not know yet, and the jobs go out with the lost part.
+        again = [dataclasses.replace(fs, part=other) for fs in sets[2:4]]
+        futures = [cluster.submit(fs) for fs in again]
+        local = Pipeline(stages, {other: copy}, line=LINE, station=STATION)
+        for fs, f in zip(again, futures, strict=True):
+            m = f.result(timeout=300)
+            assert m.where != IN_PROCESS and m.where not in holders
+            same_measurement(m.outcome.result, local.run(fs).result)
+        assert cluster._scattered[other][1].key != data.key, "the part was not sent anew"
+    finally:
+        del cluster.pipeline.parts[other]
 
 
 @pytest.mark.parametrize("bad", ["local:0", "local:65", "tcp://host", "http://host:8786", "x"])

@@ -104,7 +104,7 @@ class Line:
             assert p.stdout.readline().startswith("zenoh router listening"), p.stderr.read()
         elif name == "api":
             p = cli("api", *self.common, "--zenoh-connect", self.ep,
-                    "--http-port", str(self.http_port))  # fmt: skip
+                    "--http-port", str(self.http_port), *extra)  # fmt: skip
         else:
             p = cli(name, *self.common, "--zenoh-connect", self.ep, *extra)
         self.procs[name] = p

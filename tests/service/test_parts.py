@@ -238,3 +238,54 @@ def test_a_station_on_the_comparison_points_refuses_a_surface_that_fails_parts(t
         assert not (tmp_path / "u" / "failing").exists()  # refused before anything is written
     with PartRegistry(tmp_path / "t", tmp_path / "u") as reg:
         reg.add(failing, tmp_path, configured=True)  # the cloud path checks the surface
+
+
+def test_uploads_are_kept_in_the_store_where_other_processes_take_them(tmp_path, store_target):
+    """An API writes a part it creates to the store; an API elsewhere (its own uploads folder)
+    takes it from there at its start; a delete retires it, and the copies elsewhere go at
+    their next start. An upload of a data directory from before is written to the store."""
+    from service.store import ResultStore
+
+    stl = tmp_path / "u.stl"
+    sheet_metal_panel(PanelSpec().scaled(100.0, 70.0)).to_trimesh().export(stl)
+    here, there = tmp_path / "here", tmp_path / "there"
+    with PartRegistry(tmp_path / "trees", here, alignment=False) as reg:  # before the store
+        reg.wait(reg.create(_upload_spec("legacy"), stl.read_bytes(), "u.stl").id)
+
+    def registry(uploads: Path, store) -> PartRegistry:
+        reg = PartRegistry(tmp_path / "trees", uploads, alignment=False, store=store)
+        reg.add_uploaded()
+        reg.sync_store()
+        return reg
+
+    with ResultStore(store_target) as store:
+        with registry(here, store) as a:
+            assert sorted(store.part_keys()) == ["legacy"]
+            a.wait(a.create(_upload_spec("up"), stl.read_bytes(), "u.stl").id)
+            stored = store.part("up")
+            assert stored.cad == stl.read_bytes() and PartSpec.model_validate_json(stored.spec)
+            assert PartSpec.model_validate_json(stored.spec).cad == "cad.stl"
+            with registry(there, store) as b:
+                assert b.names() == ["legacy", "up"]
+                assert (there / "up" / "cad.stl").read_bytes() == stl.read_bytes()
+            a.delete("up")
+            assert store.part_keys().keys() == {"legacy"} and store.part("up", 1).retired_ns
+            # Created again: a second revision, which the copy elsewhere gives way to.
+            second = _upload_spec("up").model_copy(update={"version": "2"})
+            a.wait(a.create(second, stl.read_bytes(), "u.stl").id)
+        assert store.part("up").revision == 2
+        with registry(there, store) as b:
+            assert b.names() == ["legacy", "up"] and b.public("up").version == "2"
+            assert (
+                PartSpec.model_validate_json((there / "up" / "spec.json").read_text()).version
+                == "2"
+            )
+        with registry(here, store) as a:
+            a.preload()  # trees from the cache: a part being built is not deleted
+            a.delete("up")
+        with registry(there, store) as b:
+            assert b.names() == ["legacy"] and not (there / "up").exists()
+            store.add_part("x", "{}", b"x")  # created through another API meanwhile
+            with pytest.raises(PartConflict, match="exists"):
+                b.create(_upload_spec("x"), stl.read_bytes(), "u.stl")
+            assert not (there / "x").exists()

@@ -32,9 +32,11 @@ from service.store import (
     DeviationArchive,
     Filters,
     InvalidCursor,
+    PartExists,
     ResultStore,
     StoreError,
     encode_cursor,
+    part_key,
 )
 from service.store_url import is_postgres_url
 
@@ -180,6 +182,9 @@ def test_an_older_store_is_migrated_on_open_and_keeps_its_rows(store_target, ver
         s.put(res(2))
         assert s.last_trigger("line1", "st1") == (2, res(2).triggered_ns)
     assert "results_station_seq" in index_names(store_target)
+    # The parts table of the newest migration takes a part whatever the start.
+    with ResultStore(store_target) as s:
+        assert s.add_part("p", "{}", CAD).revision == 1
 
 
 def test_a_new_store_opened_four_times_at_once_is_migrated_once(store_target):
@@ -310,6 +315,62 @@ def test_baselines_round_trip(store):
     store.put_baseline(b.model_copy(update={"frozen_ns": 8}))
     assert store.baseline("demo-panel").frozen_ns == 8
     assert store.delete_baseline("demo-panel") and not store.delete_baseline("demo-panel")
+
+
+CAD = bytes(range(256)) * 40  # every byte value, NUL included: a binary STL's bytes
+
+
+def test_a_part_is_kept_by_revision_and_a_deleted_one_stays_for_its_results(store):
+    spec = '{"name": "bracket", "version": "1", "cad": "cad.stl"}'
+    first = store.add_part("bracket", spec, CAD)
+    assert (first.revision, first.key, first.retired_ns) == (1, part_key(spec, CAD), None)
+    got = store.part("bracket")
+    assert (got.revision, got.key, got.spec, got.cad) == (1, first.key, spec, CAD)
+    assert store.part_keys() == {"bracket": first.key} and store.part("other") is None
+    with pytest.raises(PartExists, match="delete it first"):
+        store.add_part("bracket", spec, b"another CAD")
+
+    assert store.retire_part("bracket") and not store.retire_part("bracket")
+    assert store.part("bracket") is None and store.part_keys() == {}
+    retired = store.part("bracket", 1)
+    assert retired.cad == CAD and retired.retired_ns >= first.created_ns
+
+    spec2 = spec.replace('"1"', '"2"')
+    second = store.add_part("bracket", spec2, CAD)
+    assert second.revision == 2 and second.key != first.key
+    assert store.part_keys() == {"bracket": second.key}
+    assert store.part_revisions() == [("bracket", 1), ("bracket", 2)]
+    # Parts are not results: retention sweeps and result deletions leave them.
+    store.enforce(0, 0.0)
+    store.delete_part("bracket")
+    assert store.part_keys() == {"bracket": second.key}
+
+
+def test_two_processes_creating_one_part_at_once_make_one_revision(store_target):
+    """Two APIs on one database: one creation wins, the other is told the part exists."""
+    stores = [ResultStore(store_target) for _ in range(4)]
+    barrier = threading.Barrier(len(stores))
+    made, refused = [], []
+
+    def create(s, n):
+        barrier.wait()
+        try:
+            made.append(s.add_part("bracket", f'{{"n": {n}}}', CAD))
+        except PartExists:
+            refused.append(n)
+
+    threads = [threading.Thread(target=create, args=(s, n)) for n, s in enumerate(stores)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    try:
+        assert len(made) == 1 and len(refused) == 3
+        assert stores[0].part_keys() == {"bracket": made[0].key}
+        assert stores[0].part_revisions() == [("bracket", 1)]
+    finally:
+        for s in stores:
+            s.close()
 
 
 def test_concurrent_writers_and_readers(store):
