@@ -248,9 +248,8 @@ def test_the_line_file_sets_every_simulator_key_and_the_ingest_uses_them():
     cfg = load_line_config(path)
     text = path.read_text()
     written = tomllib.loads(text)["simulator"]
-    # TOML has no null: a key whose default is "none" is shown in a comment. `parts` is
-    # left out: by default the ingest sends the station's parts (docs/line.md).
-    assert "\n# drift_point = " in text
+    # TOML has no null: a key whose default is "none" is shown in a comment.
+    assert "\n# drift_point = " in text and "\n# parts = " in text
     assert set(written) | {"drift_point", "parts"} == set(type(cfg.simulator).model_fields)
     settings = Station.load(cfg, build_trees=False, warm_up=False).simulated_rig().settings
     sim = cfg.simulator
