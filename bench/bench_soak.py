@@ -6,17 +6,20 @@ worker, API, store, recorder, janitor) at 0.5 Hz for ``BENCH_SOAK_S`` seconds
 enough to be reached within the run. Every ``BENCH_SOAK_SAMPLE_S`` seconds
 (default 60; 20 with ``BENCH_SMOKE=1``) it samples the line process's RSS
 and CPU time and the disk use of the recordings, the deviation archive and
-the SQLite store. For the second half of the run four clients upload a
-large cloud each (``BENCH_SOAK_UPLOAD_POINTS``, default 4,000,000 points, a
-96 MB ``.npy``) over and over, waiting as told when the API answers 503.
+the SQLite store, and beside them the RSS and CPU time of the processes the
+line started (the API's measuring processes). For the second half of the run
+four clients upload a large cloud each (``BENCH_SOAK_UPLOAD_POINTS``,
+default 4,000,000 points, a 96 MB ``.npy``) over and over, waiting as told
+when the API answers 503.
 
 Printed: the samples; the slopes of RSS after warm-up (the first fifth of
 the run) in MB/h and as a share of its mean (goal: flat within 5 %); each
 directory's use against its budget at every sample (goal: never above);
 parts measured and missed in the quiet half and in the upload half (goal:
 no part missed at 0.5 Hz with the uploads running); the line's CPU seconds
-per trigger beside the trigger period; uploads answered, refused (503) and
-failed.
+per trigger beside the trigger period (the uploads are measured in processes
+of their own, whose CPU is printed apart); uploads answered, refused (503)
+and failed.
 """
 
 from __future__ import annotations
@@ -54,6 +57,29 @@ def _rss_mb(pid: int) -> float:
 def _cpu_s(pid: int) -> float:
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _children(pid: int) -> list[int]:
+    """The processes ``pid`` started (the API's measuring processes among them)."""
+    out: list[int] = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            out += [int(c) for c in (task / "children").read_text().split()]
+        except OSError:
+            pass  # the thread ended while we looked
+    return out
+
+
+def _children_use(pid: int) -> tuple[float, float]:
+    """RSS (MB) and CPU time (s) of the processes ``pid`` runs now, together."""
+    rss = cpu = 0.0
+    for child in _children(pid):
+        try:
+            rss += _rss_mb(child)
+            cpu += _cpu_s(child)
+        except OSError:
+            pass  # it ended while we looked
+    return rss, cpu
 
 
 def _du_mb(path: Path) -> float:
@@ -221,7 +247,8 @@ def _soak(pid, data, base, cloud, duration, every, period, statuses, lock) -> in
     half = t0 + duration / 2
     samples = []
     print(f"\n  {'t s':>6} {'RSS MB':>7} {'CPU s':>7} {'mcap MB':>8} {'dev MB':>7} "
-          f"{'sqlite MB':>9} {'results':>7} {'missed':>6}", flush=True)  # fmt: skip
+          f"{'sqlite MB':>9} {'results':>7} {'missed':>6} {'meas. RSS MB':>12} "
+          f"{'meas. CPU s':>11}", flush=True)  # fmt: skip
     try:
         while (now := time.monotonic()) < t0 + duration:
             if not uploaders and now >= half:
@@ -237,10 +264,12 @@ def _soak(pid, data, base, cloud, duration, every, period, statuses, lock) -> in
                 now - t0, _rss_mb(pid), _cpu_s(pid) - cpu0, _du_mb(data / "mcap"),
                 _du_mb(data / "deviations"),
                 sum(_du_mb(p) for p in data.glob("results.sqlite*")), n, missed,
+                *_children_use(pid),
             )  # fmt: skip
             samples.append(row)
             print(f"  {row[0]:6.0f} {row[1]:7.0f} {row[2]:7.0f} {row[3]:8.0f} {row[4]:7.1f} "
-                  f"{row[5]:9.1f} {row[6]:7d} {row[7]:6d}", flush=True)  # fmt: skip
+                  f"{row[5]:9.1f} {row[6]:7d} {row[7]:6d} {row[8]:12.0f} {row[9]:11.0f}",
+                  flush=True)  # fmt: skip
             stop.wait(max(0.0, every - (time.monotonic() - now)))
     finally:
         stop.set()
@@ -283,7 +312,8 @@ def _soak(pid, data, base, cloud, duration, every, period, statuses, lock) -> in
     n_results = max(1, samples[-1][6])
     print(
         f"line CPU: {cpu_total:.0f} s over {samples[-1][0]:.0f} s wall, "
-        f"{cpu_total / n_results:.2f} CPU-s per trigger (period {period:.1f} s; uploads included)"
+        f"{cpu_total / n_results:.2f} CPU-s per trigger (period {period:.1f} s); the measuring "
+        f"processes: {samples[-1][9]:.0f} CPU-s, at most {max(s[8] for s in samples):.0f} MB"
     )
     why: dict[str, int] = {}
     for u in uploaders:
