@@ -104,8 +104,9 @@ class ShapeParams:
     coarse_pose: bool = False
     """First align the pose's tilts to the gradient field from the speckle displacements
     (:mod:`.gradient`): the phase-based pose alone fails from a start tilted by more than
-    about two degrees. Off by default: a start from the line's registration is far
-    closer, and the gradient field costs more than the rest of the measurement."""
+    about two degrees. Off here, for a caller whose start is known to be closer (it costs
+    about as much as the rest of the measurement); the line's stations turn it on
+    (``[holography] coarse_pose``), and it changes nothing for a well-placed part."""
     coarse_shift: bool = True
     """With ``coarse_pose``, find the in-plane shift first, from where the CAD's steps
     lower the phase difference's coherence."""
