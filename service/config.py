@@ -616,6 +616,14 @@ class HolographySection(_Strict):
     dent_radius_mm: tuple[float, float] = Field(
         default=(2.5, 4.0), description="Range of where a dent blends back into the surface, mm."
     )
+    coarse_pose: bool = Field(
+        default=True,
+        description="Align the part's tilts to the gradient field of the speckle displacements "
+        "before the phase-based pose: a part tilted more than about two degrees off the "
+        "fixture is measured only so. Changes nothing for a part the fixture holds well and "
+        "costs CPU time (README: the holographic sensor); off saves it where the fixture is "
+        "known to hold the tilts.",
+    )
 
     @field_validator("pixels")
     @classmethod

@@ -312,6 +312,7 @@ class Station:
             meta["calibration_toml"] = self.stages.calibration_toml
         if self.cfg.station.sensor is Sensor.holography:
             meta["T_head_cad"] = json.dumps(fixture_pose(self.cfg).tolist())
+            meta["coarse_pose"] = "true" if self.cfg.head().coarse_pose else "false"
         return meta
 
     def recorder(self, data_dir: Path | None = None) -> Recorder:
@@ -403,7 +404,9 @@ def holo_stages_for(cfg: LineConfig) -> Stages:
             f"{calib.head.synthetic_mm:g} mm) than the section's"
         )
     log.info("holographic head calibrated: %s (%s)", calib.id, calib.source)
-    return holography_stages(calib, T_head_cad=fixture_pose(cfg), truth=truth)
+    return holography_stages(
+        calib, T_head_cad=fixture_pose(cfg), truth=truth, coarse_pose=h.coarse_pose
+    )
 
 
 def stages_for(cfg: LineConfig) -> Stages:

@@ -257,21 +257,40 @@ class HoloRender:
 
 @dataclass(frozen=True)
 class HoloRemake:
-    """A :attr:`Stages.remake` for :func:`holography_stages`: the calibration as TOML text and
-    the fixture's pose, which is all a process elsewhere needs to measure the same way."""
+    """A :attr:`Stages.remake` for :func:`holography_stages`: the calibration as TOML text,
+    the fixture's pose and whether the pose starts from the gradient field, which is all a
+    process elsewhere needs to measure the same way."""
 
     calibration_toml: str
     T_head_cad: tuple[float, ...]
+    coarse_pose: bool
 
     def __call__(self, threads: int) -> Stages:
         from inspection.holography import HoloCalibration
 
         calib = HoloCalibration.from_toml(self.calibration_toml)
-        return holography_stages(calib, T_head_cad=np.reshape(self.T_head_cad, (4, 4)))
+        return holography_stages(
+            calib, T_head_cad=np.reshape(self.T_head_cad, (4, 4)), coarse_pose=self.coarse_pose
+        )
+
+
+def holo_shape_params(*, coarse_pose: bool) -> Any:
+    """The measuring sequence's shape parameters for a holographic station: with
+    ``coarse_pose``, the part's tilts are first aligned from the gradient field of the
+    speckle displacements (``ShapeParams.coarse_pose``). The in-plane shift from the CAD's
+    steps stays off: the fixture holds the part in the plane, and the shift only moves a
+    well-held part by a pixel or so along the steps."""
+    from inspection.holography import ShapeParams
+
+    return ShapeParams(coarse_pose=coarse_pose, coarse_shift=False)
 
 
 def holography_stages(
-    calibration: Any, *, T_head_cad: np.ndarray, truth: HoloRig | None = None
+    calibration: Any,
+    *,
+    T_head_cad: np.ndarray,
+    truth: HoloRig | None = None,
+    coarse_pose: bool = True,
 ) -> Stages:
     """The holographic head's stages: ``inspection.measure_hologram`` with the calibrated head
     measures one ``mono16`` hologram per trigger of a part held at ``T_head_cad``; the
@@ -283,9 +302,14 @@ def holography_stages(
     T_head_cad : (4, 4) float64
         Where the fixture holds the part (its CAD frame in the head frame).
     truth : HoloRig, optional
+    coarse_pose : bool
+        Align the part's tilts to the gradient field first (``[holography] coarse_pose``):
+        a part tilted more than about two degrees off ``T_head_cad`` is found only so.
     """
     from inspection.errors import InvalidInput
     from inspection.measure import measure_hologram
+
+    shape = holo_shape_params(coarse_pose=coarse_pose)
 
     T_fixture = np.array(T_head_cad, dtype=np.float64)
     if T_fixture.shape != (4, 4) or not np.isfinite(T_fixture).all():
@@ -298,7 +322,9 @@ def holography_stages(
             raise InvalidInput(
                 f"the holographic head takes one {n}x{n} mono16 image per trigger, got {shown}"
             )
-        return measure_hologram(part.model, calibration, frames[0], T_fixture, part.params)
+        return measure_hologram(
+            part.model, calibration, frames[0], T_fixture, part.params, shape=shape
+        )
 
     toml = calibration.to_toml()
     return Stages(
@@ -309,7 +335,7 @@ def holography_stages(
         render=HoloRender(),
         guided=False,
         calibration_toml=toml,
-        remake=HoloRemake(toml, tuple(T_fixture.ravel().tolist())),
+        remake=HoloRemake(toml, tuple(T_fixture.ravel().tolist()), coarse_pose),
         sensor="holography",
     )
 

@@ -162,7 +162,9 @@ def _holography_stages(rig: dict[str, str]) -> Stages:
     try:
         calib = HoloCalibration.from_toml(rig["calibration_toml"], where="recorded calibration")
         T = np.asarray(json.loads(rig["T_head_cad"]), dtype=np.float64)
-        stages = holography_stages(calib, T_head_cad=T)
+        # Recordings from before the coarse pose was a setting were measured without it.
+        coarse = rig.get("coarse_pose", "false") == "true"
+        stages = holography_stages(calib, T_head_cad=T, coarse_pose=coarse)
     except KeyError as exc:
         raise ReplayError(f"the recording lacks the holographic head's {exc.args[0]}") from exc
     except (InspectionError, ValueError) as exc:

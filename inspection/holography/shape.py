@@ -19,9 +19,23 @@
 4. **Orders**: regions that 2 pi jumps separate from the main field deviate
    by more than a quarter of the synthetic wavelength: flagged, not measured,
    nor is their rim, a speckle wide
-   (:func:`~inspection.holography.unwrap.orders`).
+   (:func:`~inspection.holography.unwrap.orders`). So is a region that
+   unmeasurable pixels cut off from the rest of its CAD surface (a steep
+   dent's core inside the ring its flank blurs out): its order is unknown,
+   and the deviation may exceed the range. An unmeasurable area of a CAD
+   surface, away from its edges and larger than speckle noise leaves, is
+   reported as well: inside a surface, what the CAD's prediction leaves of
+   the phase turns that fast only on a steep deviation, and the path that
+   its order would be read along is missing.
 5. **Deviations** along the CAD normal, ``(z - z_cad) n_z`` (exact on each
-   planar facet), where measured.
+   planar facet), where measured, with each pixel's standard uncertainty
+   from its coherence. Measured regions whose height lies within their
+   expanded uncertainty of the limit are reported too: a phase that close
+   to pi may as well be one order further. The aperture and the average
+   blur a dent's bottom shallower than it is: to second order a Gaussian
+   blur of variance ``s^2`` adds ``s^2 / 2`` times the Laplacian, which the
+   check takes back before comparing with the limit, counting the
+   correction's size as uncertain too.
 """
 
 from __future__ import annotations
@@ -30,10 +44,17 @@ import logging
 import math
 import time
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 import numpy.typing as npt
-from scipy.ndimage import binary_dilation, gaussian_filter
+from scipy.ndimage import (
+    binary_closing,
+    binary_dilation,
+    binary_fill_holes,
+    gaussian_filter,
+    label,
+)
 
 from ..arrays import Transform
 from ..errors import InvalidInput
@@ -62,6 +83,20 @@ class ShapeParams:
     """Pixels this close to a CAD edge are not measured."""
     min_region_speckles: float = 1.0
     """Regions smaller than this many speckle areas are noise, not deviations."""
+    phase_samples: float = 20.0
+    """Independent samples of the phase difference that the average holds, for each
+    pixel's standard uncertainty: the phase spread ``sqrt(-2 ln coherence)`` (the spread
+    that leaves that mean resultant length) over its square root. The speckle's phase
+    noise is finer than the speckle (dark spots), so there are more than the average
+    holds speckles."""
+    min_hole_speckles: float = 2.0
+    """An unmeasurable area of a CAD surface (away from its edges) of this many speckle
+    areas is reported: speckle noise leaves smaller ones."""
+    limit_coverage: float = 2.0
+    """Coverage factor of the uncertainty against the range's limit: a measured height
+    (its blur taken back) within this many standard uncertainties (the phase's and the
+    blur correction's) of a quarter of the synthetic wavelength is reported as possibly
+    beyond it."""
     pose_iterations: int = 6
     pose_tolerance_um: float = 0.05
     tukey_mm: float = 0.02
@@ -69,31 +104,58 @@ class ShapeParams:
     coarse_pose: bool = False
     """First align the pose's tilts to the gradient field from the speckle displacements
     (:mod:`.gradient`): the phase-based pose alone fails from a start tilted by more than
-    about two degrees. Off by default: a start from the line's registration is far
-    closer, and the gradient field costs more than the rest of the measurement."""
+    about two degrees. Off here, for a caller whose start is known to be closer (it costs
+    about as much as the rest of the measurement); the line's stations turn it on
+    (``[holography] coarse_pose``), and it changes nothing for a well-placed part."""
     coarse_shift: bool = True
     """With ``coarse_pose``, find the in-plane shift first, from where the CAD's steps
     lower the phase difference's coherence."""
 
     def __post_init__(self) -> None:
-        for name in ("smooth_speckles", "edge_jump_mm", "tukey_mm", "pose_tolerance_um"):
+        for name in (
+            "smooth_speckles",
+            "edge_jump_mm",
+            "tukey_mm",
+            "pose_tolerance_um",
+            "phase_samples",
+            "min_hole_speckles",
+        ):
             if not getattr(self, name) > 0:
                 raise InvalidInput(f"{name} must be > 0")
         if not 0 <= self.min_coherence < 1 or self.pose_iterations < 0:
             raise InvalidInput("min_coherence must be in [0, 1), pose_iterations >= 0")
+        if not self.limit_coverage >= 0:
+            raise InvalidInput("limit_coverage must be >= 0")
+
+
+RegionKind = Literal["beyond", "unknown_order", "unmeasured", "at_limit"]
 
 
 @dataclass(frozen=True)
 class FlaggedRegion:
-    """A region deviating from the CAD by more than a quarter of the synthetic
-    wavelength: its size, where it is, its order (how many phase intervals off)
-    and the deviation the order suggests (an estimate, not a measurement)."""
+    """A region that may deviate from the CAD by more than a quarter of the synthetic
+    wavelength: its size and where it is (head frame), and why.
+
+    ``kind``:
+
+    - ``"beyond"``: 2 pi jumps separate it from its surface's main region; ``order``
+      (how many phase intervals off) is known, ``estimate_mm`` the height deviation
+      it suggests (an estimate, not a measurement). Not measured.
+    - ``"unknown_order"``: unmeasurable pixels cut it off from the rest of its CAD
+      surface; ``order`` is None and ``estimate_mm`` NaN. Not measured.
+    - ``"unmeasured"``: an area of a CAD surface, away from its edges, that is not
+      measured; ``order`` is None and ``estimate_mm`` NaN.
+    - ``"at_limit"``: measured in order 0, but its height deviation ``estimate_mm``
+      (the largest, its blur taken back) lies within its expanded uncertainty of the
+      limit.
+    """
 
     pixels: int
     area_mm2: float
     centroid_mm: tuple[float, float]
-    order: int
+    order: int | None
     estimate_mm: float
+    kind: RegionKind = "beyond"
 
 
 @dataclass(frozen=True)
@@ -111,9 +173,12 @@ class HoloShape:
     wrapped_phase : (n, n) float64
         The phase difference, averaged as in step 2, wrapped (rad).
     coherence : (n, n) float64
+    uncertainty_mm : (n, n) float64
+        Standard uncertainty of each measured pixel's height; NaN where not measured.
     measured, flagged : (n, n) bool
-        Where the shape is measured; where it is beyond the unwrapping limit.
-    regions : the flagged regions, largest first.
+        Where the shape is measured; where it is not, being beyond the unwrapping
+        limit or of unknown order.
+    regions : the regions beyond, of unknown order and at the limit, largest first.
     T_head_part : (4, 4) float64, the fitted pose.
     pose_iterations : int; pose_converged : bool
     calibration_id : str
@@ -126,6 +191,7 @@ class HoloShape:
     deviation_mm: F64
     wrapped_phase: F64
     coherence: F64
+    uncertainty_mm: F64
     measured: npt.NDArray[np.bool_]
     flagged: npt.NDArray[np.bool_]
     regions: tuple[FlaggedRegion, ...]
@@ -188,6 +254,7 @@ def measure_shape(
     band = max(1, int(round(params.edge_band_speckles * speckle_px)))
     min_region = max(4, int(params.min_region_speckles * np.pi / 4.0 * speckle_px**2))
     edges = depth.edges(params.edge_jump_mm, band)
+    groups = _surfaces(edges)
     plane = np.zeros(3)  # dz, slope_x, slope_y of the prediction's correction
     converged = params.pose_iterations == 0
     iterations = 0
@@ -197,7 +264,7 @@ def measure_shape(
         usable = ~edges & (coherence >= params.min_coherence)
         # Only the pixels of order 0 tell the pose: inside a region beyond the
         # limit the wrapped residual looks small and would pull it.
-        o = orders(residual, usable, min_region_px=min_region)
+        o = orders(residual, usable, min_region_px=min_region, groups=groups)
         fit = o.known & (o.order == 0)
         step = _fit_plane(residual[fit] * scale, x[fit], y[fit], params.tukey_mm)
         plane += step
@@ -210,32 +277,64 @@ def measure_shape(
     T = _pose_update(plane) @ T
     depth = depth_map(head, mesh, T)
     residual, coherence = _residual(gamma, norm, depth.height_mm, scale, sigma)
-    usable = ~depth.edges(params.edge_jump_mm, band) & (coherence >= params.min_coherence)
+    edges = depth.edges(params.edge_jump_mm, band)
+    usable = ~edges & (coherence >= params.min_coherence)
     t2 = time.perf_counter()
     timings["unwrap_ms"] = (t2 - t1) * 1e3 - timings.get("coarse_ms", 0.0)
 
-    # 4. Orders: what lies beyond a quarter of the synthetic wavelength.
-    o = orders(residual, usable, min_region_px=min_region)
-    flagged = o.known & (o.order != 0)
+    # 4. Orders: what lies beyond a quarter of the synthetic wavelength, and what
+    # unmeasurable pixels cut off so that its order is unknown.
+    o = orders(residual, usable, min_region_px=min_region, groups=_surfaces(edges))
+    beyond = o.known & (o.order != 0)
+    flagged = beyond | o.unreached
     # A speckle straddling a region's rim mixes both orders: the rim, a speckle
     # wide, is not measured either.
     rim = binary_dilation(flagged, iterations=band) if flagged.any() else flagged
     measured = o.known & (o.order == 0) & ~rim
-    regions = _regions(o, flagged, residual, scale, head.pitch_mm, x, y)
 
-    # 5. Deviations along the normal.
+    min_hole = max(4, int(params.min_hole_speckles * np.pi / 4.0 * speckle_px**2))
+    holes, holed, enclosed = _holes(
+        ~edges & ~o.known & ~o.unreached, flagged, min_hole, band, head.pitch_mm, x, y
+    )
+    flagged |= enclosed
+    # The phase next to such a hole turns nearly as fast: its rim is not measured either.
+    measured &= ~binary_dilation(holed, iterations=band) if holed.any() else ~holed
+
+    # 5. Deviations along the normal, and what lies within its uncertainty of the limit.
     cad = depth.height_mm
     height = np.where(measured, cad + residual * scale, np.nan)
     deviation = (height - cad) * depth.normals[..., 2]
+    spread = np.sqrt(-2.0 * np.log(np.clip(coherence, 1e-12, 1.0)))
+    uncertainty = np.where(measured, scale * spread / math.sqrt(params.phase_samples), np.nan)
+    limit = head.synthetic_mm / 4.0
+    # The blur: the average's Gaussian and the aperture's (an Airy spot's intensity,
+    # sigma 0.21 lambda / NA), in pixels squared.
+    blur = sigma**2 + (0.21 * head.wavelength_mm / head.na / head.pitch_mm) ** 2
+    # The Laplacian averaged over half the phase's sigma: enough against its noise, and
+    # less blurred again than over the whole. Measured on the blurred surface, it falls
+    # short of the true one on a dent a few blurs wide: the correction is uncertain by
+    # its own size.
+    correction = 0.5 * blur * _laplacian(residual, measured, 0.5 * sigma) * scale
+    unblurred = residual * scale - correction
+    spread_mm = np.hypot(uncertainty, correction)
+    near = measured & (np.abs(unblurred) + params.limit_coverage * spread_mm >= limit)
+    regions = (
+        _regions(o, beyond, residual, scale, head.pitch_mm, x, y)
+        + _cut_off(o.unreached, head.pitch_mm, x, y)
+        + holes
+        + _at_limit(near, min_region, unblurred, head.pitch_mm, x, y)
+    )
+    regions = tuple(sorted(regions, key=lambda r: -r.pixels))
     timings["deviations_ms"] = (time.perf_counter() - t2) * 1e3
     timings["total_ms"] = (time.perf_counter() - t0) * 1e3
-    log.debug("hologram measured: %d px, %d flagged regions", int(measured.sum()), len(regions))
+    log.debug("hologram measured: %d px, %d regions reported", int(measured.sum()), len(regions))
     shape = HoloShape(
         height_mm=height,
         cad_height_mm=cad,
         deviation_mm=deviation,
         wrapped_phase=np.angle(_smooth(gamma, sigma)),
         coherence=coherence,
+        uncertainty_mm=uncertainty,
         measured=measured,
         flagged=flagged,
         regions=regions,
@@ -244,7 +343,7 @@ def measure_shape(
         pose_converged=converged,
         calibration_id=calib.id,
         timings_ms=timings,
-        limit_mm=head.synthetic_mm / 4.0,
+        limit_mm=limit,
         coarse=coarse,
     )
     return shape
@@ -307,8 +406,8 @@ def _regions(
     y: F64,
 ) -> tuple[FlaggedRegion, ...]:
     out = []
-    for label in np.unique(o.region[flagged]):
-        sel = flagged & (o.region == label)
+    for region in np.unique(o.region[flagged]):
+        sel = flagged & (o.region == region)
         k = int(np.bincount(o.order[sel] - o.order[sel].min()).argmax() + o.order[sel].min())
         est = (residual[sel] + 2.0 * np.pi * k) * scale
         out.append(
@@ -320,4 +419,104 @@ def _regions(
                 estimate_mm=float(est[np.argmax(np.abs(est))]),
             )
         )
-    return tuple(sorted(out, key=lambda r: -r.pixels))
+    return tuple(out)
+
+
+def _surfaces(edges: npt.NDArray[np.bool_]) -> npt.NDArray[np.int64]:
+    """Each piece of CAD surface that no CAD edge cuts, labelled (4-connected, as the
+    orders' graph); -1 on the edges and off the part."""
+    labels, _ = label(~edges)
+    return np.asarray(labels, dtype=np.int64) - 1
+
+
+def _components(mask: npt.NDArray[np.bool_], min_px: int) -> list[npt.NDArray[np.bool_]]:
+    labels, count = label(mask)
+    sizes = np.bincount(labels.ravel(), minlength=count + 1)
+    return [labels == k for k in range(1, count + 1) if sizes[k] >= min_px]
+
+
+def _laplacian(phase: F64, where: npt.NDArray[np.bool_], sigma: float) -> F64:
+    """The Laplacian of a wrapped phase (rad per pixel squared) from its wrapped
+    differences where all five pixels of the stencil are in ``where``, averaged over
+    ``sigma`` (normalised: pixels without one count for nothing); 0 where none is near."""
+    lap = np.zeros(phase.shape)
+    ok = np.zeros(phase.shape, dtype=bool)
+    c = (slice(1, -1), slice(1, -1))
+    for axis in (0, 1):
+        d = np.angle(np.exp(1j * np.diff(phase, axis=axis)))
+        second = np.diff(d, axis=axis)
+        lap[c] += second[:, 1:-1] if axis == 0 else second[1:-1, :]
+    ok[c] = (
+        where[1:-1, 1:-1] & where[:-2, 1:-1] & where[2:, 1:-1] & where[1:-1, :-2] & where[1:-1, 2:]
+    )
+    weight = gaussian_filter(ok.astype(np.float64), sigma)
+    mean = gaussian_filter(np.where(ok, lap, 0.0), sigma)
+    return np.where(weight > 1e-3, mean / np.maximum(weight, 1e-3), 0.0)
+
+
+def _cut_off(
+    unreached: npt.NDArray[np.bool_], pitch: float, x: F64, y: F64
+) -> tuple[FlaggedRegion, ...]:
+    return tuple(_unknown(sel, "unknown_order", pitch, x, y) for sel in _components(unreached, 1))
+
+
+def _holes(
+    hole: npt.NDArray[np.bool_],
+    flagged: npt.NDArray[np.bool_],
+    min_px: int,
+    band: int,
+    pitch: float,
+    x: F64,
+    y: F64,
+) -> tuple[tuple[FlaggedRegion, ...], npt.NDArray[np.bool_], npt.NDArray[np.bool_]]:
+    """The unmeasured areas of the CAD's surfaces that no flagged region explains (the
+    flank around a region beyond the range is unmeasured too), each with what it
+    encloses but for a neck narrower than ``2 band`` px: a measured island that only
+    such a neck joins to the rest has its order carried along a path a speckle or so
+    wide, through the hole's edge, where nothing vouches for it. Returns the regions,
+    their pixels and the enclosed ones."""
+    near = binary_dilation(flagged, iterations=band + 1) if flagged.any() else flagged
+    out = []
+    holed = np.zeros(hole.shape, dtype=bool)
+    enclosed = np.zeros(hole.shape, dtype=bool)
+    for sel in _components(hole, min_px):
+        if (sel & near).any():
+            continue
+        closed = binary_fill_holes(binary_closing(sel, iterations=band, border_value=0))
+        inside = np.asarray(closed, dtype=bool) & ~sel & ~hole
+        enclosed |= inside
+        holed |= sel | inside
+        out.append(_unknown(sel | inside, "unmeasured", pitch, x, y))
+    return tuple(out), holed, enclosed
+
+
+def _unknown(
+    sel: npt.NDArray[np.bool_], kind: RegionKind, pitch: float, x: F64, y: F64
+) -> FlaggedRegion:
+    return FlaggedRegion(
+        pixels=int(sel.sum()),
+        area_mm2=float(sel.sum()) * pitch * pitch,
+        centroid_mm=(float(x[sel].mean()), float(y[sel].mean())),
+        order=None,
+        estimate_mm=math.nan,
+        kind=kind,
+    )
+
+
+def _at_limit(
+    near: npt.NDArray[np.bool_], min_px: int, dz: F64, pitch: float, x: F64, y: F64
+) -> tuple[FlaggedRegion, ...]:
+    out = []
+    for sel in _components(near, min_px):
+        d = dz[sel]
+        out.append(
+            FlaggedRegion(
+                pixels=int(sel.sum()),
+                area_mm2=float(sel.sum()) * pitch * pitch,
+                centroid_mm=(float(x[sel].mean()), float(y[sel].mean())),
+                order=0,
+                estimate_mm=float(d[np.argmax(np.abs(d))]),
+                kind="at_limit",
+            )
+        )
+    return tuple(out)

@@ -10,6 +10,16 @@ limit. :func:`orders` finds such regions as the connected parts of the
 field that only jumps separate from the main part, and gives each its
 order (how many 2 pi it lies off); the shape there is not measured, the
 region is reported.
+
+The order is only carried along measurable pixels. A steep dent's flank
+lowers the coherence of the averaged phase (its phase turns within the
+average), and the contour of 2 pi jumps can lie inside that unmeasurable
+ring: the dent's core is then cut off from the surface around it, and
+nothing in the phase tells how many 2 pi lie between them. Such a region is
+*unreached*: it lies on the same CAD surface as the main region (no CAD
+edge separates them), so the CAD prior does not tell its order either, and
+taking it as order 0 would read a deviation beyond the limit in a wrong
+order.
 """
 
 from __future__ import annotations
@@ -41,25 +51,44 @@ class Orders:
         Region label per pixel (-1 where not valid).
     known : (n, n) bool
         Valid pixels whose order is known (their region is large enough and
-        reached from the main region).
+        reached from the main region of its group).
+    unreached : (n, n) bool
+        Valid pixels of regions large enough to be more than noise that no path
+        of valid pixels joins to the main region of their group: of unknown order.
     """
 
     order: npt.NDArray[np.int64]
     region: npt.NDArray[np.int64]
     known: npt.NDArray[np.bool_]
+    unreached: npt.NDArray[np.bool_]
 
 
 def orders(
-    residual: npt.NDArray[np.float64], valid: npt.NDArray[np.bool_], *, min_region_px: int
+    residual: npt.NDArray[np.float64],
+    valid: npt.NDArray[np.bool_],
+    *,
+    min_region_px: int,
+    groups: npt.NDArray[np.int64] | None = None,
 ) -> Orders:
     """Split the valid pixels into regions separated by 2 pi jumps of ``residual``.
 
-    A *segment* is a set of valid pixels connected through valid neighbours (the
-    CAD's edges, masked out, separate segments); within a segment, a *region* is
-    connected through neighbours whose residuals differ by less than pi. The
-    largest region of a segment has order 0; crossing a jump from ``a`` to ``b``
-    changes the order by ``-round((r_b - r_a) / 2 pi)``. Regions smaller than
-    ``min_region_px`` (speckle noise) are left unknown.
+    A *region* is connected through valid neighbours whose residuals differ by
+    less than pi. A *group* is what the CAD prior holds at order 0 as a whole:
+    ``groups`` labels each pixel (one label per piece of CAD surface that no CAD
+    edge cuts; -1 off them); without it, each set of valid pixels connected
+    through valid neighbours is a group of its own. The largest region of a group
+    has order 0; crossing a jump from ``a`` to ``b`` changes the order by
+    ``-round((r_b - r_a) / 2 pi)``. Regions smaller than ``min_region_px``
+    (speckle noise) are left unknown; larger ones that no path of valid pixels
+    joins to their group's main region are left unknown and marked unreached.
+
+    Parameters
+    ----------
+    residual : (n, m) float64, rad, wrapped
+    valid : (n, m) bool
+    min_region_px : int
+    groups : (n, m) int64, optional
+        Every valid pixel must have a label >= 0.
     """
     n, m = residual.shape
     idx = np.arange(n * m).reshape(n, m)
@@ -82,9 +111,12 @@ def orders(
         g = coo_matrix((np.ones(int(sel.sum())), (ea[sel], eb[sel])), shape=(n * m, n * m))
         return connected_components(g, directed=False)[1].astype(np.int64)
 
-    segment = components(np.ones_like(jump))
     region = components(~jump)
     v = valid.ravel()
+    if groups is None:
+        group = components(np.ones_like(jump))
+    else:
+        group = np.asarray(groups, dtype=np.int64).ravel()
     sizes = np.bincount(region[v], minlength=n * m)
 
     # Order changes between regions across the jumps: the most common one per pair.
@@ -107,8 +139,8 @@ def orders(
             links.setdefault(q, []).append((p, -d))
 
     order_of: dict[int, int] = {}
-    for seg in np.unique(segment[v]):
-        members = np.unique(region[v & (segment == seg)])
+    for g in np.unique(group[v]):
+        members = np.unique(region[v & (group == g)])
         main = int(members[np.argmax(sizes[members])])
         order_of[main] = 0
         queue = deque([main])
@@ -122,9 +154,12 @@ def orders(
     for k, o in order_of.items():
         lookup[k] = o
     per_pixel = lookup[region]
-    known = v & (per_pixel != np.iinfo(np.int64).min) & (sizes[region] >= min_region_px)
+    large = sizes[region] >= min_region_px
+    reached = per_pixel != np.iinfo(np.int64).min
+    known = v & reached & large
     return Orders(
         order=np.where(known, per_pixel, 0).reshape(n, m),
         region=np.where(v, region, -1).reshape(n, m),
         known=known.reshape(n, m),
+        unreached=(v & ~reached & large).reshape(n, m),
     )

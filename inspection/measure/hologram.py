@@ -15,9 +15,11 @@ turned into heights at all:
    point-to-surface fit), from the pose the phase gave;
 4. judged as every cloud is: the fit's quality, the deviations over the
    points and at the comparison points, the verdict;
-5. a region beyond the range is a deviation larger than any tolerance the
-   head is used for: it fails a part that would otherwise pass, and the
-   reason names it;
+5. a region beyond the range (a known order off, of unknown order, or
+   measured within its uncertainty of the limit), or a judged deviation
+   beyond it by more than its uncertainty, is a deviation larger than any
+   tolerance the head is used for: it fails a part that would otherwise
+   pass, and the reason names it;
 6. the phase and the judged deviations as maps on the head's pixel grid,
    for the recordings.
 """
@@ -34,7 +36,7 @@ from ..arrays import Transform
 from ..deviations import Verdict
 from ..errors import InspectionError, InvalidInput
 from ..holography import HoloCalibration, ShapeParams, measure_shape
-from ..holography.shape import HoloShape
+from ..holography.shape import FlaggedRegion, HoloShape
 from ..registration import register
 from .params import MeasureParams
 from .part import PartModel
@@ -120,22 +122,55 @@ def measure_hologram(
     m = dataclasses.replace(m, maps=_maps(holo, m))
 
     # 5. What lies beyond the range.
-    if not holo.regions:
+    judged = _judged_beyond(holo, m.maps["deviation"], shape)
+    if not holo.regions and not judged:
         return m
-    listed = "; ".join(
-        f"{r.area_mm2:.1f} mm^2 at ({r.centroid_mm[0]:.1f}, {r.centroid_mm[1]:.1f}) mm of the "
-        f"head, about {r.estimate_mm:+.2f} mm"
-        for r in holo.regions
-    )
-    n = len(holo.regions)
-    note = (
-        f"{n} region{'s' if n > 1 else ''} beyond the holographic range "
-        f"(+-{holo.limit_mm:.3f} mm): {listed}"
-    )
+    notes = []
+    if holo.regions:
+        listed = "; ".join(_describe(r) for r in holo.regions)
+        n = len(holo.regions)
+        notes.append(
+            f"{n} region{'s' if n > 1 else ''} beyond the holographic range "
+            f"(+-{holo.limit_mm:.3f} mm) or possibly so: {listed}"
+        )
+    if judged:
+        notes.append(
+            f"{judged} measured pixel{'s' if judged > 1 else ''} deviating beyond the "
+            f"holographic range (+-{holo.limit_mm:.3f} mm) by more than their uncertainty"
+        )
+    note = "; ".join(notes)
     verdict = Verdict.FAIL if m.verdict in (Verdict.PASS, Verdict.FAIL) else m.verdict
     reason = note if not m.reason else f"{m.reason}; {note}"
     log.debug("hologram: %s", note)
     return dataclasses.replace(m, verdict=verdict, reason=reason)
+
+
+def _describe(r: FlaggedRegion) -> str:
+    x, y = r.centroid_mm
+    where = f"{r.area_mm2:.1f} mm^2 at ({x:.1f}, {y:.1f}) mm of the head"
+    if r.kind == "unknown_order":
+        return f"{where}, of unknown order (cut off by unmeasurable pixels): may exceed the range"
+    if r.kind == "unmeasured":
+        return f"{where}, not measurable (a slope too steep for the head?): may exceed the range"
+    if r.kind == "at_limit":
+        return (
+            f"{where}, {r.estimate_mm:+.3f} mm with the aperture's blur taken back: "
+            "at the limit within its uncertainty"
+        )
+    return f"{where}, about {r.estimate_mm:+.2f} mm"
+
+
+def _judged_beyond(
+    holo: HoloShape, deviation: npt.NDArray[np.float64], shape: ShapeParams | None
+) -> int:
+    """Measured pixels whose judged deviation (after the fine registration) exceeds the
+    range by more than their expanded uncertainty: the fit can move the part against
+    the phase's pose, and a deviation measured beyond the range is not one the
+    unwrapping vouches for."""
+    k = (shape or ShapeParams()).limit_coverage
+    with np.errstate(invalid="ignore"):
+        over = np.abs(deviation) - k * holo.uncertainty_mm > holo.limit_mm
+    return int(np.count_nonzero(over & holo.measured))
 
 
 def _maps(holo: HoloShape, m: Measurement) -> dict[str, npt.NDArray[np.float64]]:

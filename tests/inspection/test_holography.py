@@ -352,6 +352,80 @@ def test_a_dent_beyond_a_quarter_synthetic_wavelength_is_flagged_not_unwrapped(d
     assert np.sqrt(np.mean(err[shape.measured] ** 2)) < 0.020
 
 
+def _pressed(head, depth_mm, radius_mm, at):
+    """The deviation (mm) of a smoothstep dent as the line's simulated head presses it."""
+    from inspection.defects import Dent as Pressed
+
+    x, y = head.grid()
+    dent = Pressed((*at, 0.0), (0.0, 0.0, 1.0), depth_mm, radius_mm)
+    return -depth_mm * dent.profile(np.hypot(x - at[0], y - at[1]))
+
+
+# Steep dents beyond the range: the flank's ring blurs out (its phase turns within the
+# average), cutting the core off the pad (0.6 mm); the whole dent is unmeasurable (0.8 mm
+# at 2 mm); the bottom, read 30 um shallow through the aperture, sits at the limit (0.3 mm).
+@pytest.mark.parametrize(
+    ("depth_mm", "radius_mm", "at"),
+    [
+        (0.6, 3.0, (6.0, 5.0)),
+        (0.8, 2.0, (6.0, 5.0)),
+        (0.6, 2.5, (-5.0, 4.0)),
+        (0.3, 2.0, (6.0, 5.0)),
+    ],
+)
+def test_a_steep_dent_beyond_the_range_is_reported_and_never_read_an_order_off(
+    head, injected, part, calib, depth_mm, radius_mm, at
+):
+    deviation = _pressed(head, depth_mm, radius_mm, at)
+    image, truth = simulate_hologram(
+        head, part, T_TRUE, deviation_mm=deviation, references=injected, seed=2
+    )
+    shape = measure_shape(calib, image, part, np.eye(4))
+    err = shape.height_mm - truth.height_mm
+    assert np.max(np.abs(err[shape.measured])) < 0.1  # an order off is 0.55 mm
+    near = [r for r in shape.regions if math.dist(r.centroid_mm, at) < 1.0]
+    assert near, shape.regions
+    # Whatever is measured there is no deeper than the limit: the rest is reported.
+    x, y = head.grid()
+    core = shape.measured & (np.hypot(x - at[0], y - at[1]) < 0.5 * radius_mm)
+    assert np.all(np.abs(shape.deviation_mm[core]) <= shape.limit_mm)
+    assert np.isfinite(shape.uncertainty_mm[shape.measured]).all()
+    assert not np.isfinite(shape.uncertainty_mm[~shape.measured]).any()
+
+
+@pytest.mark.parametrize(("depth_mm", "radius_mm"), [(0.2, 2.0), (0.2, 3.0), (0.15, 2.0)])
+def test_a_dent_well_within_the_range_is_measured_and_not_reported(
+    head, injected, part, calib, depth_mm, radius_mm
+):
+    at = (-5.0, 4.0)
+    deviation = _pressed(head, depth_mm, radius_mm, at)
+    image, truth = simulate_hologram(
+        head, part, T_TRUE, deviation_mm=deviation, references=injected, seed=3
+    )
+    shape = measure_shape(calib, image, part, np.eye(4))
+    assert shape.regions == () and not shape.flagged.any()
+    x, y = head.grid()
+    core = np.hypot(x - at[0], y - at[1]) < 0.5
+    assert shape.measured[core].all()
+    err = shape.height_mm - truth.height_mm
+    assert np.sqrt(np.mean(err[shape.measured] ** 2)) < 0.020
+
+
+def test_a_dent_beyond_the_range_fails_the_part_with_the_reason(
+    plate_part, calib, head, injected, part
+):
+    from inspection.deviations import Verdict
+    from inspection.measure import measure_hologram
+
+    deviation = _pressed(head, 0.6, 3.0, (6.0, 5.0))
+    image, _ = simulate_hologram(
+        head, part, T_TRUE, deviation_mm=deviation, references=injected, seed=2
+    )
+    m = measure_hologram(plate_part, calib, image, np.eye(4))
+    assert m.verdict is Verdict.FAIL
+    assert "beyond the holographic range (+-0.275 mm) or possibly so" in m.reason
+
+
 def test_the_spatial_unwrapper_fails_across_the_step_where_the_cad_does_not(shallow):
     skimage = pytest.importorskip(
         "skimage.restoration", reason="the peer unwrapper: pip install scikit-image (dev extra)"
@@ -392,6 +466,26 @@ def test_orders_find_a_region_cut_off_by_a_closed_wrap_contour():
     assert o.known[valid].all() and not o.known[~valid].any()
     # Undo the order: the bump comes back exactly.
     assert np.allclose((wrap(true) + 2 * np.pi * o.order)[valid], true[valid])
+
+
+def test_orders_leave_a_core_cut_off_by_unmeasurable_pixels_unreached():
+    from inspection.holography import orders, wrap
+
+    yy, xx = np.mgrid[0:80, 0:80].astype(np.float64)
+    r = np.hypot(xx - 40, yy - 40)
+    # A dent 2.2 pi deep: its core wraps to near 0, its flank (where the 2 pi contour
+    # lies) is unmeasurable all round.
+    true = -2.2 * np.pi * np.clip(1.0 - r / 25.0, 0.0, 1.0)
+    valid = (r < 8) | (r > 16)
+    one_surface = np.zeros(true.shape, dtype=np.int64)
+    o = orders(wrap(true), valid, min_region_px=10, groups=one_surface)
+    core, outside = r < 8, r > 16
+    assert o.unreached[core].all() and not o.known[core].any()
+    assert o.known[outside].all() and np.all(o.order[outside] == 0)
+    assert not o.unreached[~valid].any()
+    # Without the CAD's groups, each measurable piece is its own: the core reads order 0.
+    alone = orders(wrap(true), valid, min_region_px=10)
+    assert alone.known[core].all() and np.all(alone.order[core] == 0)
 
 
 def test_measuring_is_deterministic_and_leaves_its_inputs_alone(calib, part, shallow):

@@ -8,6 +8,7 @@ recording with the mcap reader, and the recording is replayed.
 from __future__ import annotations
 
 import json
+import math
 import os
 import pickle
 import signal
@@ -19,6 +20,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+import trimesh
 import zenoh
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from linekit import ROOT, client, free_port
@@ -31,7 +33,7 @@ from service.parts import load_part, load_part_cad
 from service.pipeline import HoloRig, Pipeline, error_result, holography_stages
 from service.protocol import FrameSet, decode_frameset, frameset_version
 from service.recorder import Recorder, read_recording
-from service.replay import Tolerances, replay
+from service.replay import Tolerances, recorded_stages, replay
 from service.results import Outcome
 from service.worker import result_from_json
 
@@ -213,6 +215,13 @@ def test_recording_holds_the_hologram_its_phase_and_deviation_maps(line):
             assert np.median(dev[near]) == pytest.approx(c.deviation_mm, abs=0.003), c.name
 
 
+def test_the_recording_says_the_pose_started_from_the_gradient_field(line):
+    # The demo line's default: replay must measure the same way.
+    metadata, _ = read_recording(line["mcap"])
+    assert metadata["rig"]["coarse_pose"] == "true"
+    assert recorded_stages(metadata).remake.coarse_pose is True
+
+
 def test_replay_reproduces_the_results_bit_for_bit(line):
     report = replay(
         line["mcap"],
@@ -283,6 +292,55 @@ def test_the_holographic_stages_measure_the_same_in_another_process(stages, plat
     here, there = stages.measure(plate, fs.images), remade.measure(plate, fs.images)
     assert np.array_equal(here.transform, there.transform)
     assert np.array_equal(here.maps["deviation"], there.maps["deviation"], equal_nan=True)
+
+
+def test_a_part_tilted_a_few_degrees_is_measured_only_with_the_coarse_pose(stages, plate):
+    from inspection.holography import HoloCalibration
+    from inspection.holography.shape import _pose_update
+
+    # 3 degrees about y and 1.8 about x, 20 um high: beyond what the phase pose alone finds.
+    T_head_part = _pose_update(np.array([0.02, math.tan(math.radians(3.0)), 0.0314]))
+    mesh = trimesh.Trimesh(plate.cad.vertices, plate.cad.faces, process=False)
+    fs = FrameSet(
+        line=LINE, station=STATION, part=PART, serial="tilted", seq=0, triggered_ns=1,
+        calibration_id=stages.calibration_id, cameras=["holo"], sensor="holography",
+        images=[stages.rig.record(mesh, T_head_part, None, 1)],
+    )  # fmt: skip
+    calib = HoloCalibration.from_toml(stages.calibration_toml)
+    phase_only = holography_stages(calib, T_head_cad=np.eye(4), coarse_pose=False)
+    assert stages.remake.coarse_pose and not phase_only.remake.coarse_pose
+    found = Pipeline(stages, {PART: plate}).run(fs).result
+    assert found.status.value == "pass", found.reason
+    # T_cad_head T_head_part is the identity in height and tilts (the plate's in-plane
+    # turn is the fit's weak direction, whatever the start).
+    E = np.asarray(found.transform) @ T_head_part
+    assert abs(E[2, 3]) < 0.005 and np.abs(E[2, :2]).max() < 1e-3
+    lost = Pipeline(phase_only, {PART: plate}).run(fs).result
+    assert lost.status.value != "pass"
+
+
+def test_config_maps_the_coarse_pose_onto_the_stages_and_replay_onto_old_recordings(
+    tmp_path, stages
+):
+    from service.line import holo_stages_for
+
+    (tmp_path / "holo.toml").write_text(stages.calibration_toml)
+    path = tmp_path / "line.toml"
+    section = '[station]\nsensor = "holography"\n\n[holography]\ncalibration = "holo.toml"\n'
+    for text, want in [("", True), ("coarse_pose = false\n", False)]:
+        path.write_text(section + f"pixels = {PIXELS}\n" + text)
+        cfg = load_line_config(path)
+        assert cfg.head().coarse_pose is want
+        assert holo_stages_for(cfg).remake.coarse_pose is want
+    path.write_text(section + f"pixels = {PIXELS}\ncoarse_pose = 2\n")
+    with pytest.raises(ConfigError, match="coarse_pose"):
+        load_line_config(path)
+    # A recording from before the key was measured without the coarse pose.
+    rig = {"stages": "holography", "calibration_toml": stages.calibration_toml,
+           "T_head_cad": json.dumps(np.eye(4).tolist())}  # fmt: skip
+    for meta, want in [({}, False), ({"coarse_pose": "true"}, True)]:
+        again = recorded_stages({"rig": rig | meta})
+        assert again.remake.coarse_pose is want
 
 
 def test_a_hologram_of_another_size_is_an_error_result(stages, plate):
