@@ -50,13 +50,10 @@ from typing import Any
 
 from distributed import Client, LocalCluster, WorkerPlugin, get_worker
 
-from inspection.cad import CadModel
-from inspection.nurbs import NurbsModel
-
-from .config import DaskAddress, PartSpec, canonical_hash
+from .config import DaskAddress, canonical_hash
 from .executor import IN_PROCESS, ExecutorError, Measured
 from .models import make_result_id
-from .parts import LoadedPart, part_from_cad
+from .parts import LoadedPart, PartBundle
 from .pipeline import Outcome, Pipeline, Stages
 from .protocol import FrameSet
 
@@ -77,37 +74,6 @@ class StationNotLoaded(RuntimeError):
 
 
 # --------------------------------------------------------------------------- parts
-
-
-@dataclass(frozen=True, eq=False)
-class PartBundle:
-    """A part as it travels to a Dask worker: its spec and its CAD model, no files.
-
-    Attributes
-    ----------
-    spec : PartSpec
-    cad : inspection.CadModel
-    key : str
-        Hash of the spec and the CAD geometry: a part changed under the same
-        name is another bundle.
-    nurbs : inspection.nurbs.NurbsModel or None
-        The NURBS faces ``cad`` tessellates, so that the worker measures to
-        them as the dispatcher does; None for a mesh.
-    """
-
-    spec: PartSpec
-    cad: CadModel
-    key: str
-    nurbs: NurbsModel | None = None
-
-    @classmethod
-    def of(cls, part: LoadedPart) -> PartBundle:
-        key = canonical_hash({"spec": part.spec.model_dump(mode="json"), "cad": part.cad.hash})
-        return cls(part.spec, part.cad, key[:24], part.model.nurbs)
-
-    def load(self, trees_dir: Path) -> LoadedPart:
-        """The part ready to measure: its tree from ``trees_dir`` (built there if missing)."""
-        return part_from_cad(self.spec, self.cad, trees_dir, nurbs=self.nurbs)
 
 
 # --------------------------------------------------------------------------- on a Dask worker

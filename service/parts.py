@@ -144,6 +144,38 @@ class LoadedPart:
         return "mesh" if self.model.nurbs is None else "nurbs"
 
 
+@dataclass(frozen=True, eq=False)
+class PartBundle:
+    """A part as it travels to another process (a Dask worker, an upload's measuring
+    process): its spec and its CAD model, no files.
+
+    Attributes
+    ----------
+    spec : PartSpec
+    cad : inspection.CadModel
+    key : str
+        Hash of the spec and the CAD geometry: a part changed under the same
+        name is another bundle.
+    nurbs : inspection.nurbs.NurbsModel or None
+        The NURBS faces ``cad`` tessellates, so that the receiver measures to
+        them as the sender does; None for a mesh.
+    """
+
+    spec: PartSpec
+    cad: CadModel
+    key: str
+    nurbs: NurbsModel | None = None
+
+    @classmethod
+    def of(cls, part: LoadedPart) -> PartBundle:
+        key = canonical_hash({"spec": part.spec.model_dump(mode="json"), "cad": part.cad.hash})
+        return cls(part.spec, part.cad, key[:24], part.model.nurbs)
+
+    def load(self, trees_dir: Path) -> LoadedPart:
+        """The part ready to measure: its tree from ``trees_dir`` (built there if missing)."""
+        return part_from_cad(self.spec, self.cad, trees_dir, nurbs=self.nurbs)
+
+
 def comparison_points(spec: PartSpec) -> tuple[ComparisonPoint, ...]:
     """The spec's comparison points as the measuring sequence takes them."""
     return tuple(

@@ -9,13 +9,14 @@ for the lock. So an upload is parsed and measured in a separate process,
 at a lower CPU priority (a higher nice value), and only its result and the
 few points the deviation archive keeps come back.
 
-A measuring process keeps the parts it has loaded (a tree from the shared
-tree cache, built there once otherwise), keyed by the part's spec and CAD:
-a part changed under the same name is loaded anew. The processes are
-started with the ``spawn`` method (a zenoh session must not be forked) by
-:meth:`UploadMeasurer.start`, or else by the first upload. A process that
-dies (killed, out of memory) costs the uploads it was measuring an answer
-of 503; the pool is made again for the next one.
+Each measuring process measures one upload at a time and keeps the parts it
+has loaded (a tree from the shared tree cache, built there once otherwise),
+keyed by the part's spec and CAD: a part changed under the same name is
+loaded anew. The processes are started with the ``spawn`` method (a zenoh
+session must not be forked) by :meth:`UploadMeasurer.start`, or else as
+uploads come. A process that dies (killed, out of memory) while it measures
+costs that upload an answer of 503; one found dead when an upload comes is
+started again for it, at no cost but the time.
 """
 
 from __future__ import annotations
@@ -24,22 +25,22 @@ import asyncio
 import logging
 import multiprocessing
 import os
+import queue
 import threading
 from collections import OrderedDict
-from concurrent.futures import ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from multiprocessing.connection import Connection
+from multiprocessing.process import BaseProcess
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from inspection.cad import CadModel
 from inspection.measure import Frame, validate_cloud
-from inspection.nurbs import NurbsModel
 
-from ..config import PartSpec, canonical_hash
 from ..models import InspectionResult
-from ..parts import LoadedPart, part_from_cad
+from ..parts import LoadedPart, PartBundle
 from ..results import Outcome, Trigger, measure_upload
 from .clouds import parse_cloud
 from .gate import NICE
@@ -49,28 +50,12 @@ log = logging.getLogger(__name__)
 PARTS_KEPT = 4
 """Parts a measuring process keeps loaded (the most recently used)."""
 
+STOP_S = 10.0
+"""How long a measuring process is given to end by itself when the measurer closes, s."""
+
 
 class MeasurerDied(RuntimeError):
     """The process measuring an upload ended before answering (killed, out of memory)."""
-
-
-@dataclass(frozen=True, eq=False)
-class UploadPart:
-    """A part as a measuring process receives it: its spec and CAD, no tree.
-
-    ``key`` changes with the spec or the geometry, so that a part replaced
-    under the same name is loaded anew.
-    """
-
-    spec: PartSpec
-    cad: CadModel
-    nurbs: NurbsModel | None
-    key: str
-
-    @classmethod
-    def of(cls, part: LoadedPart) -> UploadPart:
-        key = canonical_hash({"spec": part.spec.model_dump(mode="json"), "cad": part.cad.hash})
-        return cls(part.spec, part.cad, part.model.nurbs, key)
 
 
 @dataclass(frozen=True, eq=False)
@@ -83,22 +68,101 @@ class UploadOutcome:
     distances: np.ndarray | None
 
 
+class _Slot:
+    """One measuring process and the pipe it takes its uploads on."""
+
+    def __init__(self) -> None:
+        self.process: BaseProcess | None = None
+        self.conn: Connection | None = None
+
+    def alive(self) -> bool:
+        return self.process is not None and self.process.is_alive()
+
+    def ensure(self) -> None:
+        """A running process: the one there was, or a new one."""
+        if self.alive():
+            return
+        if self.process is not None:
+            log.error("a measuring process ended (exit code %s): starting another",
+                      self.process.exitcode)  # fmt: skip
+            self.discard()
+        ctx = multiprocessing.get_context("spawn")
+        here, there = ctx.Pipe()
+        self.process = ctx.Process(target=_serve, args=(there,), name="upload-measurer",
+                                   daemon=True)  # fmt: skip
+        self.process.start()
+        there.close()
+        self.conn = here
+
+    def measure(self, job: tuple[Any, ...]) -> UploadOutcome:
+        self.ensure()
+        assert self.conn is not None and self.process is not None
+        try:
+            self.conn.send(job)
+            ok, answer = self.conn.recv()
+        except (EOFError, OSError) as exc:
+            code = self.process.exitcode
+            self.discard()
+            raise MeasurerDied(
+                f"the process measuring this upload ended before answering (exit code {code})"
+            ) from exc
+        if not ok:
+            raise answer
+        out: UploadOutcome = answer
+        return out
+
+    def discard(self) -> None:
+        if self.conn is not None:
+            self.conn.close()
+        if self.process is not None:
+            self.process.join(1.0)
+        self.process, self.conn = None, None
+
+    def stop(self) -> None:
+        if self.conn is not None and self.alive():
+            try:
+                self.conn.send(None)
+            except OSError:
+                pass
+        if self.process is not None:
+            self.process.join(STOP_S)
+            if self.process.is_alive():
+                self.process.kill()
+                self.process.join(STOP_S)
+        self.discard()
+
+
 class UploadMeasurer:
-    """A pool of measuring processes for API uploads.
+    """Measuring processes for API uploads, one upload at a time each.
 
     Parameters
     ----------
     processes : int
-        Measuring processes (uploads measured at once).
+        Measuring processes (uploads measured at once). The caller admits no
+        more uploads at once than that (:class:`~service.api.gate.MeasureGate`);
+        more wait for a process.
     """
 
     def __init__(self, processes: int) -> None:
         if processes < 1:
             raise ValueError("processes must be at least 1")
         self.processes = processes
+        self._slots = [_Slot() for _ in range(processes)]
+        self._free: queue.SimpleQueue[_Slot] = queue.SimpleQueue()
+        for slot in self._slots:
+            self._free.put(slot)
+        self._threads = ThreadPoolExecutor(processes, thread_name_prefix="upload-measurer")
         self._lock = threading.Lock()
-        self._pool: ProcessPoolExecutor | None = None
-        self.restarts = 0
+
+    def start(self) -> None:
+        """Start the processes now, in the background: each imports what it measures
+        with while the API starts, so that the first upload pays only for its part."""
+        self._threads.submit(self._start_all)
+
+    def _start_all(self) -> None:
+        with self._lock:
+            for slot in self._slots:
+                slot.ensure()
 
     async def measure(
         self,
@@ -124,55 +188,31 @@ class UploadMeasurer:
         MeasurerDied
             The process ended before answering.
         """
-        pool = self._running_pool()
-        job = (UploadPart.of(part), data, trigger, frame, str(trees_dir), keep_points)
-        try:
-            return await asyncio.wrap_future(pool.submit(measure_in_process, *job))
-        except BrokenProcessPool as exc:
-            self._replace(pool)
-            raise MeasurerDied("the process measuring this upload ended before answering") from exc
+        job = (PartBundle.of(part), data, trigger, frame, str(trees_dir), keep_points)
+        loop = asyncio.get_running_loop()
+        return await loop.run_in_executor(self._threads, self._measure, job)
 
-    def start(self) -> None:
-        """Start the processes now, in the background: each imports what it measures
-        with, so that the first upload pays only for loading its part."""
-        pool = self._running_pool()
-        for _ in range(self.processes):
-            pool.submit(_ready)
+    def _measure(self, job: tuple[Any, ...]) -> UploadOutcome:
+        slot = self._free.get()
+        try:
+            with self._lock:
+                slot.ensure()
+            return slot.measure(job)
+        finally:
+            self._free.put(slot)
 
     def pids(self) -> list[int]:
         """The process ids of the measuring processes running now."""
-        with self._lock:
-            pool = self._pool
-        if pool is None:
-            return []
-        # The executor names its processes nowhere public; it keeps them by pid here.
-        procs = dict(pool._processes or {})
-        return sorted(pid for pid, p in procs.items() if p.is_alive())
+        return sorted(
+            s.process.pid for s in self._slots
+            if s.process is not None and s.process.pid is not None and s.alive()
+        )  # fmt: skip
 
     def close(self) -> None:
-        """End the measuring processes (those measuring finish first)."""
-        with self._lock:
-            pool, self._pool = self._pool, None
-        if pool is not None:
-            pool.shutdown(wait=True, cancel_futures=True)
-
-    def _running_pool(self) -> ProcessPoolExecutor:
-        with self._lock:
-            if self._pool is None:
-                self._pool = ProcessPoolExecutor(
-                    self.processes,
-                    mp_context=multiprocessing.get_context("spawn"),
-                    initializer=_lower_priority,
-                )
-            return self._pool
-
-    def _replace(self, broken: ProcessPoolExecutor) -> None:
-        with self._lock:
-            if self._pool is broken:
-                self._pool = None
-                self.restarts += 1
-                log.error("a measuring process died: starting another for the next upload")
-        broken.shutdown(wait=False, cancel_futures=True)
+        """End the measuring processes (an upload being measured is waited for)."""
+        self._threads.shutdown(wait=True, cancel_futures=True)
+        for slot in self._slots:
+            slot.stop()
 
 
 # --------------------------------------------------------------------------- in the process
@@ -181,21 +221,33 @@ _parts: OrderedDict[str, LoadedPart] = OrderedDict()
 """The parts this measuring process has loaded, most recently used last."""
 
 
-def _lower_priority() -> None:
+def _serve(conn: Connection) -> None:
+    """A measuring process: uploads from ``conn`` one after the other, until None."""
     try:
         os.nice(NICE)
     except OSError as exc:  # not allowed: measure at the line's priority
         log.info("API measurements run at the line's priority: %s", exc)
+    while True:
+        try:
+            job = conn.recv()
+        except (EOFError, OSError):
+            return  # the API went away
+        if job is None:
+            return
+        try:
+            answer: tuple[bool, Any] = (True, measure_in_process(*job))
+        except Exception as exc:  # every failure goes back as the upload's answer
+            answer = (False, exc)
+        try:
+            conn.send(answer)
+        except Exception:  # an exception that does not pickle: its words go instead
+            conn.send((False, RuntimeError(f"{type(answer[1]).__name__}: {answer[1]}"[:2000])))
 
 
-def _ready() -> None:
-    """Nothing: a job that makes a new process import this module (and what it imports)."""
-
-
-def _loaded(part: UploadPart, trees_dir: Path) -> LoadedPart:
+def _loaded(part: PartBundle, trees_dir: Path) -> LoadedPart:
     loaded = _parts.get(part.key)
     if loaded is None:
-        loaded = part_from_cad(part.spec, part.cad, trees_dir, nurbs=part.nurbs)
+        loaded = part.load(trees_dir)
         _parts[part.key] = loaded
         while len(_parts) > PARTS_KEPT:
             _parts.popitem(last=False)
@@ -204,7 +256,7 @@ def _loaded(part: UploadPart, trees_dir: Path) -> LoadedPart:
 
 
 def measure_in_process(
-    part: UploadPart, data: bytes, trigger: Trigger, frame: Frame, trees_dir: str,
+    part: PartBundle, data: bytes, trigger: Trigger, frame: Frame, trees_dir: str,
     keep_points: int,
 ) -> UploadOutcome:  # fmt: skip
     """One upload, in a measuring process: parsed, measured, and what comes back thinned

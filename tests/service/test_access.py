@@ -247,26 +247,51 @@ def test_an_upload_is_measured_in_a_process_of_its_own_at_a_lower_priority(
         by_process = r.json()
     (pid,) = upload_measurer.pids()
     assert pid != os.getpid()
-    assert os.getpriority(os.PRIO_PROCESS, pid) == os.getpriority(os.PRIO_PROCESS, 0) + NICE
+    lowest = 19  # the kernel's cap: a niced test run's child ends there
+    assert os.getpriority(os.PRIO_PROCESS, pid) == min(
+        os.getpriority(os.PRIO_PROCESS, 0) + NICE, lowest
+    )
     with serve(*line, tmp_path / "thread", pipeline=measure_upload) as (client, _):
         by_thread = upload(client, n=5000).json()
     for key in ("status", "transform", "rms_mm", "comparison", "defects", "field"):
         assert by_process[key] == by_thread[key], key
 
 
-def test_a_measuring_process_that_dies_costs_its_upload_a_503_and_no_more(
+def _cpu_s(pid: int) -> float:
+    fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def test_a_measuring_process_that_dies_costs_its_own_upload_a_503_and_no_other(
     line,  # noqa: F811
     tmp_path,
     monkeypatch,
 ):
+    """Killed while it measures, a measuring process answers that upload 503; killed
+    while idle, it costs nothing; the API goes on measuring either way."""
     monkeypatch.delenv(KEYS_ENV, raising=False)
     measurer = UploadMeasurer(1)
     try:
-        with serve(*line, tmp_path, measurer=measurer) as (client, _):
+        with serve(*line, tmp_path, measurer=measurer, max_upload_mb=60.0) as (client, _):
             assert upload(client).status_code == 200
             (pid,) = measurer.pids()
             os.kill(pid, signal.SIGKILL)
-            r = upload(client)
+            while pid in measurer.pids():  # the kill lands
+                threading.Event().wait(0.05)
+            assert upload(client).status_code == 200  # started again for it
+            (pid,) = measurer.pids()
+            # A large cloud, killed once its process has spent a second measuring it.
+            answer: dict = {}
+            t = threading.Thread(target=lambda: answer.setdefault("r", upload(client, n=1_500_000)))
+            before = _cpu_s(pid)
+            t.start()
+            try:
+                while _cpu_s(pid) < before + 1.0 and t.is_alive():
+                    threading.Event().wait(0.05)
+                os.kill(pid, signal.SIGKILL)
+            finally:
+                t.join(120)
+            r = answer["r"]
             assert r.status_code == 503 and code(r) == "measurer_died", r.text
             assert int(r.headers["retry-after"]) > 0
             assert upload(client).status_code == 200  # a new process, the place given back

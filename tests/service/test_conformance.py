@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import io
 import json
+import re
 import urllib.request
 from pathlib import Path
 from types import SimpleNamespace
@@ -176,7 +177,10 @@ def _refused_for_content(response) -> bool:
     except (ValueError, KeyError, TypeError):
         return False
     if error["code"] == "invalid_spec":
-        return all(CROSS_FIELD in part for part in error["message"].split("; "))
+        # One refusal per location ("points.3: ..."), joined by "; ", which a refusal's
+        # own words may hold too.
+        refusals = re.split(r"; (?=[\w.]+: )", error["message"])
+        return all(CROSS_FIELD in refusal for refusal in refusals)
     return error["code"] in CONTENT_CODES
 
 

@@ -23,9 +23,8 @@ from inspection.deviations import ComparisonPoint
 from inspection.nurbs import tessellate_faces, write_step_surfaces
 from service.api import ResultHub, create_app
 from service.config import PartSpecBase, load_line_config
-from service.dask_executor import PartBundle
 from service.models import InspectionResult
-from service.parts import PartRegistry, read_nurbs, tree_cache_path
+from service.parts import PartBundle, PartRegistry, read_nurbs, tree_cache_path
 from service.store import DeviationArchive, ResultStore
 
 PART = "crowned"
