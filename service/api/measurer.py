@@ -26,6 +26,7 @@ import logging
 import multiprocessing
 import os
 import queue
+import signal
 import threading
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
@@ -223,6 +224,9 @@ _parts: OrderedDict[str, LoadedPart] = OrderedDict()
 
 def _serve(conn: Connection) -> None:
     """A measuring process: uploads from ``conn`` one after the other, until None."""
+    # The API stops it (None, or the pipe closing): a Ctrl-C that reaches the whole
+    # process group must not cut an upload short before the API has answered it.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         os.nice(NICE)
     except OSError as exc:  # not allowed: measure at the line's priority
