@@ -25,9 +25,10 @@ keeps them as one ``.npz`` per inspection in the data directory.
 
 Errors::
 
-    StoreError       a database from a newer version, not a store at all,
-     │               a server that cannot be reached, a statement that failed
-     └── PartExists  creating a part whose name has a current revision
+    StoreError         a database from a newer version, not a store at all,
+     │                 a server that cannot be reached, a statement that failed
+     ├── PartExists    creating a part whose name has a current revision
+     └── CopyConflict  copying into a store that holds other data under the same keys
 """
 
 from __future__ import annotations
@@ -146,10 +147,13 @@ _UPSERT = """
 """
 
 
+# The first acknowledgement stands: a write of an alarm that is acknowledged here already
+# (a copy from a store where nobody acknowledged it, a second acknowledgement) changes nothing.
 _PUT_ALARM = """
     INSERT INTO alarms (id, line, station, kind, raised_ns, acknowledged, body)
     VALUES (?, ?, ?, ?, ?, ?, ?) ON CONFLICT (id) DO UPDATE SET
         acknowledged = excluded.acknowledged, body = excluded.body
+    WHERE alarms.acknowledged = 0
 """
 
 
@@ -160,6 +164,12 @@ class StoreError(Exception):
 
 class PartExists(StoreError):
     """A part of that name has a current revision already (retire it first)."""
+
+
+class CopyConflict(StoreError):
+    """The target of a copy holds other data under a key the source uses: a part revision
+    of the same name and number with another spec or CAD, another current revision of a
+    part, or another frozen baseline of a part."""
 
 
 class InvalidCursor(ValueError):
@@ -195,6 +205,17 @@ class StoredPart:
     cad: bytes
     created_ns: int
     retired_ns: int | None = None
+
+
+@dataclass(frozen=True)
+class PartRevision:
+    """What identifies a part revision the store keeps, without its spec and CAD
+    (:meth:`ResultStore.part_index`); the fields are :class:`StoredPart`'s."""
+
+    name: str
+    revision: int
+    key: str
+    retired_ns: int | None
 
 
 def part_key(spec: str, cad: bytes) -> str:
@@ -758,7 +779,8 @@ class ResultStore:
     # ------------------------------------------------------------------ alarms
 
     def put_alarm(self, alarm: Alarm) -> None:
-        """Insert ``alarm`` or replace the one with its id (an acknowledgement)."""
+        """Insert ``alarm``, or replace the one with its id (an acknowledgement) unless that
+        one is acknowledged: the first acknowledgement stands."""
         row = (
             alarm.id, alarm.line, alarm.station, alarm.kind.value, alarm.raised_ns,
             int(alarm.acknowledged_ns is not None), alarm.model_dump_json(),
@@ -864,8 +886,13 @@ class ResultStore:
 
         def work(db: _Backend) -> int:
             row = db.execute(
-                "SELECT revision FROM parts WHERE name = ? AND retired_ns IS NULL", (name,)
+                "SELECT revision, key, created_ns FROM parts WHERE name = ? AND retired_ns IS NULL",
+                (name,),
             ).fetchone()
+            if row is not None and (str(row[1]), int(row[2])) == (key, now):
+                # The row this call wrote: its commit went through before the connection was
+                # lost, and this is the repetition that follows (see :meth:`_run`).
+                return int(row[0])
             if row is not None:
                 raise PartExists(f"part {name!r} exists (revision {row[0]}); delete it first")
             last = db.execute("SELECT MAX(revision) FROM parts WHERE name = ?", (name,)).fetchone()
@@ -930,22 +957,69 @@ class ResultStore:
         )  # fmt: skip
         return [(str(r[0]), int(r[1])) for r in rows]
 
-    def put_part_revision(self, part: StoredPart) -> None:
-        """Write ``part`` as it is, revision number included (a copy from another store);
-        a revision of that name and number is replaced."""
+    def part_index(self) -> builtins.list[PartRevision]:
+        """Every part revision kept, retired ones included, by name and revision: what
+        identifies each, without its spec and CAD."""
+        rows = self._run(
+            lambda db: db.execute(
+                "SELECT name, revision, key, retired_ns FROM parts ORDER BY name, revision"
+            ).fetchall()
+        )
+        return [
+            PartRevision(str(r[0]), int(r[1]), str(r[2]), None if r[3] is None else int(r[3]))
+            for r in rows
+        ]
+
+    def put_part_revision(self, part: StoredPart) -> bool:
+        """Copy revision ``part`` from another store, revision number included; whether it
+        was written (False: this store holds it already).
+
+        A revision of that name and number held here already is kept as it is: it is
+        only retired when ``part`` is (a deletion in the source since an earlier copy),
+        never made current again (a deletion here stands).
+
+        Raises
+        ------
+        CopyConflict
+            The revision held here has another key (another spec or CAD), or ``part`` is
+            current and so is another revision of its name here.
+        """
         row = (
             part.name, part.revision, part.key, part.spec, part.cad, part.created_ns,
             part.retired_ns,
         )  # fmt: skip
-        self._run(
-            lambda db: db.execute(
-                "INSERT INTO parts (name, revision, key, spec, cad, created_ns, retired_ns) "
-                "VALUES (?, ?, ?, ?, ?, ?, ?) ON CONFLICT (name, revision) DO UPDATE SET "
-                "key = excluded.key, spec = excluded.spec, cad = excluded.cad, "
-                "created_ns = excluded.created_ns, retired_ns = excluded.retired_ns",
-                row,
-            )
-        )
+        which = f"part {part.name!r} revision {part.revision}"
+
+        def work(db: _Backend) -> bool:
+            held = db.execute(
+                "SELECT key, retired_ns FROM parts WHERE name = ? AND revision = ?",
+                (part.name, part.revision),
+            ).fetchone()
+            if held is None:
+                current = db.execute(
+                    "SELECT revision FROM parts WHERE name = ? AND retired_ns IS NULL",
+                    (part.name,),
+                ).fetchone()
+                if part.retired_ns is None and current is not None:
+                    raise CopyConflict(
+                        f"{which} is current, and so is revision {current[0]} in {self.where}"
+                    )
+                db.execute(
+                    "INSERT INTO parts (name, revision, key, spec, cad, created_ns, retired_ns) "
+                    "VALUES (?, ?, ?, ?, ?, ?, ?)",
+                    row,
+                )
+                return True
+            if str(held[0]) != part.key:
+                raise CopyConflict(f"{which} is another spec or CAD in {self.where}")
+            if held[1] is None and part.retired_ns is not None:
+                db.execute(
+                    "UPDATE parts SET retired_ns = ? WHERE name = ? AND revision = ?",
+                    (part.retired_ns, part.name, part.revision),
+                )
+            return False
+
+        return self._run(work, transaction=True)
 
 
 @dataclass(frozen=True)
@@ -960,9 +1034,33 @@ class Copied:
 
 
 def copy_store(source: ResultStore, target: ResultStore, *, page: int = 500) -> Copied:
-    """Upsert everything ``source`` holds into ``target``: results, alarms, frozen
+    """Copy everything ``source`` holds into ``target``: results, alarms, frozen
     baselines and every part revision. Each row keeps its key (an id, a part name, a part's
-    revision), so copying twice copies nothing twice."""
+    name and revision), so copying twice copies nothing twice.
+
+    Rows ``target`` holds already are taken as they are there: a result is written
+    again (a trigger measured again in the source replaces its row), an alarm keeps
+    an acknowledgement made in the target, a part revision keeps its retirement there
+    (and is retired when the source retired it). Data of its own under a key the source
+    uses as well (another station's store copied in before) is never overwritten:
+    results measured with a part revision must keep tracing to its spec and CAD.
+
+    Raises
+    ------
+    CopyConflict
+        ``target`` holds another spec or CAD under a part revision of the source, another
+        current revision of a part current in the source, or another frozen baseline of a
+        part; checked before anything is copied, and the message names every conflict.
+    """
+    baselines = source.baselines()
+    revisions = source.part_index()
+    conflicts = _conflicts(revisions, target.part_index(), baselines, target.baselines())
+    if conflicts:
+        listed = "; ".join(conflicts[:20]) + (" ..." if len(conflicts) > 20 else "")
+        raise CopyConflict(
+            f"{target.where} holds other data under keys of {source.where} "
+            f"(nothing was copied): {listed}"
+        )
     results = copy_results(source, target, page=page)
     alarms = 0
     batch: builtins.list[Alarm] = []
@@ -972,15 +1070,51 @@ def copy_store(source: ResultStore, target: ResultStore, *, page: int = 500) -> 
             alarms += target.put_alarms(batch)
             batch = []
     alarms += target.put_alarms(batch)
-    baselines = source.baselines()
     for b in baselines:
         target.put_baseline(b)
-    revisions = source.part_revisions()
-    for name, revision in revisions:  # one at a time: a CAD file may weigh megabytes
-        part = source.part(name, revision)
+    # Oldest revision first: a revision the source retired is retired here before the
+    # one that replaced it becomes current.
+    for r in revisions:  # one at a time: a CAD file may weigh megabytes
+        part = source.part(r.name, r.revision)
         if part is not None:
             target.put_part_revision(part)
     return Copied(results, alarms, len(baselines), len(revisions))
+
+
+def _conflicts(
+    source: builtins.list[PartRevision],
+    target: builtins.list[PartRevision],
+    source_baselines: builtins.list[Baseline],
+    target_baselines: builtins.list[Baseline],
+) -> builtins.list[str]:
+    """What a copy of ``source`` into ``target`` would overwrite: a sentence each."""
+    out = []
+    held = {(r.name, r.revision): r for r in target}
+    for r in source:
+        t = held.get((r.name, r.revision))
+        if t is not None and t.key != r.key:
+            out.append(f"part {r.name!r} revision {r.revision} is another spec or CAD there "
+                       f"(key {t.key}, the source's {r.key})")  # fmt: skip
+    # After the copy, a part's current revision is the target's one unless the source
+    # retires it; a current revision of the source that the target lacks would be a second.
+    retired_by_copy = {(r.name, r.revision) for r in source if r.retired_ns is not None}
+    current = {
+        r.name: r
+        for r in target
+        if r.retired_ns is None and (r.name, r.revision) not in retired_by_copy
+    }
+    for r in source:
+        t = current.get(r.name)
+        if r.retired_ns is None and (r.name, r.revision) not in held and t is not None:
+            out.append(f"part {r.name!r}: revision {r.revision} is current in the source, "
+                       f"revision {t.revision} there")  # fmt: skip
+    theirs = {b.part: b for b in target_baselines}
+    for b in source_baselines:
+        t_b = theirs.get(b.part)
+        if t_b is not None and t_b != b:
+            out.append(f"part {b.part!r} has another frozen baseline there "
+                       f"(frozen at {t_b.frozen_ns}, the source's at {b.frozen_ns})")  # fmt: skip
+    return out
 
 
 def copy_results(source: ResultStore, target: ResultStore, *, page: int = 500) -> int:

@@ -20,7 +20,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Copy everything an SQLite store holds (results, alarms, frozen control "
         "limits, and every revision of the parts created over the API) into the PostgreSQL "
         "database at --to, creating its schema there. A row already in the database is "
-        "written again as the same row, so running it twice copies nothing twice. An older "
+        "written again as the same row, so running it twice copies nothing twice; an alarm "
+        "acknowledged there stays acknowledged, and a part deleted there stays deleted. A "
+        "database holding other data under the same keys (a part revision of the same name "
+        "and number with another spec or CAD, say from another station's store) is refused "
+        "before anything is copied, naming each conflict. An older "
         "store file is first brought to the current schema, as when the line opens it. The "
         "per-point deviations stay in the data directory.",
     )

@@ -29,12 +29,14 @@ from service.models import (
 from service.store import (
     MIGRATIONS,
     SCHEMA_VERSION,
+    CopyConflict,
     DeviationArchive,
     Filters,
     InvalidCursor,
     PartExists,
     ResultStore,
     StoreError,
+    copy_store,
     encode_cursor,
     part_key,
 )
@@ -371,6 +373,83 @@ def test_two_processes_creating_one_part_at_once_make_one_revision(store_target)
     finally:
         for s in stores:
             s.close()
+
+
+def test_a_creation_repeated_after_a_lost_connection_is_the_same_revision(tmp_path, monkeypatch):
+    """The store runs a statement again when the connection was lost under it, whether its
+    commit went through or not: a creation that did go through is not refused as a part
+    that exists."""
+    import service.store as store_module
+
+    attempt = store_module._attempt
+
+    def committed_then_lost(db, work, transaction, schema):
+        attempt(db, work, transaction, schema)  # done, but the answer never came back
+        return attempt(db, work, transaction, schema)
+
+    with ResultStore(tmp_path / "s.sqlite") as s:
+        monkeypatch.setattr(store_module, "_attempt", committed_then_lost)
+        made = s.add_part("bracket", "{}", CAD)
+        monkeypatch.undo()
+        assert made.revision == 1 and s.part_revisions() == [("bracket", 1)]
+        with pytest.raises(PartExists):  # another creation is still refused
+            s.add_part("bracket", "{}", CAD)
+
+
+def test_a_copy_never_overwrites_the_target_and_a_second_copy_changes_nothing(
+    tmp_path, store_target
+):
+    """Two stations' stores copied into one plant database: a part revision of the same
+    name and number but another CAD is refused before anything is copied; what the plant
+    did since a copy (an acknowledgement, a deletion, a part created again) stands when the
+    copy runs again, and a deletion in the station since is carried over."""
+    st1, st2 = ResultStore(tmp_path / "st1.sqlite"), ResultStore(tmp_path / "st2.sqlite")
+    with st1, st2, ResultStore(store_target) as plant:
+        a1 = st1.add_part("a", '{"station": 1}', CAD)
+        b1 = st1.add_part("b", "{}", CAD)
+        st1.put(res(1))
+        alarm = Alarm(kind="seq_jump", message="m", triggered_ns=1, line="line1", station="st1",
+                      raised_ns=5)  # fmt: skip
+        st1.put_alarm(alarm)
+        st2.add_part("a", '{"station": 2}', CAD[::-1])
+        st2.put(res(2, part="a"))
+        copy_store(st1, plant)
+
+        with pytest.raises(CopyConflict, match="part 'a' revision 1 is another spec or CAD"):
+            copy_store(st2, plant)
+        assert plant.part("a", 1).key == a1.key and plant.count() == 1
+
+        plant.put_alarm(alarm.model_copy(update={"acknowledged_by": "ann", "acknowledged_ns": 9}))
+        plant.retire_part("a")
+        copy_store(st1, plant)
+        assert plant.alarm(alarm.id).acknowledged_by == "ann" and not plant.alarms(open_only=True)
+        assert plant.part_keys() == {"b": b1.key}
+
+        again = plant.add_part("a", '{"plant": 1}', CAD)
+        copy_store(st1, plant)
+        assert again.revision == 2 and plant.part_keys() == {"a": again.key, "b": b1.key}
+
+        st1.retire_part("b")
+        copy_store(st1, plant)
+        assert plant.part_keys() == {"a": again.key} and plant.part("b", 1).retired_ns
+
+        # The station created "a" again too: its revision 2 is not the plant's.
+        st1.retire_part("a")
+        st1.add_part("a", '{"station": 1, "again": true}', CAD)
+        with pytest.raises(CopyConflict, match="part 'a' revision 2 is another spec or CAD"):
+            copy_store(st1, plant)
+        assert plant.part("a").key == again.key
+
+    # Control limits frozen at the plant are not replaced by a station's.
+    frozen = Baseline(part="c", since_ns=None, until_ns=5, frozen_ns=7, frozen_by="ann",
+                      results=20, limits={})  # fmt: skip
+    with ResultStore(tmp_path / "st3.sqlite") as st3, ResultStore(store_target) as plant:
+        st3.put_baseline(frozen)
+        plant.put_baseline(frozen)
+        copy_store(st3, plant)
+        st3.put_baseline(frozen.model_copy(update={"frozen_ns": 8}))
+        with pytest.raises(CopyConflict, match="part 'c' has another frozen baseline"):
+            copy_store(st3, plant)
 
 
 def test_concurrent_writers_and_readers(store):
