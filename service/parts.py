@@ -256,6 +256,9 @@ class _Entry:
     error: str | None = None
     key: str | None = None
     """An upload's revision in the store (:attr:`StoredPart.key`); None: not stored."""
+    conflict: str | None = None
+    """Why this upload stands in for the store's part of its name (one the store has no
+    copy of: :meth:`PartRegistry.sync_store`); None: no conflict."""
 
 
 # --------------------------------------------------------------------------- building blocks
@@ -897,10 +900,16 @@ class PartRegistry:
         """Make the registry's uploads those of the store (at a start).
 
         An upload of the uploads folder that the store never had (made before
-        parts were kept there) is written to it; one whose name the store
-        knows otherwise (deleted, or created again, through another API) gives
-        way to the store's. Every current part of the store is then registered,
-        written into the uploads folder where it is missing.
+        parts were kept there) is written to it; one the store holds a copy of
+        (the same spec and CAD, in any revision) but no longer as its current
+        revision (deleted, or created again, through another API) gives way to
+        the store's. An upload the store has no copy of, under a name the store
+        knows otherwise (two stations' uploads of one name and other CADs, on
+        one plant database), is kept, files and all, and measured here, and the
+        store's part of that name is not taken: an error names the conflict at
+        every start until one of the two is created again under another name.
+        Every other current part of the store is then registered, written into
+        the uploads folder where it is missing.
 
         Raises
         ------
@@ -909,8 +918,9 @@ class PartRegistry:
         store = self.store
         if store is None:
             return
-        keys = store.part_keys()
-        known = {n for n, _ in store.part_revisions()}
+        index = store.part_index()
+        keys = {r.name: r.key for r in index if r.retired_ns is None}
+        copies = {(r.name, r.key) for r in index}
         with self._lock:
             uploads = [(n, e) for n, e in self._entries.items() if not e.configured]
         for name, entry in uploads:
@@ -924,13 +934,26 @@ class PartRegistry:
             key = part_key(spec_json, cad)
             if keys.get(name) == key:
                 entry.key = key
-            elif name in known:
+                continue
+            if (name, key) in copies:
                 log.info("uploaded part %s: the store holds another revision; taking that", name)
                 self.forget(name, entry)
-            else:
-                log.info("uploaded part %s: written to the store %s", name, store.where)
-                entry.key = store.add_part(name, spec_json, cad).key
-                keys[name] = entry.key
+                continue
+            if not any(n == name for n, _ in copies):
+                try:
+                    entry.key = store.add_part(name, spec_json, cad).key
+                    keys[name] = entry.key
+                    log.info("uploaded part %s: written to the store %s", name, store.where)
+                    continue
+                except PartExists:  # another API wrote its own part of that name meanwhile
+                    pass
+            entry.conflict = (
+                f"part {name!r}: the upload in {entry.base_dir} (key {key}) is not the part "
+                f"of that name in the store {store.where}, which has no copy of it; kept and "
+                "measured here, the store's part is not taken here. Create one of the two "
+                "again under another name"
+            )
+            log.error("%s", entry.conflict)
         for name in sorted(keys):
             with self._lock:
                 entry_now = self._entries.get(name)
@@ -956,7 +979,8 @@ class PartRegistry:
         Raises
         ------
         PartConflict
-            A configured part has that name (the station's own wins).
+            A configured part has that name (the station's own wins), or an upload the
+            store has no copy of (:meth:`sync_store`).
         PathConflict
             The station's path cannot judge the part as its spec asks.
         ValueError
@@ -969,6 +993,8 @@ class PartRegistry:
                     f"part {stored.name!r} is defined in the line configuration; "
                     "the store's part of that name is not used here"
                 )
+            if entry is not None and entry.conflict is not None:
+                raise PartConflict(entry.conflict)
             if entry is not None and entry.key == stored.key:
                 if entry.loaded is not None:
                     return None

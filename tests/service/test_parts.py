@@ -289,3 +289,35 @@ def test_uploads_are_kept_in_the_store_where_other_processes_take_them(tmp_path,
             with pytest.raises(PartConflict, match="exists"):
                 b.create(_upload_spec("x"), stl.read_bytes(), "u.stl")
             assert not (there / "x").exists()
+
+
+def test_an_upload_the_store_has_no_copy_of_is_never_deleted_for_the_store_s_part(tmp_path, caplog):
+    """Two stations' data directories each hold an upload "bracket" from before the store
+    kept parts, of other CADs; both APIs then start on one plant database. The first's is
+    written to the store; the second's stays, files and all, with an error that names the
+    conflict, and no worker of that station writes the store's part over it."""
+    from service.store import ResultStore
+
+    folders = {}
+    for station, width in (("st1", 70.0), ("st2", 72.0)):
+        folder = tmp_path / station / "bracket"
+        folder.mkdir(parents=True)
+        sheet_metal_panel(PanelSpec().scaled(100.0, width)).to_trimesh().export(folder / "cad.stl")
+        full = PartSpec(**_upload_spec("bracket").model_dump(), cad="cad.stl")
+        (folder / "spec.json").write_text(full.model_dump_json())
+        folders[station] = {p.name: p.read_bytes() for p in folder.iterdir()}
+    with ResultStore(tmp_path / "plant.sqlite") as plant:
+        for station in ("st1", "st2"):
+            with PartRegistry(tmp_path / "trees", tmp_path / station, store=plant) as reg:
+                reg.add_uploaded()
+                reg.sync_store()
+                assert reg.names() == ["bracket"]
+                if station == "st2":
+                    with pytest.raises(PartConflict, match="has no copy of it"):
+                        reg.adopt(plant.part("bracket"))
+        assert plant.part_revisions() == [("bracket", 1)]
+        assert plant.part("bracket").cad == folders["st1"]["cad.stl"]
+    for station in ("st1", "st2"):
+        got = {p.name: p.read_bytes() for p in (tmp_path / station / "bracket").iterdir()}
+        assert got == folders[station], station
+    assert "'bracket': the upload in" in caplog.text and "has no copy of it" in caplog.text
