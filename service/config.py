@@ -515,6 +515,17 @@ class StationSection(_Strict):
     queue_size: int = Field(
         default=4, ge=1, le=1000, description="Frame sets waiting for the worker."
     )
+    part_wait_s: float = Field(
+        default=120.0,
+        ge=1.0,
+        le=3600.0,
+        description=(
+            "How long a FrameSet naming a part the worker does not hold yet (one created "
+            "over the API) waits while the part is taken from the store and loaded (its tree "
+            "built, on its first use with a tree cache); then it is answered `error`, naming "
+            "the part and what its load was doing. The load goes on for the FrameSets after it."
+        ),
+    )
     metrics_port: int | None = Field(
         default=9464,
         ge=0,

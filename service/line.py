@@ -489,12 +489,13 @@ def archive_sink(archive: DeviationArchive) -> Callable[[Outcome, FrameSet | Non
 
 def worker_state(cfg: LineConfig, store: ResultStore) -> dict[str, Any]:
     """What a station's worker keeps across a restart: the store it goes on from,
-    its journal, and the bound on a seq's jump."""
+    its journal, and the bound on a seq's jump; and how long a FrameSet waits for its part."""
     line, station = cfg.line.name, cfg.station.name
     return dict(
         store=store,
         journal=Journal(cfg.storage.journal_path(line, station)),
         max_seq_jump=cfg.station.max_seq_jump,
+        part_wait_s=cfg.station.part_wait_s,
     )
 
 
@@ -721,9 +722,10 @@ class Subgroups(Mapping[str, int]):
         return len(self.parts)
 
 
-def follow_store_parts(station: Station, store: ResultStore, recorder: Recorder) -> StationParts:
-    """The station's worker takes the parts created over the API from the store, and its
-    recordings show them."""
+def follow_store_parts(cfg: LineConfig, station: Station, recorder: Recorder) -> StationParts:
+    """The station's worker takes the parts created over the API from the store (through a
+    connection of their own: a CAD read must not hold the one the results are written
+    through), and its recordings show them."""
 
     def show(name: str, part: LoadedPart | None) -> None:
         scene = (
@@ -734,9 +736,11 @@ def follow_store_parts(station: Station, store: ResultStore, recorder: Recorder)
         recorder.set_part(name, scene)
 
     assert station.registry is not None, "a station that measures has a part registry"
+    store = ResultStore(cfg.storage.store_target())
     return StationParts(
-        station.parts, store, station.registry, station=station.name, listeners=[show]
-    )
+        station.parts, store, station.registry, station=station.name,
+        wait_s=cfg.station.part_wait_s, listeners=[show], close_store=True,
+    )  # fmt: skip
 
 
 def hub_sink(hub: ResultHub) -> Callable[[Outcome, FrameSet | None], None]:
@@ -845,7 +849,7 @@ def start_line(
         alarms = [store.put_alarm, hub.publish, recorder.record_alarm]
         published = [zenoh_alarm_sink(session, station.keys), *alarms]
         monitor = spc_monitor(cfg, station, store, published)
-        parts = follow_store_parts(station, store, recorder)
+        parts = follow_store_parts(cfg, station, recorder)
         opened.append(parts)
         worker = ZenohWorker(
             session,
@@ -975,7 +979,7 @@ def run_worker(
         )
         janitor = Janitor(store, archive, cfg.retention)
         recorder = station.recorder()
-        parts = follow_store_parts(station, store, recorder)
+        parts = follow_store_parts(cfg, station, recorder)
         metrics = Metrics()
         served = None
         if cfg.station.metrics_port is not None:

@@ -25,6 +25,7 @@ Errors::
     PartError
      ├── UnknownPart          no part of that name
      ├── PartNotReady         its tree is still building, or the build failed
+     │    └── PartBroken      the build failed on the part itself: it fails again
      ├── PartConflict         creating a part that exists / deleting a configured one
      └── PathConflict         a part the station's measuring path cannot judge as its spec asks
 """
@@ -95,6 +96,12 @@ class UnknownPart(PartError, KeyError):
 
 class PartNotReady(PartError):
     """The part exists but its tree is not usable (building, or the build failed)."""
+
+
+class PartBroken(PartNotReady):
+    """The part's build failed on the part itself (its CAD or spec: a bad file, invalid
+    input), not on something that passes (a full disk, an unwritable cache): building the
+    same files again fails again."""
 
 
 class PointOffSurface(PartError):
@@ -254,6 +261,8 @@ class _Entry:
     job: str | None = None
     loaded: LoadedPart | None = None
     error: str | None = None
+    broken: bool = False
+    """The build failed on the part itself (:class:`PartBroken`)."""
     key: str | None = None
     """An upload's revision in the store (:attr:`StoredPart.key`); None: not stored."""
     conflict: str | None = None
@@ -971,8 +980,8 @@ class PartRegistry:
     def adopt(self, stored: StoredPart) -> Job | None:
         """Make revision ``stored`` this registry's part of its name and build it.
 
-        Returns the job that builds it (one done or failed already when the
-        registry holds that revision), or None when it is loaded. A revision
+        Returns the job that builds it (the one under way when the registry holds that
+        revision; a build of it that failed is run again), or None when it is loaded. A revision
         replacing another is written over the old one's files; the old part's
         loaded objects stay valid for whoever holds them.
 
@@ -998,7 +1007,7 @@ class PartRegistry:
             if entry is not None and entry.key == stored.key:
                 if entry.loaded is not None:
                     return None
-                if entry.job is not None:
+                if entry.job is not None and entry.state is not PartState.failed:
                     return self._jobs[entry.job]
         self._register(stored)
         return self._submit(stored.name)
@@ -1060,6 +1069,7 @@ class PartRegistry:
             entry.state = PartState.building
             entry.job = job.id
             entry.error = None
+            entry.broken = False
             self._futures[job.id] = self._pool.submit(self._build, name, job.id)
             return job
 
@@ -1113,6 +1123,9 @@ class PartRegistry:
             with self._lock:
                 entry.state = PartState.failed
                 entry.error = f"{type(exc).__name__}: {hide_paths(str(exc), folders)}"
+                # An OSError (a full disk, a cache folder not writable) may pass; a bad CAD
+                # file or spec does not.
+                entry.broken = isinstance(exc, (InspectionError, ValueError))
             self._update_job(
                 job_id, state=JobState.failed, message=entry.error, finished_ns=time.time_ns()
             )
@@ -1152,7 +1165,15 @@ class PartRegistry:
             self.wait(job.id)
 
     def wait(self, job_id: str, timeout_s: float | None = None) -> Job:
-        """Block until job ``job_id`` has finished; returns its final state."""
+        """Block until job ``job_id`` has finished; returns its final state.
+
+        Raises
+        ------
+        UnknownPart
+            No such job.
+        TimeoutError
+            Not finished within ``timeout_s`` (the build goes on).
+        """
         with self._lock:
             fut = self._futures.get(job_id)
         if fut is None:
@@ -1178,12 +1199,16 @@ class PartRegistry:
         Raises
         ------
         UnknownPart, PartNotReady
+            :class:`PartBroken` when its build failed on the part itself.
         """
         with self._lock:
             entry = self._get_entry(name)
             if entry.loaded is None:
-                why = entry.error if entry.state == PartState.failed else "its tree is being built"
-                raise PartNotReady(f"part {name!r} is not ready: {why}")
+                failed = entry.state == PartState.failed
+                why = entry.error if failed else "its tree is being built"
+                raise (PartBroken if failed and entry.broken else PartNotReady)(
+                    f"part {name!r} is not ready: {why}"
+                )
             return entry.loaded
 
     def job(self, job_id: str) -> Job:

@@ -34,8 +34,11 @@ What happens to every trigger, and why none is silently lost:
 - a FrameSet naming a part the station does not hold yet (created over the
   API: :mod:`service.station_parts`) waits, with its journal entry, while the
   part is taken from the store off this thread; it is then measured, or
-  answered ``error`` when the part is unknown there too. At most the queue's
-  capacity of them wait; beyond that the oldest is answered ``missed``;
+  answered ``error`` when the part is unknown there too, or when it has not
+  come within ``part_wait_s`` (the reason names the part and what its load
+  was doing). At most the queue's capacity of them wait; beyond that the
+  oldest is answered ``missed``. One still waiting when the worker stops
+  keeps its journal entry, measured at the next start;
 - a trigger delivered twice (same id) is answered once;
 - a FrameSet that cannot be decoded becomes an ``error`` result with the
   reason; a failure in a sink (publishing, storing, recording) is logged and
@@ -98,6 +101,14 @@ class PartSource(Protocol):
     def request(self, name: str, done: Callable[[str | None], None]) -> None:
         """Get part ``name`` into the pipeline's parts (any thread); ``done(None)`` once it
         is there, ``done(reason)`` when it cannot be had."""
+
+    def pending(self, name: str) -> str:
+        """What getting part ``name`` is doing now, in a few words; called without waiting
+        (under the worker's lock) for a FrameSet that gave up waiting."""
+
+
+PART_WAIT_S = 120.0
+"""How long a FrameSet waits for its part by default, s (``[station] part_wait_s``)."""
 
 
 class JobSource(Protocol):
@@ -450,6 +461,8 @@ class Worker:
     parts : PartSource, optional
         Asked for the part of a FrameSet of this station that ``pipeline``
         does not know; without one such a FrameSet is answered ``error`` at once.
+    part_wait_s : float
+        How long such a FrameSet waits for its part; then it is answered ``error``.
     """
 
     def __init__(
@@ -471,9 +484,11 @@ class Worker:
         executor: Executor | None = None,
         fired_grace_s: float = FIRED_GRACE_S,
         parts: PartSource | None = None,
+        part_wait_s: float = PART_WAIT_S,
     ) -> None:
         self.pipeline = pipeline
         self.parts = parts
+        self.part_wait_s = part_wait_s
         self.executor: Executor = executor if executor is not None else InProcessExecutor(pipeline)
         self.metrics = metrics
         self.cameras = cameras
@@ -502,11 +517,14 @@ class Worker:
         self._changed = threading.Condition(self._lock)
         self._in_flight: dict[str, InFlight] = {}
         self._finished: collections.deque[tuple[str, Future[Measured]]] = collections.deque()
-        # FrameSets waiting for their part (oldest first), and the answers about parts that
-        # came (result id, None or why the part cannot be had).
-        self._waiting: collections.OrderedDict[str, InFlight] = collections.OrderedDict()
+        # FrameSets waiting for their part (oldest first) with their deadline (monotonic s),
+        # and the answers about parts that came (result id, None or why it cannot be had).
+        self._waiting: collections.OrderedDict[str, tuple[InFlight, float]] = (
+            collections.OrderedDict()
+        )
         self._parts_came: collections.deque[tuple[str, str | None]] = collections.deque()
         self._stop = threading.Event()
+        self._stop_s = 60.0  # how long a stop waits for what was accepted to be answered
         self._closed = False
         self._thread: threading.Thread | None = None
         self._results: threading.Thread | None = None
@@ -526,26 +544,30 @@ class Worker:
 
         The queue holds at most its capacity and the executor its slots, so
         this ends; a trigger that was accepted is measured, not dropped on the
-        floor. One still being measured after ``timeout_s`` stays in the
-        journal, measured again at the next start.
+        floor. One still being measured, or still waiting for its part, after
+        ``timeout_s`` stays in the journal, measured again at the next start.
         """
+        self._stop_s = timeout_s
         self._stop.set()
         if self._thread is not None:
-            self._thread.join(timeout_s)
+            # The thread drains for ``timeout_s`` after the stop: a moment more lets it end
+            # its last drain before the results thread goes.
+            self._thread.join(timeout_s + 1.0)
         with self._changed:
             self._closed = True
             self._changed.notify_all()
         if self._results is not None:
             self._results.join(timeout_s)
 
-    def run(self, drain_s: float = 60.0) -> None:
-        """Process jobs until :meth:`stop`, then what is still queued and being measured,
-        for at most ``drain_s`` after the stop. Never raises."""
+    def run(self, drain_s: float | None = None) -> None:
+        """Process jobs until :meth:`stop`, then what is still queued, being measured or
+        waiting for its part, for at most ``drain_s`` after the stop (default: the stop's
+        timeout). Never raises."""
         deadline: float | None = None
         while True:
             stopping = self._stop.is_set()
             if stopping and deadline is None:
-                deadline = time.monotonic() + drain_s
+                deadline = time.monotonic() + (self._stop_s if drain_s is None else drain_s)
             if deadline is not None and time.monotonic() > deadline:
                 break
             try:
@@ -562,8 +584,9 @@ class Worker:
                 log.exception("worker loop error")
         left = 0.0 if deadline is None else max(0.0, deadline - time.monotonic())
         if not self.drain(left):
-            log.warning("stopping with %d FrameSet(s) still being measured: they stay in "
-                        "the journal", len(self._in_flight))  # fmt: skip
+            log.warning("stopping with %d FrameSet(s) still being measured and %d waiting for "
+                        "their part: they stay in the journal", len(self._in_flight),
+                        len(self._waiting))  # fmt: skip
 
     def _wait_for_slot(self, timeout_s: float) -> bool:
         """Hand out finished measurements, and measure the FrameSets whose part came, until
@@ -574,6 +597,7 @@ class Worker:
     def _slot_free(self) -> bool:
         self._hand_out_finished()
         self._measure_waiting()
+        self._give_up_waiting()
         return len(self._in_flight) < self.executor.slots()
 
     def _hand_out(self) -> None:
@@ -611,14 +635,20 @@ class Worker:
     def drain(self, timeout_s: float) -> bool:
         """Wait until every measurement handed out, and every FrameSet waiting for its part,
         has gone to the sinks (tests and replay, without :meth:`start`); whether none is left."""
-
-        def empty() -> bool:
-            self._hand_out_finished()
-            self._measure_waiting(every=True)
-            return not self._in_flight and not self._waiting
-
+        deadline = time.monotonic() + timeout_s
         with self._changed:
-            return self._changed.wait_for(empty, timeout_s)
+            while True:
+                self._hand_out_finished()
+                self._measure_waiting(every=True)
+                self._give_up_waiting()
+                if not self._in_flight and not self._waiting:
+                    return True
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                # Woken by a measurement or a part that came; a waiting FrameSet's
+                # deadline passes without either.
+                self._changed.wait(min(left, 0.2))
 
     def note_fired(self, next_seq: int, triggered_ns: int) -> None:
         """The trigger source's word: it has fired every seq below ``next_seq``, the last
@@ -777,17 +807,17 @@ class Worker:
         )
 
     def _wait_for_part(self, id_: str, flight: InFlight) -> None:
-        """Park ``flight`` until its part comes (lock held); the oldest parked one is
-        answered ``missed`` when as many wait as the queue holds."""
+        """Park ``flight`` until its part comes or :attr:`part_wait_s` passes (lock held);
+        the oldest parked one is answered ``missed`` when as many wait as the queue holds."""
         assert self.parts is not None
         if len(self._waiting) >= self.source.capacity:
-            _, oldest = self._waiting.popitem(last=False)
+            _, (oldest, _) = self._waiting.popitem(last=False)
             reason = (f"worker queue full ({self.source.capacity} frame sets waiting for "
                       "their part to load)")  # fmt: skip
             self._alarm(AlarmKind.queue_overflow, reason, oldest.fs.triggered_ns, oldest.fs.seq)
             self._answer_unmeasured(oldest, missed_result, reason, "queue_full")
         log.info("seq %d: part %s is not loaded here; asked for it", flight.fs.seq, flight.fs.part)
-        self._waiting[id_] = flight
+        self._waiting[id_] = (flight, time.monotonic() + self.part_wait_s)
         self.parts.request(flight.fs.part, lambda why: self._on_part(id_, why))
 
     def _on_part(self, id_: str, why: str | None) -> None:
@@ -804,15 +834,32 @@ class Worker:
         """
         while self._parts_came and (every or len(self._in_flight) < self.executor.slots()):
             id_, why = self._parts_came.popleft()
-            flight = self._waiting.pop(id_, None)
-            if flight is None:  # answered missed meanwhile
+            parked = self._waiting.pop(id_, None)
+            if parked is None:  # answered meanwhile (missed, or given up)
                 continue
+            flight = parked[0]
             if why is not None:
                 self._answer_unmeasured(flight, error_result, why)
             elif not self._submit(id_, flight) and self.journal is not None:
                 self.journal.remove(flight.journal_key)
             self._hand_out_finished()
         return False
+
+    def _give_up_waiting(self) -> None:
+        """Answer ``error`` every FrameSet that waited :attr:`part_wait_s` for its part
+        (lock held); the part's load goes on, for the FrameSets after it."""
+        now = time.monotonic()
+        while self._waiting:
+            id_, (flight, deadline) = next(iter(self._waiting.items()))
+            if deadline > now:
+                return  # one wait for all: the oldest expires first
+            del self._waiting[id_]
+            part = flight.fs.part
+            doing = self.parts.pending(part) if self.parts is not None else "not asked for"
+            reason = (f"part {part!r} was not loaded within {self.part_wait_s:g} s "
+                      f"([station] part_wait_s): {doing}")  # fmt: skip
+            log.error("seq %d: %s", flight.fs.seq, reason)
+            self._answer_unmeasured(flight, error_result, reason)
 
     def _answer_unmeasured(
         self,
@@ -1076,8 +1123,8 @@ class ZenohWorker:
 
     ``sinks`` run before the result is published, ``after_publish`` after it.
 
-    With ``parts``, a FrameSet of a part the pipeline lacks waits for it (see
-    :class:`Worker`). With a ``store`` (the one ``sinks`` write to), the worker
+    With ``parts``, a FrameSet of a part the pipeline lacks waits for it, at most
+    ``part_wait_s`` (see :class:`Worker`). With a ``store`` (the one ``sinks`` write to), the worker
     goes on counting from the station's last stored seq, answers a trigger
     already stored once, and serves the stored results on the station's
     history queryable (:mod:`service.history`). With a ``journal``, what it had accepted before
@@ -1105,6 +1152,7 @@ class ZenohWorker:
         alarms: Iterable[AlarmSink] = (),
         fired_grace_s: float = FIRED_GRACE_S,
         parts: PartSource | None = None,
+        part_wait_s: float = PART_WAIT_S,
     ) -> None:
         self.id = bus.worker_id(station)
         self.session = session
@@ -1136,6 +1184,7 @@ class ZenohWorker:
             executor=executor,
             fired_grace_s=fired_grace_s,
             parts=parts,
+            part_wait_s=part_wait_s,
         )
         if metrics is not None:
             own = {"line": keys.line, "station": station}

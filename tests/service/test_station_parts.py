@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import threading
+import time
 
 import pytest
 from linekit import LINE, PART, PARTS_DIR, STATION, rig
@@ -20,8 +21,9 @@ from inspection.measure import PartModel
 from inspection.panel import PanelSpec, sheet_metal_panel
 from service.config import load_part_spec
 from service.journal import Journal
-from service.models import PartCreate, Status
-from service.parts import LoadedPart, PartRegistry, measure_params
+from service.models import Job as BuildJob
+from service.models import JobState, PartCreate, Status
+from service.parts import LoadedPart, PartBroken, PartRegistry, measure_params
 from service.pipeline import Pipeline
 from service.protocol import FrameSet
 from service.station_parts import StationParts
@@ -148,8 +150,14 @@ class Slow:
         self.parts, self.part = parts, part
         self.asked: list[tuple[str, object]] = []
 
+        self.asked_once = threading.Event()
+
     def request(self, name, done) -> None:
         self.asked.append((name, done))
+        self.asked_once.set()
+
+    def pending(self, name) -> str:
+        return "building tree (40%)"
 
     def answer(self) -> None:
         for name, done in self.asked:
@@ -177,3 +185,116 @@ def test_frame_sets_waiting_for_their_part_are_bounded_and_answered_once(quick_p
     assert w.drain(30)
     assert [(r.seq, r.status) for r in got.results[2:]] == [(1, Status.passed), (2, Status.passed)]
     assert w.stats.missed_by_cause == {"queue_full": 1}
+
+
+def test_a_frame_set_waits_for_its_part_at_most_part_wait_s_and_is_answered_once(
+    quick_part, framesets
+):
+    """The part never comes in time: the FrameSet is answered error, naming the part and
+    what its load was doing; the part coming later answers nothing twice."""
+    parts = {PART: quick_part}
+    slow = Slow(parts, quick_part)
+    p = Pipeline(QUICK, parts, line=LINE, station=STATION)
+    got = Collect()
+    w = Worker(p, JobQueue(4), [got], line=LINE, station=STATION, parts=slow, part_wait_s=0.2)
+    w.handle(job(dataclasses.replace(framesets[0], part=NEW)))
+    assert got.results == [] and w.executor_status()["waiting_for_part"] == 1
+    assert w.drain(10)
+    [late] = got.results
+    assert late.status is Status.error and late.part == NEW
+    assert late.reason == (f"part '{NEW}' was not loaded within 0.2 s ([station] part_wait_s): "
+                           "building tree (40%)")  # fmt: skip
+    slow.answer()
+    assert w.drain(1) and len(got.results) == 1
+
+
+class Registry:
+    """A part registry whose loads fail as told, in order, then load ``part``; or, with
+    ``hold``, whose build never ends until the test sets it."""
+
+    def __init__(self, part, fail=(), hold: threading.Event | None = None) -> None:
+        self.part, self.fail, self.hold = part, list(fail), hold
+        self.adopted: list[int] = []
+
+    def adopt(self, stored):
+        self.adopted.append(stored.revision)
+        if self.fail:
+            raise self.fail.pop(0)
+        if self.hold is None:
+            return None
+        return BuildJob(id="j", part=stored.name, state=JobState.running, progress=0.4,
+                        message="building tree", created_ns=0)  # fmt: skip
+
+    def wait(self, job_id, timeout_s=None):
+        if not self.hold.wait(timeout_s):
+            raise TimeoutError
+        return self.job(job_id)
+
+    def job(self, job_id):
+        return BuildJob(id=job_id, part=NEW, state=JobState.running, progress=0.4,
+                        message="building tree", created_ns=0)  # fmt: skip
+
+    def get(self, name):
+        return self.part
+
+    def forget(self, name) -> None:
+        pass
+
+
+def ask(station: StationParts, name: str) -> str | None:
+    came = []
+    done = threading.Event()
+    station.request(name, lambda why: (came.append(why), done.set()))
+    assert done.wait(30)
+    return came[0]
+
+
+def test_a_load_that_failed_is_tried_again_unless_it_failed_on_the_part_itself(
+    tmp_path, quick_part
+):
+    """A full disk passes: the load is tried again after a while. A part that does not load
+    fails again: not tried again, until the part is created again, be it with the same
+    files (a new revision)."""
+    store = ResultStore(tmp_path / "s.sqlite")
+    spec_json = spec().model_dump_json()
+    store.add_part(NEW, spec_json, b"CAD")
+    registry = Registry(
+        quick_part, [OSError(28, "No space left on device"), PartBroken("bad CAD file")]
+    )
+    station = StationParts({}, store, registry, station=STATION, poll_s=3600, retry_s=3600,
+                           close_store=True)  # fmt: skip
+    try:
+        full = ask(station, NEW)
+        assert "No space left on device" in full and "tried again after 3600 s" in full
+        assert ask(station, NEW) == full and registry.adopted == [1]  # not yet
+        station.retry_s = 0.0
+        broken = ask(station, NEW)
+        assert f"part '{NEW}' (revision 1) cannot be measured: bad CAD file" == broken
+        assert ask(station, NEW) == broken and registry.adopted == [1, 1]
+        store.retire_part(NEW)
+        store.add_part(NEW, spec_json, b"CAD")
+        assert ask(station, NEW) is None and registry.adopted == [1, 1, 2]
+        assert station.parts[NEW] is quick_part
+    finally:
+        station.close()
+
+
+def test_a_load_is_waited_for_at_most_wait_s_and_a_stop_does_not_wait_for_it(tmp_path, quick_part):
+    store = ResultStore(tmp_path / "s.sqlite")
+    store.add_part(NEW, spec().model_dump_json(), b"CAD")
+    hold = threading.Event()
+    registry = Registry(quick_part, hold=hold)
+    station = StationParts({}, store, registry, station=STATION, wait_s=0.1, poll_s=3600,
+                           retry_s=0.0, close_store=True)  # fmt: skip
+    try:
+        why = ask(station, NEW)
+        assert why == (f"part '{NEW}' (revision 1) is still loading after 0.1 s: "
+                       f"part '{NEW}' (revision 1): loading: building tree (40%)")  # fmt: skip
+        # Not a failure: the next FrameSet waits for the same build, which may end meanwhile.
+        done = threading.Event()
+        station.request(NEW, lambda why: done.set())
+        t0 = time.monotonic()
+        station.close()
+        assert time.monotonic() - t0 < 5 and not done.is_set()
+    finally:
+        hold.set()
