@@ -208,6 +208,36 @@ def test_a_frame_set_waits_for_its_part_at_most_part_wait_s_and_is_answered_once
     assert w.drain(1) and len(got.results) == 1
 
 
+def test_a_frame_set_waiting_when_the_worker_stops_is_measured_once_at_the_next_start(
+    tmp_path, quick_part, framesets
+):
+    """Its journal entry stays while it waits: a worker stopped (or killed) meanwhile leaves
+    it to the next one, which measures it, once."""
+    journal = Journal(tmp_path / "journal")
+    fs = dataclasses.replace(framesets[0], part=NEW)
+    payload = job(fs).payload
+    q, got = JobQueue(4), Collect()
+    parts = {PART: quick_part}
+    slow = Slow(parts, quick_part)
+    w = Worker(Pipeline(QUICK, parts, line=LINE, station=STATION), q, [got], line=LINE,
+               station=STATION, journal=journal, parts=slow)  # fmt: skip
+    q.put(Job(payload, 0, journal.add(payload, fs.triggered_ns)))
+    w.start()
+    assert slow.asked_once.wait(30)
+    w.stop(timeout_s=0.2)  # the part never comes to this one
+    assert got.results == [] and len(journal) == 1
+
+    again = Journal(tmp_path / "journal")
+    q2, got2 = JobQueue(4), Collect()
+    w2 = Worker(Pipeline(QUICK, {PART: quick_part, NEW: quick_part}, line=LINE, station=STATION),
+                q2, [got2], line=LINE, station=STATION, journal=again, parts=slow)  # fmt: skip
+    for entry in again.pending():
+        w2.handle(Job(entry.payload, entry.received_ns, entry.key, replayed=True))
+    assert w2.drain(30)
+    assert [(r.seq, r.part, r.status) for r in got2.results] == [(0, NEW, Status.passed)]
+    assert got.results == [] and len(again) == 0
+
+
 class Registry:
     """A part registry whose loads fail as told, in order, then load ``part``; or, with
     ``hold``, whose build never ends until the test sets it."""
