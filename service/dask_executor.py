@@ -21,14 +21,19 @@ comes back. On the cluster:
   took from the store) travels with the job, scattered once to the cluster
   under its hash; each Dask worker fetches it with its first job of that
   part and keeps it, and measures each job with the very revision the job
-  names. Scattered data lives on the workers that hold it: when they die it
-  is lost, and the dispatcher, told so by a job that failed on it (or by its
-  reference before it sends one), scatters the part again and sends that
-  job once more.
+  names (the newest revisions of each name are kept: :data:`KEPT_REVISIONS`).
+  Scattered data lives on the workers that hold it: when they die it is
+  lost, and the dispatcher, told so by a job cancelled for its lost
+  dependency (or by its reference before it sends one), scatters the part
+  again and sends that job once more. Scattering blocks on the cluster: it
+  happens on a thread of the executor's own, never on the worker's
+  accounting thread nor on the thread distributed runs every future's
+  callbacks on; the jobs in flight with the lost part share one scatter.
 - A Dask worker that dies mid-job has its jobs run again elsewhere by the
   scheduler; a job whose worker died ``distributed.scheduler.allowed-failures``
-  times, or that raised ``RETRIES + 1`` times, comes back failed, and the
-  dispatcher answers that trigger ``error``: one result either way.
+  times (KilledWorker: it may be what kills them), or that raised
+  ``RETRIES + 1`` times, comes back failed, and the dispatcher answers that
+  trigger ``error``: one result either way, never sent again.
 - Every measurement is logged on the scheduler's event topic
   :data:`EVENT_TOPIC` (its task key, result id, seq, worker and time), so who
   measured what can be read from the cluster itself.
@@ -43,7 +48,8 @@ import os
 import threading
 import time
 import uuid
-from concurrent.futures import CancelledError, Future
+from collections.abc import Callable
+from concurrent.futures import CancelledError, Future, InvalidStateError, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -68,12 +74,13 @@ RETRIES = 2
 CLUSTER_VIEW_S = 1.0
 """How often the dispatcher asks the scheduler about the cluster (workers, threads), s."""
 
+KEPT_REVISIONS = 2
+"""Revisions of one part that travelled with jobs a Dask worker keeps loaded: the newest,
+and the one before it, whose jobs may still come after the newest's first."""
+
 
 class StationNotLoaded(RuntimeError):
     """A job reached a Dask worker that has not loaded its station."""
-
-
-# --------------------------------------------------------------------------- parts
 
 
 # --------------------------------------------------------------------------- on a Dask worker
@@ -158,7 +165,8 @@ class StationPlugin(WorkerPlugin):
             )
         self._trees = self._tree_cache(local_directory)
         self._lock = threading.Lock()
-        self._bundled: dict[str, tuple[str, LoadedPart]] = {}
+        # Parts that travelled with jobs: name -> bundle key -> (revision, loaded part).
+        self._bundled: dict[str, dict[str, tuple[int, LoadedPart]]] = {}
         parts = {b.spec.name: b.load(self._trees) for b in self.parts}
         pipeline = Pipeline(stages, parts, line=self.line, station=self.station)
         if self.warm_up is not None:
@@ -199,15 +207,22 @@ class StationPlugin(WorkerPlugin):
         return outcome, time.perf_counter() - t0
 
     def _part_of(self, bundle: PartBundle) -> LoadedPart:
-        """The loaded part of ``bundle``: the one held (the newest revision seen of its
-        name), else loaded now (its tree from the cache, or built once)."""
+        """The loaded part of ``bundle``: one held, else loaded now (its tree from the cache,
+        or built once). The :data:`KEPT_REVISIONS` newest revisions of each name are held:
+        a job of the revision before, still in flight when the newest came, is measured
+        without loading either again."""
+        name = bundle.spec.name
         with self._lock:
-            held = self._bundled.get(bundle.spec.name)
-            if held is None or held[0] != bundle.key:
-                log.info("part %s arrived with a job: loading it", bundle.spec.name)
-                held = (bundle.key, bundle.load(self._trees))
-                self._bundled[bundle.spec.name] = held
-            return held[1]
+            held = self._bundled.setdefault(name, {})
+            if bundle.key in held:
+                return held[bundle.key][1]
+            log.info("part %s (revision %s) arrived with a job: loading it", name,
+                     bundle.revision)  # fmt: skip
+            part = bundle.load(self._trees)
+            held[bundle.key] = (bundle.revision or 0, part)
+            while len(held) > KEPT_REVISIONS:
+                del held[min(held, key=lambda k: held[k][0])]
+            return part
 
 
 def measure_on_worker(plugin: str, fs: FrameSet, bundle: PartBundle | None) -> Remote:
@@ -288,6 +303,8 @@ class DaskExecutor:
         self._lock = threading.Lock()
         self._scattered: dict[str, tuple[str, Any]] = {}  # part name -> (bundle key, data)
         self._running: dict[str, Any] = {}
+        # Jobs whose part travels with them are sent from here: scattering blocks.
+        self._sender = ThreadPoolExecutor(max_workers=1, thread_name_prefix="dask-send")
         t0 = time.perf_counter()
         try:
             client.register_plugin(self.plugin, name=self.plugin.name)
@@ -377,15 +394,41 @@ class DaskExecutor:
             seconds = time.perf_counter() - t0
             done.set_result(Measured(outcome, IN_PROCESS, seconds, seconds))
             return done
-        self._send(fs, PartBundle.of(part), done, t0, again=False)
+        bundle = PartBundle.of(part)
+        if bundle.key in self._carried:
+            self._send(fs, bundle, done, t0)
+        else:  # its part may have to be scattered first: not on the caller's thread
+            self._later(lambda: self._send(fs, bundle, done, t0), done)
         return done
 
+    def _later(self, send: Callable[[], None], done: Future[Measured]) -> None:
+        """Run ``send`` on the executor's own thread; ``done`` gets what stops it."""
+
+        def fail(exc: BaseException) -> None:
+            with contextlib.suppress(InvalidStateError):
+                done.set_exception(exc if isinstance(exc, Exception) else RuntimeError(repr(exc)))
+
+        try:
+            sending = self._sender.submit(send)
+        except RuntimeError:  # shut down
+            fail(ExecutorError("the Dask executor is closed"))
+            return
+
+        def check(f: Future[None]) -> None:
+            if f.cancelled():
+                fail(ExecutorError("the Dask executor closed before the job was sent"))
+            elif f.exception() is not None:
+                fail(f.exception())  # type: ignore[arg-type]
+
+        sending.add_done_callback(check)
+
     def _send(
-        self, fs: FrameSet, bundle: PartBundle, done: Future[Measured], t0: float, *, again: bool
-    ) -> None:
-        """Submit the job of ``fs``; its outcome goes to ``done``. ``again``: its first
-        sending failed because the part it carried was lost: send the part anew too."""
-        data = self._bundle(bundle, anew=again)
+        self, fs: FrameSet, bundle: PartBundle, done: Future[Measured], t0: float,
+        lost: Any = None,
+    ) -> None:  # fmt: skip
+        """Submit the job of ``fs``; its outcome goes to ``done``. ``lost``: the scattered
+        part its first sending carried, which the cluster lost: send the part anew too."""
+        data = self._bundle(bundle, lost=lost)
         # The result id names the job (the events, the scheduler's view); a
         # suffix keeps a job of a restarted dispatcher, or sent again, apart.
         rid = make_result_id(fs.line, fs.station, fs.seq, fs.triggered_ns)
@@ -397,16 +440,14 @@ class DaskExecutor:
             self._running[key] = fut
 
         def settle(f: Any) -> None:
+            # On distributed's one callback thread of this process: nothing here may block.
             try:
                 remote: Remote = f.result()
             except BaseException as exc:  # the trigger is answered either way
-                if data is not None and not again and _part_lost(exc, data):
-                    log.warning("seq %d: the cluster lost part %s with the worker that held it "
-                                "(%s): sending both again", fs.seq, fs.part, exc)  # fmt: skip
-                    try:
-                        self._send(fs, bundle, done, t0, again=True)
-                    except Exception as resend:
-                        done.set_exception(resend)
+                if data is not None and lost is None and _part_lost(exc):
+                    log.warning("seq %d: the cluster lost part %s with the workers that held "
+                                "it (%s): sending both again", fs.seq, fs.part, exc)  # fmt: skip
+                    self._later(lambda: self._send(fs, bundle, done, t0, lost=data), done)
                     return
                 done.set_exception(exc if isinstance(exc, Exception) else RuntimeError(repr(exc)))
             else:
@@ -435,19 +476,28 @@ class DaskExecutor:
     def close(self) -> None:
         self._closing.set()
         self._watcher.join(10)
+        # A scatter under way ends with the client; jobs not sent yet are answered.
+        self._sender.shutdown(wait=False, cancel_futures=True)
         _close(self.client, self.cluster)
 
     # ------------------------------------------------------------------ helpers
 
-    def _bundle(self, bundle: PartBundle, *, anew: bool = False) -> Any:
+    def _bundle(self, bundle: PartBundle, *, lost: Any = None) -> Any:
         """None for a part every worker has (the plugin's); else the bundle on the cluster,
-        scattered once, and again when ``anew`` or when the cluster no longer holds it (the
-        workers that held it died). One revision per part is kept there: the newest."""
+        scattered once, and again when the cluster no longer holds it (the workers that
+        held it died; ``lost``: the data a job found gone). A scatter newer than ``lost``
+        that the cluster holds is used as it is: the jobs of the part that were in flight
+        share it. One revision per part is kept there: the newest."""
         if bundle.key in self._carried:
             return None
         with self._lock:
             held = self._scattered.get(bundle.spec.name)
-        if held is not None and held[0] == bundle.key and not anew and held[1].status == "finished":
+        if (
+            held is not None
+            and held[0] == bundle.key
+            and (lost is None or held[1].key != lost.key)
+            and held[1].status == "finished"
+        ):
             return held[1]
         # A name of its own each time: the lost data's key may linger on the scheduler.
         name = f"part-{bundle.key}-{uuid.uuid4().hex[:8]}"
@@ -456,11 +506,25 @@ class DaskExecutor:
             self._scattered[bundle.spec.name] = (bundle.key, data)
         return data
 
+    def _release_gone_parts(self) -> None:
+        """Let go of the scattered parts the station measures no more (deleted, or replaced
+        by another revision): the cluster frees them once the jobs carrying them are done."""
+        with self._lock:
+            held = dict(self._scattered)
+        for name, (key, _) in held.items():
+            part = self.pipeline.parts.get(name)
+            if part is not None and PartBundle.of(part).key == key:
+                continue
+            with self._lock:
+                if self._scattered.get(name, (None,))[0] == key:
+                    del self._scattered[name]
+
     def _watch(self) -> None:
         while not self._closing.wait(CLUSTER_VIEW_S):
             view = self._ask_cluster()
             with self._lock:
                 self._view = view
+            self._release_gone_parts()
 
     def _ask_cluster(self) -> dict[str, Any]:
         """Workers (address: threads, jobs running) and their threads, from the scheduler."""
@@ -479,10 +543,12 @@ class DaskExecutor:
         return {"workers": workers, "threads": sum(w["threads"] for w in workers.values())}
 
 
-def _part_lost(exc: BaseException, data: Any) -> bool:
-    """Whether a job failed because the part it carried is gone from the cluster: the job
-    was cancelled (its dependency lost), or the part's data is no longer there."""
-    return isinstance(exc, CancelledError) or data.status != "finished"
+def _part_lost(exc: BaseException) -> bool:
+    """Whether a job failed because the part it carried is gone from the cluster: the
+    scheduler cancels a job whose dependency was lost. A job that killed its workers
+    (KilledWorker) lost the part too when they held it, but has had its tries: sending it
+    again would double them."""
+    return isinstance(exc, CancelledError)
 
 
 def _close(client: Client | None, cluster: LocalCluster | None) -> None:

@@ -33,6 +33,7 @@ Errors::
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import shutil
 import tempfile
@@ -130,12 +131,17 @@ class LoadedPart:
         The tree's content hash (``GridTree.hash``): identifies exactly the tree used.
     params : inspection.MeasureParams
         The spec's settings as the measuring sequence takes them.
+    revision : int or None
+        The store's revision of a part created over the API
+        (:attr:`~service.store.StoredPart.revision`); None for a part of the
+        station's configuration, or one not kept in a store.
     """
 
     spec: PartSpec
     model: PartModel
     tree_hash: str
     params: MeasureParams
+    revision: int | None = None
 
     @property
     def name(self) -> str:
@@ -166,21 +172,25 @@ class PartBundle:
     nurbs : inspection.nurbs.NurbsModel or None
         The NURBS faces ``cad`` tessellates, so that the receiver measures to
         them as the sender does; None for a mesh.
+    revision : int or None
+        :attr:`LoadedPart.revision`: which of two bundles of one name is the newer.
     """
 
     spec: PartSpec
     cad: CadModel
     key: str
     nurbs: NurbsModel | None = None
+    revision: int | None = None
 
     @classmethod
     def of(cls, part: LoadedPart) -> PartBundle:
         key = canonical_hash({"spec": part.spec.model_dump(mode="json"), "cad": part.cad.hash})
-        return cls(part.spec, part.cad, key[:24], part.model.nurbs)
+        return cls(part.spec, part.cad, key[:24], part.model.nurbs, part.revision)
 
     def load(self, trees_dir: Path) -> LoadedPart:
         """The part ready to measure: its tree from ``trees_dir`` (built there if missing)."""
-        return part_from_cad(self.spec, self.cad, trees_dir, nurbs=self.nurbs)
+        loaded = part_from_cad(self.spec, self.cad, trees_dir, nurbs=self.nurbs)
+        return dataclasses.replace(loaded, revision=self.revision)
 
 
 def comparison_points(spec: PartSpec) -> tuple[ComparisonPoint, ...]:
@@ -265,6 +275,8 @@ class _Entry:
     """The build failed on the part itself (:class:`PartBroken`)."""
     key: str | None = None
     """An upload's revision in the store (:attr:`StoredPart.key`); None: not stored."""
+    revision: int | None = None
+    """That revision's number (:attr:`StoredPart.revision`)."""
     conflict: str | None = None
     """Why this upload stands in for the store's part of its name (one the store has no
     copy of: :meth:`PartRegistry.sync_store`); None: no conflict."""
@@ -829,6 +841,7 @@ class PartRegistry:
                 except PartExists as exc:  # created meanwhile through another API
                     raise PartConflict(str(exc)) from exc
                 self._entries[spec.name].key = stored.key
+                self._entries[spec.name].revision = stored.revision
             staging.rename(target)
         except BaseException:
             with self._lock:
@@ -928,7 +941,8 @@ class PartRegistry:
         if store is None:
             return
         index = store.part_index()
-        keys = {r.name: r.key for r in index if r.retired_ns is None}
+        current = {r.name: r for r in index if r.retired_ns is None}
+        keys = {name: r.key for name, r in current.items()}
         copies = {(r.name, r.key) for r in index}
         with self._lock:
             uploads = [(n, e) for n, e in self._entries.items() if not e.configured]
@@ -942,7 +956,7 @@ class PartRegistry:
                 continue
             key = part_key(spec_json, cad)
             if keys.get(name) == key:
-                entry.key = key
+                entry.key, entry.revision = key, current[name].revision
                 continue
             if (name, key) in copies:
                 log.info("uploaded part %s: the store holds another revision; taking that", name)
@@ -950,8 +964,9 @@ class PartRegistry:
                 continue
             if not any(n == name for n, _ in copies):
                 try:
-                    entry.key = store.add_part(name, spec_json, cad).key
-                    keys[name] = entry.key
+                    added = store.add_part(name, spec_json, cad)
+                    entry.key, entry.revision = added.key, added.revision
+                    keys[name] = added.key
                     log.info("uploaded part %s: written to the store %s", name, store.where)
                     continue
                 except PartExists:  # another API wrote its own part of that name meanwhile
@@ -1034,7 +1049,11 @@ class PartRegistry:
             raise
         with self._lock:
             self._entries[spec.name] = _Entry(
-                spec=spec, base_dir=target, configured=False, key=stored.key
+                spec=spec,
+                base_dir=target,
+                configured=False,
+                key=stored.key,
+                revision=stored.revision,
             )
 
     # ------------------------------------------------------------------ building
@@ -1148,7 +1167,7 @@ class PartRegistry:
                 step()
                 log.info("part %s: %s in %.1f s", name, message, time.perf_counter() - t0)
         with self._lock:
-            entry.loaded = loaded
+            entry.loaded = dataclasses.replace(loaded, revision=entry.revision)
             entry.state = PartState.ready
         self._update_job(
             job_id, state=JobState.done, progress=1.0, message="ready", finished_ns=time.time_ns()

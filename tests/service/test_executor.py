@@ -26,6 +26,7 @@ from inspection.measure import PartModel
 from inspection.panel import sheet_metal_panel
 from inspection.rig import Rig
 from service.config import load_part_spec, parse_dask_address
+from service.dask_executor import Remote
 from service.executor import IN_PROCESS, ExecutorError, InProcessExecutor, Measured
 from service.journal import Journal
 from service.models import Status
@@ -404,3 +405,145 @@ def test_the_metrics_show_who_measured_and_what_is_in_flight(quick_part, quick_s
     assert f"inspection_executor_dispatch_seconds_count{{{own}}} 2.0" in text
     gate.finish(2)
     assert w.drain(30)
+
+
+# --------------------------------------------------------------------------- sending on Dask
+
+
+class Scattered:
+    """What a fake client's scatter hands back: a key and a status, as a Dask future."""
+
+    def __init__(self, key: str) -> None:
+        self.key, self.status = key, "finished"
+
+
+class FakeClient:
+    """The calls a DaskExecutor makes of distributed's Client; the test settles each job."""
+
+    def __init__(self) -> None:
+        self.scheduler = type("Scheduler", (), {"address": "tcp://fake:8786"})()
+        self.scattered_on: list[str] = []  # the thread each scatter ran on
+        self.jobs: list[tuple[FrameSet, object, Future]] = []
+        self._cond = threading.Condition()
+
+    def register_plugin(self, plugin, name) -> None:
+        pass
+
+    def scheduler_info(self, n_workers=-1) -> dict:
+        return {"workers": {"tcp://w1": {"nthreads": 1}}}
+
+    def scatter(self, data: dict) -> dict:
+        self.scattered_on.append(threading.current_thread().name)
+        return {name: Scattered(name) for name in data}
+
+    def submit(self, fn, plugin, fs, data, *, key, pure, retries) -> Future:
+        f: Future = Future()
+        with self._cond:
+            self.jobs.append((fs, data, f))
+            self._cond.notify_all()
+        return f
+
+    def wait_jobs(self, n: int) -> bool:
+        with self._cond:
+            return self._cond.wait_for(lambda: len(self.jobs) >= n, 30)
+
+    def close(self) -> None:
+        pass
+
+
+@pytest.fixture
+def fake_dask(quick_part):
+    """A DaskExecutor on a fake client, with a part the plugin does not carry."""
+    from service.dask_executor import DaskExecutor
+
+    stages = dataclasses.replace(QUICK, remake=lambda threads: QUICK)
+    p = Pipeline(stages, {PART: quick_part}, line=LINE, station=STATION)
+    client = FakeClient()
+    ex = DaskExecutor(client, p)  # type: ignore[arg-type]
+    p.parts["other"] = dataclasses.replace(
+        quick_part, spec=quick_part.spec.model_copy(update={"name": "other"}), revision=1
+    )
+    try:
+        yield ex, client, p
+    finally:
+        ex.close()
+
+
+def test_a_part_lost_by_the_cluster_is_scattered_once_off_the_callback_thread(
+    fake_dask, quick_sets
+):
+    """Three jobs of a travelling part in flight when its workers die: each is cancelled,
+    the part is scattered once more, on the executor's own thread (never on the thread
+    that submits nor on the one distributed runs the callbacks on), and each job is sent
+    again with it, once."""
+    from distributed.client import FutureCancelledError
+
+    ex, client, p = fake_dask
+    sets = [dataclasses.replace(fs, part="other") for fs in quick_sets[:3]]
+    futures = [ex.submit(fs) for fs in sets]
+    assert client.wait_jobs(3)
+    first = client.jobs[0][1]
+    assert all(data is first for _, data, _ in client.jobs)
+    first.status = "lost"
+    for _, _, f in client.jobs[:3]:
+        f.set_exception(FutureCancelledError("k", "lost dependencies"))
+    assert client.wait_jobs(6)
+    again = client.jobs[3:]
+    assert [fs.seq for fs, _, _ in again] == [0, 1, 2]
+    assert len({id(data) for _, data, _ in again}) == 1 and again[0][1] is not first
+    me = threading.current_thread().name
+    assert len(client.scattered_on) == 2 and me not in client.scattered_on
+    assert all(name.startswith("dask-send") for name in client.scattered_on)
+    for fs, _, f in again:
+        f.set_result(Remote(p.run(fs), "tcp://w1", 0.01))
+    assert [f.result(5).outcome.result.seq for f in futures] == [0, 1, 2]
+
+
+def test_a_job_that_killed_its_workers_is_not_sent_again(fake_dask, quick_sets):
+    """KilledWorker: the job may be what kills them, and it has had its tries."""
+    from distributed.scheduler import KilledWorker
+
+    ex, client, _ = fake_dask
+    future = ex.submit(dataclasses.replace(quick_sets[0], part="other"))
+    assert client.wait_jobs(1)
+    client.jobs[0][1].status = "lost"  # it died with the worker that held the part
+    client.jobs[0][2].set_exception(KilledWorker("measure-x", "tcp://w1", 3))
+    with pytest.raises(KilledWorker):
+        future.result(5)
+    assert len(client.jobs) == 1 and len(client.scattered_on) == 1
+
+
+def test_a_part_the_station_dropped_is_let_go_on_the_cluster(fake_dask, quick_sets):
+    ex, client, p = fake_dask
+    ex.submit(dataclasses.replace(quick_sets[0], part="other"))
+    assert client.wait_jobs(1) and "other" in ex._scattered
+    ex._release_gone_parts()
+    assert "other" in ex._scattered
+    del p.parts["other"]
+    ex._release_gone_parts()
+    assert "other" not in ex._scattered
+
+
+def test_a_dask_worker_keeps_the_newest_revisions_of_a_travelling_part(tmp_path, quick_part):
+    """Jobs of revisions 1 and 2 interleaved (those of 1 still in flight when 2 came) load
+    each once; revision 3 then replaces the oldest, and a straggler of 1 is loaded for its
+    own job without displacing the newer ones."""
+    from service.dask_executor import StationPlugin
+    from service.parts import PartBundle
+
+    loads: list[int] = []
+
+    class Counted(PartBundle):
+        def load(self, trees_dir):
+            loads.append(self.revision)
+            return dataclasses.replace(quick_part, revision=self.revision)
+
+    plugin = StationPlugin(None, "c", LINE, STATION, (), None, None)
+    plugin._lock, plugin._bundled, plugin._trees = threading.Lock(), {}, tmp_path
+    revisions = {r: Counted(quick_part.spec, quick_part.cad, f"key{r}", None, r) for r in (1, 2, 3)}
+    for r in (1, 2, 1, 2, 1):
+        assert plugin._part_of(revisions[r]).revision == r
+    assert loads == [1, 2]
+    for r in (3, 1, 2, 3):
+        assert plugin._part_of(revisions[r]).revision == r
+    assert loads == [1, 2, 3, 1]
