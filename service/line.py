@@ -54,11 +54,11 @@ from .models import Alarm, software_version
 from .parts import LoadedPart, PartRegistry, load_part_cad, panel_spec, stored_cad
 from .pipeline import HoloRig, Outcome, Pipeline, Stages, flash_stages, holography_stages
 from .protocol import FrameSet, Keys
-from .recorder import PartScene, Recorder, Retention
+from .recorder import PartScene, RecordedPart, Recorder, Retention
 from .retention import Janitor
 from .spc import SpcMonitor, SpcSettings
-from .station_parts import StationParts
-from .store import DeviationArchive, ResultStore
+from .station_parts import PartListener, StationParts
+from .store import DeviationArchive, ResultStore, StoredPart
 from .worker import ZenohWorker, result_from_json, zenoh_alarm_sink
 
 log = logging.getLogger(__name__)
@@ -725,22 +725,34 @@ class Subgroups(Mapping[str, int]):
 def follow_store_parts(cfg: LineConfig, station: Station, recorder: Recorder) -> StationParts:
     """The station's worker takes the parts created over the API from the store (through a
     connection of their own: a CAD read must not hold the one the results are written
-    through), and its recordings show them."""
-
-    def show(name: str, part: LoadedPart | None) -> None:
-        scene = (
-            None
-            if part is None
-            else PartScene(part.cad.vertices, part.cad.faces, part.model.comparison_points)
-        )
-        recorder.set_part(name, scene)
-
+    through), and its recordings show them and keep them for replay."""
     assert station.registry is not None, "a station that measures has a part registry"
     store = ResultStore(cfg.storage.store_target())
     return StationParts(
         station.parts, store, station.registry, station=station.name,
-        wait_s=cfg.station.part_wait_s, listeners=[show], close_store=True,
+        wait_s=cfg.station.part_wait_s, listeners=[recording_listener(recorder)],
+        close_store=True,
     )  # fmt: skip
+
+
+def recording_listener(recorder: Recorder) -> PartListener:
+    """Tells ``recorder`` each part the station takes from the store: what its scenes show,
+    and the revision's spec and CAD file, which go into the recording with the first result
+    measured with it (:class:`~service.recorder.RecordedPart`)."""
+
+    def show(name: str, part: LoadedPart | None, stored: StoredPart | None) -> None:
+        if part is None or stored is None:
+            recorder.set_part(name, None)
+            return
+        scene = PartScene(part.cad.vertices, part.cad.faces, part.model.comparison_points)
+        kept = RecordedPart(
+            name=name, revision=stored.revision, spec=stored.spec, cad_file=part.spec.cad,
+            cad=stored.cad, cad_hash=part.cad.hash, tree_hash=part.tree_hash,
+            spec_version=part.spec.version,
+        )  # fmt: skip
+        recorder.set_part(name, scene, kept)
+
+    return show
 
 
 def hub_sink(hub: ResultHub) -> Callable[[Outcome, FrameSet | None], None]:

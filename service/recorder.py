@@ -32,6 +32,14 @@ topic                      schema                          what
 ``/alarm``                 JSON (Alarm)                    every alarm, when raised
 =========================  ==============================  ================================
 
+A part created over the API while the line runs (taken from the store,
+:mod:`service.station_parts`) is written into a file with the first result
+measured with it there, so that replay rebuilds it from the file alone: its
+CAD file's bytes as an MCAP attachment ``parts/<name>/<revision>/<file>``
+(Foxglove lists attachments with their media type, and saves them) and a
+metadata record ``part/<name>/<revision>`` with its spec and the hashes its
+results carry (:class:`RecordedPart`).
+
 The frames and messages are those of :mod:`service.foxglove`; docs/foxglove.md
 describes the layout that opens a recording. The per-file records (the
 cameras' transforms and calibrations, a part type's CAD) are written with
@@ -78,7 +86,7 @@ import cv2
 import numpy as np
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
-from mcap.records import Channel, Message, Metadata, Schema
+from mcap.records import Attachment, Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
@@ -110,6 +118,92 @@ OpenCV's PNG settings)."""
 
 RAW_DTYPES: dict[str, np.dtype[Any]] = {"mono8": np.dtype(np.uint8), "mono16": np.dtype("<u2")}
 """The camera images' RawImage encodings, as read back."""
+
+
+@dataclass(frozen=True, eq=False)
+class RecordedPart:
+    """A part created over the API as a recording keeps it, for replay: its spec, the CAD
+    file it was loaded from, and what the results measured with it carry.
+
+    Attributes
+    ----------
+    name : str
+    revision : int
+        Its revision in the result store.
+    spec : str
+        The part spec as JSON (``service.config.PartSpec``).
+    cad_file : str
+        The CAD file's name, as the spec's ``cad`` names it (its suffix says the format).
+    cad : bytes
+        The CAD file.
+    cad_hash, tree_hash, spec_version : str
+        As each result measured with this revision has them.
+    """
+
+    name: str
+    revision: int
+    spec: str
+    cad_file: str
+    cad: bytes
+    cad_hash: str
+    tree_hash: str
+    spec_version: str
+
+    @property
+    def attachment(self) -> str:
+        """The name of the CAD file's attachment."""
+        return f"parts/{self.name}/{self.revision}/{self.cad_file}"
+
+    @property
+    def record(self) -> str:
+        """The name of its metadata record."""
+        return f"part/{self.name}/{self.revision}"
+
+    def measured(self, result: InspectionResult) -> bool:
+        """Whether ``result`` was measured with this revision."""
+        return (result.part, result.cad_hash, result.tree_hash, result.spec_version) == (
+            self.name, self.cad_hash, self.tree_hash, self.spec_version,
+        )  # fmt: skip
+
+    def metadata(self) -> dict[str, str]:
+        return {
+            "name": self.name, "revision": str(self.revision), "spec": self.spec,
+            "attachment": self.attachment, "cad_hash": self.cad_hash,
+            "tree_hash": self.tree_hash, "spec_version": self.spec_version,
+        }  # fmt: skip
+
+
+CAD_MEDIA_TYPES = {".stl": "model/stl", ".obj": "model/obj", ".step": "model/step",
+                   ".stp": "model/step"}  # fmt: skip
+"""Media types of the CAD attachments (IANA's); any other file is application/octet-stream."""
+
+
+def recorded_parts(
+    metadata: Mapping[str, Mapping[str, str]], attachments: Mapping[str, bytes]
+) -> list[RecordedPart]:
+    """The parts created over the API that a recording holds (see :class:`RecordedPart`).
+
+    Raises
+    ------
+    ValueError
+        A part record without its CAD attachment, or incomplete.
+    """
+    parts = []
+    for name, meta in metadata.items():
+        if not name.startswith("part/"):
+            continue
+        try:
+            attachment = meta["attachment"]
+            part = RecordedPart(
+                name=meta["name"], revision=int(meta["revision"]), spec=meta["spec"],
+                cad_file=attachment.rsplit("/", 1)[-1], cad=attachments[attachment],
+                cad_hash=meta["cad_hash"], tree_hash=meta["tree_hash"],
+                spec_version=meta["spec_version"],
+            )  # fmt: skip
+        except (KeyError, ValueError) as exc:
+            raise ValueError(f"the recording's part {name!r} is incomplete: {exc!r}") from exc
+        parts.append(part)
+    return parts
 
 
 @dataclass(frozen=True)
@@ -228,6 +322,8 @@ class _File:
         self.has_rig = False
         self.cads: set[str] = set()
         """Part types whose CAD this file holds."""
+        self.parts: set[str] = set()
+        """The parts created over the API it holds (:attr:`RecordedPart.record`)."""
         for name, data in metadata.items():
             self.writer.add_metadata(name, dict(data))
         self.writer.flush()
@@ -264,6 +360,14 @@ class _File:
     def json(self, topic: str, schema_name: str, schema: str, doc: bytes, log_ns: int) -> None:
         ch = self._json_channel(topic, schema_name, schema)
         self.writer.add_message(ch, log_ns, doc, time.time_ns())
+
+    def part(self, part: RecordedPart, log_ns: int) -> None:
+        """Write a part created over the API: its CAD as an attachment, its spec and hashes
+        as a metadata record."""
+        media = CAD_MEDIA_TYPES.get(Path(part.cad_file).suffix.lower(), "application/octet-stream")
+        self.writer.add_attachment(log_ns, log_ns, part.attachment, media, part.cad)
+        self.writer.add_metadata(part.record, part.metadata())
+        self.parts.add(part.record)
 
     def size(self) -> int:
         return self.stream.tell()
@@ -334,6 +438,8 @@ class Recorder:
             if np.asarray(cal["T_camera_rig"], dtype=np.float64).shape != (16,):
                 raise ValueError(f"{cal['name']}: T_camera_rig must hold 16 numbers")
         self.parts = dict(parts or {})
+        self.kept: list[RecordedPart] = []
+        """Parts created over the API that results may name (:meth:`set_part`)."""
         self.compression = compression
         self.retention = retention or Retention()
         budget = self.retention.max_total_bytes
@@ -389,15 +495,21 @@ class Recorder:
             p.unlink(missing_ok=True)
         return removed
 
-    def set_part(self, name: str, scene: PartScene | None) -> None:
+    def set_part(
+        self, name: str, scene: PartScene | None, kept: RecordedPart | None = None
+    ) -> None:
         """Show part ``name`` as ``scene`` from now on (None: no more): a part the station
         took from the store while it runs, or a new revision of one (its CAD is written
-        again)."""
+        again). ``kept``: that revision's files, written into each file with the first
+        result measured with it, so that replay rebuilds it."""
         with self._lock:
             if scene is None:
                 self.parts.pop(name, None)
             else:
                 self.parts[name] = scene
+            if kept is not None:
+                # Every revision stays: results of an older one may come after a newer one.
+                self.kept.append(kept)
             if self._file is not None:
                 self._file.cads.discard(name)
 
@@ -412,6 +524,9 @@ class Recorder:
             t = result.triggered_ns
             if not f.has_rig:
                 self._write_rig(f, t)
+            kept = next((k for k in reversed(self.kept) if k.measured(result)), None)
+            if kept is not None and kept.record not in f.parts:
+                f.part(kept, t)
             keep = fs is not None and self.retention.keeps_frames(result)
             if keep:
                 assert fs is not None
@@ -585,6 +700,8 @@ def recover(
             elif isinstance(rec, Metadata):
                 w.add_metadata(rec.name, dict(rec.metadata))
                 n_meta += 1
+            elif isinstance(rec, Attachment):
+                w.add_attachment(rec.create_time, rec.log_time, rec.name, rec.media_type, rec.data)
             elif isinstance(rec, Message):
                 ch = channels.get(rec.channel_id)
                 if ch is None:
@@ -658,9 +775,30 @@ class RecordedTrigger:
     result: InspectionResult
 
 
+@dataclass(frozen=True, eq=False)
+class Recording:
+    """A recording read back (:func:`read_run`)."""
+
+    metadata: dict[str, dict[str, str]]
+    triggers: list[RecordedTrigger]
+    """Ordered by (triggered_ns, seq)."""
+    attachments: dict[str, bytes]
+    """By name."""
+
+    def parts(self) -> list[RecordedPart]:
+        """The parts created over the API it holds (:func:`recorded_parts`)."""
+        return recorded_parts(self.metadata, self.attachments)
+
+
 def read_recording(
     paths: Iterable[str | Path],
 ) -> tuple[dict[str, dict[str, str]], list[RecordedTrigger]]:
+    """The metadata and the triggers of :func:`read_run`."""
+    run = read_run(paths)
+    return run.metadata, run.triggers
+
+
+def read_run(paths: Iterable[str | Path]) -> Recording:
     """Read recorded files back into FrameSets and results, in trigger order.
 
     Works on finished and unfinished files alike (messages are read in file
@@ -668,10 +806,11 @@ def read_recording(
 
     Returns
     -------
-    metadata : dict of name to {key: value}
-    triggers : list of RecordedTrigger, ordered by (triggered_ns, seq)
+    Recording
+        Its metadata (name to {key: value}), triggers and attachments.
     """
     metadata: dict[str, dict[str, str]] = {}
+    attachments: dict[str, bytes] = {}
     headers: dict[int, dict[str, Any]] = {}
     images: dict[tuple[int, str], np.ndarray] = {}
     results: list[InspectionResult] = []
@@ -685,6 +824,8 @@ def read_recording(
                 channels[rec.id] = rec
             elif isinstance(rec, Metadata):
                 metadata[rec.name] = dict(rec.metadata)
+            elif isinstance(rec, Attachment):
+                attachments[rec.name] = rec.data
             elif isinstance(rec, Message) and rec.channel_id in channels:
                 topic = channels[rec.channel_id].topic
                 if topic == "/result":
@@ -720,7 +861,7 @@ def read_recording(
                     sensor=h.get("sensor", "flash"),
                 )
         triggers.append(RecordedTrigger(fs, r))
-    return metadata, triggers
+    return Recording(metadata, triggers, attachments)
 
 
 def _decode_image(topic: str, schema: str, data: bytes) -> np.ndarray:

@@ -3,9 +3,11 @@
 The recording carries what replay needs: the FrameSets (header and images),
 the results, and in its metadata the part specs, CAD hashes and the stages
 the line measured with. :func:`replay` rebuilds the pipeline from these (the
-CAD is regenerated or read from the part's file and must hash the same), runs
-each FrameSet through :meth:`Pipeline.run`, the worker's own code path, and
-compares with the logged result:
+CAD of a configured part is regenerated or read from the part's file, that of
+a part created over the API from the recording itself, and each must hash the
+same), runs each FrameSet through :meth:`Pipeline.run`, the worker's own code
+path, with the revision of its part its result names, and compares with the
+logged result:
 
 - the same status and the same verdict at every comparison point;
 - ``transform`` (T_cad_rig) within :attr:`Tolerances.transform` per element;
@@ -32,7 +34,7 @@ from .models import InspectionResult
 from .parts import LoadedPart, load_part, load_part_cad
 from .pipeline import Pipeline, Stages, flash_stages, holography_stages
 from .protocol import FrameSet, encode_frameset
-from .recorder import RecordedTrigger, read_recording
+from .recorder import RecordedPart, RecordedTrigger, read_recording, read_run
 
 log = logging.getLogger(__name__)
 
@@ -84,8 +86,8 @@ class ReplayReport:
 def parts_from_metadata(
     metadata: dict[str, dict[str, str]], stages: Stages, parts_dir: Path, trees_dir: Path
 ) -> dict[str, LoadedPart]:
-    """Load the recorded parts (trees from the cache in ``trees_dir``, else built);
-    the CAD and the tree must hash as recorded.
+    """Load the recorded parts of the station's configuration (trees from the cache in
+    ``trees_dir``, else built); the CAD and the tree must hash as recorded.
 
     Raises
     ------
@@ -114,6 +116,31 @@ def parts_from_metadata(
         if want_tree and parts[name].tree_hash != want_tree:
             raise ReplayError(f"part {name}: the tree differs from the recorded one")
     return parts
+
+
+def load_recorded_part(part: RecordedPart, trees_dir: Path) -> LoadedPart:
+    """A part created over the API, rebuilt from what the recording holds of it (its spec
+    and CAD file; the tree from the cache in ``trees_dir``, else built); the CAD and the
+    tree must hash as its results say.
+
+    Raises
+    ------
+    ReplayError
+    """
+    which = f"part {part.name} (revision {part.revision})"
+    try:
+        spec = PartSpec.model_validate_json(part.spec)
+    except ValueError as exc:
+        raise ReplayError(f"{which}: the recorded spec is not a part spec: {exc}") from exc
+    with tempfile.TemporaryDirectory(prefix="replay-part-") as folder:
+        (Path(folder) / part.cad_file).write_bytes(part.cad)
+        loaded = load_part(spec, Path(folder), trees_dir)
+    if loaded.cad.hash != part.cad_hash:
+        raise ReplayError(f"{which}: the recorded CAD loads as {loaded.cad.hash[:12]}, "
+                          f"measured as {part.cad_hash[:12]}")  # fmt: skip
+    if loaded.tree_hash != part.tree_hash:
+        raise ReplayError(f"{which}: the tree differs from the recorded one")
+    return loaded
 
 
 def recorded_stages(metadata: dict[str, dict[str, str]]) -> Stages:
@@ -234,11 +261,17 @@ def replay(
     0) and after each recorded trigger.
     """
     tol = tolerances or Tolerances()
-    metadata, triggers = read_recording(paths)
+    run = read_run(paths)
+    metadata, triggers = run.metadata, run.triggers
     if stages is None:
         stages = recorded_stages(metadata)
     parts = parts_from_metadata(metadata, stages, Path(parts_dir), Path(trees_dir))
     pipeline = Pipeline(stages, parts)
+    try:
+        recorded = run.parts()
+    except ValueError as exc:
+        raise ReplayError(str(exc)) from exc
+    created = [(p, load_recorded_part(p, Path(trees_dir))) for p in recorded]
     report = ReplayReport(triggers=len(triggers))
     if progress is not None:
         progress(0, len(triggers))
@@ -248,7 +281,12 @@ def replay(
         if t.frameset is None:
             report.not_replayable += 1
             continue
-        new = pipeline.run(t.frameset).result
+        # A part created over the API: the revision its result was measured with.
+        revision = next((loaded for p, loaded in created if p.measured(t.result)), None)
+        run_with = (
+            pipeline if revision is None else Pipeline(stages, {**parts, t.result.part: revision})
+        )
+        new = run_with.run(t.frameset).result
         report.replayed += 1
         diffs, t_diff, d_diff = compare(new, t.result, tol)
         report.max_transform_diff = max(report.max_transform_diff, t_diff)

@@ -65,8 +65,9 @@ RETRY_S = 10.0
 PartDone = Callable[[str | None], None]
 """Told, once a part was asked for: None when the station's parts hold it, else why not."""
 
-PartListener = Callable[[str, LoadedPart | None], None]
-"""Told each part the station took from the store (None: it left, deleted in the store)."""
+PartListener = Callable[[str, LoadedPart | None, StoredPart | None], None]
+"""Told each part the station took from the store, with the revision it was loaded from
+(None, None: it left, deleted in the store)."""
 
 
 @dataclass(frozen=True)
@@ -283,7 +284,7 @@ class StationParts:
         with self._lock:
             self._taken[name] = stored.key
             self._failed.pop(name, None)
-        self._tell(name, loaded)
+        self._tell(name, loaded, stored)
         return None
 
     def _failure(self, stored: StoredPart, why: str, *, lasting: bool) -> str:
@@ -300,12 +301,12 @@ class StationParts:
         with self._lock:
             self._taken.pop(name, None)
         self.registry.forget(name)
-        self._tell(name, None)
+        self._tell(name, None, None)
 
-    def _tell(self, name: str, part: LoadedPart | None) -> None:
+    def _tell(self, name: str, part: LoadedPart | None, stored: StoredPart | None) -> None:
         for listen in self.listeners:
             try:
-                listen(name, part)
+                listen(name, part, stored)
             except Exception:
                 log.exception("part listener %r failed for %s", listen, name)
 

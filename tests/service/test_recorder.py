@@ -22,7 +22,7 @@ from mcap_protobuf.decoder import DecoderFactory
 from inspection.defects import Dent
 from service.models import InspectionResult, Status
 from service.pipeline import Outcome, missed_result
-from service.recorder import Recorder, Retention, read_recording, recover
+from service.recorder import RecordedPart, Recorder, Retention, read_recording, read_run, recover
 
 N = 3
 
@@ -204,6 +204,30 @@ def test_killed_recorder_leaves_a_readable_file_and_recover_repairs_it(tmp_path,
         assert Recorder(out, "third").recovered == []  # "next" is open and locked
     finally:
         nxt.close()
+
+
+def test_a_part_created_over_the_api_is_kept_once_per_file_and_survives_a_recovery(
+    tmp_path, outcomes
+):
+    """Its CAD file as an attachment (with its media type) and its spec as a metadata
+    record, written with the first result measured with it, read back as they went in."""
+    first = outcomes[0][0].result
+    kept = RecordedPart(name=PART, revision=3, spec='{"name": "demo-panel"}', cad_file="cad.stl",
+                        cad=b"solid x\nendsolid x\n", cad_hash=first.cad_hash,
+                        tree_hash=first.tree_hash, spec_version=first.spec_version)  # fmt: skip
+    rec = Recorder(tmp_path / "mcap", "run", metadata=metadata(), calibrations=CALS)
+    rec.set_part(PART, None, kept)
+    for o, fs in outcomes:
+        rec.record(o, fs)
+    (path,) = rec.files
+    fixed = recover(path, tmp_path / "recovered.mcap")  # what a killed recorder leaves
+    rec.close()
+    for p in (path, fixed.path):
+        with p.open("rb") as fh:
+            [a] = list(make_reader(fh).iter_attachments())
+        assert (a.name, a.media_type, a.data) == (kept.attachment, "model/stl", kept.cad)
+        [got] = read_run([p]).parts()
+        assert vars(got) == vars(kept)
 
 
 def test_rotation_by_time(tmp_path, outcomes):

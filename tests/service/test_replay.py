@@ -6,19 +6,25 @@ result tampered with); the tests read those two recordings.
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 
+import numpy as np
 import pytest
 from linekit import LINE, PART, PARTS_DIR, ROOT, STATION, demo, free_port, peer, pipeline, rig
 
 from service import bus
 from service.cli import main as cli
-from service.config import load_line_config
-from service.line import Station
+from service.config import PartSpec, load_line_config
+from service.line import Station, recording_listener
 from service.models import Status
+from service.parts import PartRegistry
+from service.pipeline import Pipeline
 from service.protocol import Keys, decode_frameset, encode_frameset
-from service.recorder import Recorder, read_recording
+from service.recorder import Recorder, read_recording, read_run
 from service.replay import ReplayError, recorded_stages, replay
+from service.station_parts import StationParts
+from service.store import ResultStore
 from service.worker import Job, JobQueue, Worker
 
 
@@ -154,3 +160,55 @@ def test_publish_replays_frames_onto_zenoh(recording):
     sent = [t.frameset for t in triggers if t.frameset is not None]
     assert [g.serial for g in got] == [s.serial for s in sent]
     assert all(t.result.status is not Status.missed for t in triggers if t.frameset)
+
+
+def binary_ply(cad) -> bytes:
+    """The CAD as a PLY file of doubles: read back, it hashes as ``cad`` does."""
+    v, f = cad.vertices, cad.faces
+    header = (
+        f"ply\nformat binary_little_endian 1.0\nelement vertex {len(v)}\n"
+        "property double x\nproperty double y\nproperty double z\n"
+        f"element face {len(f)}\nproperty list uchar int vertex_indices\nend_header\n"
+    )
+    faces = np.zeros(len(f), dtype=[("n", "u1"), ("i", "<i4", (3,))])
+    faces["n"], faces["i"] = 3, f
+    return header.encode() + v.astype("<f8").tobytes() + faces.tobytes()
+
+
+def test_a_part_created_over_the_api_is_replayed_from_the_recording_alone(tmp_path, trees):
+    """The station takes a part from the store while it runs: the recording keeps its spec
+    and CAD file with the first result measured with it, and replay measures with them,
+    with no file of that part anywhere but in the recording (DESIGN 1.5)."""
+    cfg = load_line_config(ROOT / "configs" / "line.toml")
+    stages, part = demo(trees)
+    # The demo panel's geometry under another name, as an upload (its tree is cached).
+    own = part.spec.model_dump(exclude={"name", "cad", "panel"})
+    spec = PartSpec(**own, name="bracket", cad="cad.ply")
+    store = ResultStore(tmp_path / "results.sqlite")
+    store.add_part("bracket", spec.model_dump_json(), binary_ply(part.cad))
+    parts = {PART: part}
+    registry = PartRegistry(trees, tmp_path / "station")
+    recorder = Recorder(tmp_path / "rec", "run", metadata=Station(cfg, stages, parts).metadata(),
+                        calibrations=stages.calibrations())  # fmt: skip
+    station = StationParts(parts, store, registry, station=STATION, poll_s=3600,
+                           listeners=[recording_listener(recorder)], close_store=True)  # fmt: skip
+    w = Worker(Pipeline(stages, parts, line=LINE, station=STATION), JobQueue(4),
+               [recorder.record], line=LINE, station=STATION, parts=station)  # fmt: skip
+    r = rig(stages, part, defect_rate=0.5, seed=11)
+    try:
+        fs = r.capture(0, 1_800_000_000_000_000_000)
+        w.handle(Job(encode_frameset(dataclasses.replace(fs, part="bracket")), 0))
+        assert w.drain(300)
+    finally:
+        station.close()
+        registry.close()
+        recorder.close()
+    run = read_run(recorder.files)
+    [measured] = [t.result for t in run.triggers]
+    assert measured.part == "bracket" and measured.status is not Status.error, measured.reason
+    [kept] = run.parts()
+    assert (kept.name, kept.revision, kept.cad) == ("bracket", 1, binary_ply(part.cad))
+    assert "bracket.spec" not in run.metadata["cad"]  # not a part of the configuration
+    report = replay(recorder.files, parts_dir=PARTS_DIR, trees_dir=trees)
+    assert report.ok, report.summary()
+    assert report.replayed == 1 and report.same == 1

@@ -53,7 +53,7 @@ class Told:
         self.seen: list[tuple[str, str | None]] = []
         self._cond = threading.Condition()
 
-    def __call__(self, name, part) -> None:
+    def __call__(self, name, part, stored) -> None:
         with self._cond:
             self.seen.append((name, None if part is None else part.spec.version))
             self._cond.notify_all()
