@@ -101,12 +101,16 @@ class Station:
         warm_up: bool = True,
         talk: Callable[[str], None] | None = None,
         store: ResultStore | None = None,
+        simulate: bool = True,
     ) -> Station:
         """Load every part of the station (tree, alignment model, spec) and warm the kernels up.
 
         Returns only once the station can measure at full speed. ``build_trees=False``
         loads the CAD only (enough for the ingest's simulator: the parts of
         ``[simulator] parts``, those created over the API read from the store).
+        ``simulate=False``: this process runs no simulated ingest (a worker of its own),
+        so ``[simulator] parts`` is not read, and a part it names that nobody created
+        yet does not stop it.
         ``talk`` is told each phase as it starts, with its progress and whether
         it is a first start (:mod:`service.startup`); without it the phases are
         logged. ``store``: the station's registry serves an API of this process
@@ -119,14 +123,15 @@ class Station:
         service.parts.PartError
             A part of the station could not be loaded.
         ConfigError
-            A part of ``[simulator] parts`` is not to be had.
+            A part of ``[simulator] parts`` is not to be had (with ``simulate``).
         """
         say = talk if talk is not None else (lambda line: log.info("start-up: %s", line))
         say(startup.kernels_line())
         with startup.kernel_compiles(say):
             return cls._load(
-                cfg, stages, say, build_trees=build_trees, warm_up=warm_up, store=store
-            )
+                cfg, stages, say, build_trees=build_trees, warm_up=warm_up, store=store,
+                simulate=simulate,
+            )  # fmt: skip
 
     @classmethod
     def _load(
@@ -138,6 +143,7 @@ class Station:
         build_trees: bool,
         warm_up: bool,
         store: ResultStore | None,
+        simulate: bool,
     ) -> Station:
         if stages is None:
             t0 = time.perf_counter()
@@ -169,7 +175,7 @@ class Station:
                 + (f"trees built for {', '.join(new)} (first start)" if new
                    else "every tree loaded from the cache")
             )  # fmt: skip
-            cads = simulated_cads(cfg, parts, say) if cfg.simulator.parts else {}
+            cads = simulated_cads(cfg, parts, say) if simulate and cfg.simulator.parts else {}
             station = cls(cfg, stages, parts, registry, cads=cads)
             if warm_up:
                 station.warm_up(talk=say)
@@ -979,7 +985,9 @@ def run_worker(
 ) -> int:
     """A worker alone: measures (or has its executor measure), publishes, stores and
     records until ``stop``."""
-    station = Station.load(cfg, warm_up=cfg.station.dask_address() is None, talk=talk)
+    station = Station.load(
+        cfg, warm_up=cfg.station.dask_address() is None, talk=talk, simulate=False
+    )
     with (
         contextlib.closing(station),
         contextlib.closing(make_executor(cfg, station)) as executor,

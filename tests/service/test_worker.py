@@ -351,6 +351,29 @@ def test_worker_and_api_measure_with_the_same_loaded_part(tmp_path, trees):
         station.close()
 
 
+def test_simulator_parts_never_stop_a_worker_that_does_not_simulate(tmp_path, trees):
+    """``[simulator] parts`` names what the ingest sends: a part nobody created yet stops
+    the ingest (and ``inspection run``, which simulates), not ``inspection worker``."""
+    from linekit import ROOT
+
+    from service.config import ConfigError, load_line_config
+    from service.line import Station
+
+    demo(trees)  # the tree is in the session's cache
+    cfg = load_line_config(
+        ROOT / "configs" / "line.toml",
+        overrides={("storage", "data_dir"): str(tmp_path), ("storage", "trees_dir"): str(trees),
+                   ("simulator", "parts"): [PART, "bracket"]},
+    )  # fmt: skip
+    with pytest.raises(ConfigError, match="'bracket' is neither a part of station"):
+        Station.load(cfg, build_trees=False, warm_up=False)
+    station = Station.load(cfg, warm_up=False, simulate=False)
+    try:
+        assert list(station.parts) == [PART] and list(station.cads) == [PART]
+    finally:
+        station.close()
+
+
 # --------------------------------------------------------------------------- seq checked
 
 
