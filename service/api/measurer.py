@@ -102,10 +102,11 @@ class _Slot:
             self.conn.send(job)
             ok, answer = self.conn.recv()
         except (EOFError, OSError) as exc:
-            code = self.process.exitcode
-            self.discard()
+            process = self.process
+            self.discard()  # waits a moment for it to end
+            how = f" (exit code {process.exitcode})" if process.exitcode is not None else ""
             raise MeasurerDied(
-                f"the process measuring this upload ended before answering (exit code {code})"
+                f"the process measuring this upload ended before answering{how}"
             ) from exc
         if not ok:
             raise answer
