@@ -31,7 +31,7 @@ def _depth_on_face(sx, sy, faces, planes, g, pu, pv, xn, yn):  # pragma: no cove
     return z if z > 0.0 else np.inf
 
 
-_WALK_STEPS = 8
+_WALK_STEPS = 64
 
 
 @njit(cache=True, nogil=True, inline="always")
