@@ -9,17 +9,22 @@ against the drawn panel. Per hole: the centre's error along the hole's x and
 y and the diameter's (and a slot's length), from the images (the measuring
 sequence) and, as the peer, from the cloud's rim alone
 (``hole_from_cloud``), whose bias at edges the images are there to avoid;
-and from the images at the true pose with the rig as built (what the edge
-search alone leaves, without the fit's and the calibration's errors).
+the images' errors less the fit's pose error at the hole (where the fitted
+pose puts the true hole: the cloud's fit, which every feature's entry
+carries); and from the images at the true pose with the rig as built (what
+the edge search alone leaves, without the fit's and the calibration's
+errors). The edge search predicts the flash's speckle with the rig's
+projector (``Flash``), built per part as the line builds it.
 Trim edges: points on the round holes' rims, whose true offset follows from
 the hole's shift and radius, varying along the rim: the curve fitted to the
 edge points (the ``.trim`` entry, its mean offset over the measured span)
 beside the single robust offset of the same points, both against the truth at
-the point and the fitted curve's ``.trim_max`` against the true largest offset
-over the span. Character lines: extra parts, the holes as drawn and the
-character line bent across itself near each point (a smooth bump 80 mm wide,
-up to 0.5 mm), ``.line`` and ``.line_max`` against the truth carried into
-the CAD frame by the fit's pose.
+the point (the entry also less the fit's pose error there) and the fitted
+curve's ``.trim_max`` against the true largest offset over the span.
+Character lines: extra parts, the holes as drawn and the character line bent
+across itself near each point (a smooth bump 80 mm wide, up to 0.5 mm),
+``.line`` and ``.line_max`` against the truth carried into the CAD frame by
+the fit's pose.
 RPS: a hole fixing x and y, the slot fixing y, three surface points fixing
 z, and a second hole's x (seven directions, so the datums have residuals):
 the residuals after the RPS alignment beside those the best fit leaves at the
@@ -124,6 +129,7 @@ def main() -> int:
     from inspection.deviations import robust_location
     from inspection.feature_checks import hole_spec
     from inspection.features import (
+        Flash,
         boundary_samples,
         hole_frame,
         hole_from_cloud,
@@ -143,11 +149,14 @@ def main() -> int:
     part = PartModel.build(sheet_metal_panel(spec), cps)
     rec = Reconstructor.build(Rig.default())
     truth_rig = Rig.nominal()
+    flash = Flash.build(rec.rig.projector)
     by_name = {cp.name: cp for cp in cps}
     img_err: dict[str, list[float]] = {"x": [], "y": [], "d": [], "len": []}
     cloud_err: dict[str, list[float]] = {"x": [], "y": [], "d": []}
     oracle_err: dict[str, list[float]] = {"x": [], "y": [], "d": []}
+    unposed_err: dict[str, list[float]] = {"x": [], "y": []}
     trim_err: list[float] = []
+    unposed_trim: list[float] = []
     robust_err: list[float] = []
     trim_max_err: list[float] = []
     rps_res: list[float] = []
@@ -167,10 +176,18 @@ def main() -> int:
                 print(f"pose {pi} seed {seed}: not measured: {m.reason}")
                 unmeasured += 1
                 continue
-            wall.append(m.timings_ms.get("features", math.nan))
-            cpu.append(m.cpu_ms.get("features", math.nan))
+            # The stage and the flash's slide it predicts the speckle with, built per part.
+            wall.append(m.timings_ms.get("features", math.nan) + m.timings_ms.get("flash", 0.0))
+            cpu.append(m.cpu_ms.get("features", math.nan) + m.cpu_ms.get("flash", 0.0))
             entries = {c.name: c for c in m.deviations.comparison}
             pts_cad = apply(m.transform, m.points)
+            # Where the fit's pose puts a point of the part against where it lies (the
+            # calibrated rig's frame taken as the rig's): every feature's entry carries it.
+            pose_error = m.transform @ T_rig_part
+
+            def displaced(q: np.ndarray, pose_error: np.ndarray = pose_error) -> np.ndarray:
+                return apply(pose_error, np.asarray(q, dtype=np.float64)[None])[0] - q
+
             for hi, name in enumerate(("H1", "S2", "H3")):
                 cp = by_name[name]
                 x, y, _ = hole_frame(cp.normal, hole_spec(cp).axis)
@@ -189,6 +206,10 @@ def main() -> int:
                     err = e.deviation_mm - true[key]
                     if math.isfinite(err):
                         img_err[key].append(err)
+                        if key in ("x", "y"):
+                            axis = x if key == "x" else y
+                            shift = float(displaced(np.asarray(cp.position)) @ axis)
+                            unposed_err[key].append(err - shift)
                     row.append(err)
                 cm, _ = hole_from_cloud(hole_spec(cp), pts_cad)
                 cl = [math.nan] * 3
@@ -198,7 +219,7 @@ def main() -> int:
                     for key, v in zip(("x", "y", "d"), cl, strict=True):
                         cloud_err[key].append(v)
                 om, _ = measure_hole(hole_spec(cp), truth_rig.cameras, frames,
-                                     np.linalg.inv(T_rig_part))  # fmt: skip
+                                     np.linalg.inv(T_rig_part), flash=flash)  # fmt: skip
                 if om is not None:
                     oracle_err["x"].append(om.offset_mm[0] - true["x"])
                     oracle_err["y"].append(om.offset_mm[1] - true["y"])
@@ -211,6 +232,9 @@ def main() -> int:
                 e = entries[f"{name}.trim"]
                 if math.isfinite(e.deviation_mm):
                     trim_err.append(e.deviation_mm - true_trim)
+                    cp = by_name[name]
+                    shift = float(displaced(np.asarray(cp.position)) @ np.asarray(cp.normal))
+                    unposed_trim.append(e.deviation_mm - true_trim - shift)
                 # Both estimators on the same edge points: the fitted curve and the single
                 # robust offset, the surface's offset taken as the check takes it.
                 cp = by_name[name]
@@ -222,7 +246,8 @@ def main() -> int:
                                                  part.cad.face_normals, cp.position,
                                                  cp.radius_mm, 0.5)  # fmt: skip
                 tm, _ = measure_trim_edge(smp, out, nrm, rec.rig.cameras, frames, m.transform,
-                                          surface_offset_mm=lift, min_support=5)  # fmt: skip
+                                          surface_offset_mm=lift, min_support=5,
+                                          flash=flash)  # fmt: skip
                 if tm is None:
                     continue
                 robust_err.append(tm.robust_mm - true_trim)
@@ -271,6 +296,8 @@ def main() -> int:
         print(
             f"  hole {key:>3}  images {stats(img_err[key])}   cloud (peer) {stats(cloud_err[key])}"
         )
+        if key in unposed_err:
+            print(f"            images, less the fit's pose error there {stats(unposed_err[key])}")
         print(f"            images at the true pose, rig as built {stats(oracle_err[key])}")
     ratio = [
         float(np.median(np.abs(img_err[k])) / np.median(np.abs(cloud_err[k])))
@@ -280,6 +307,7 @@ def main() -> int:
     print("  images / cloud, median |e| (x, y, d): " + ", ".join(f"{r:.2f}" for r in ratio))
     print(f"  slot len  images {stats(img_err['len'])}")
     print(f"  trim      images, fitted curve (the entry)   {stats(trim_err)}")
+    print(f"            the same, less the fit's pose error {stats(unposed_trim)}")
     print(f"            images, single robust offset       {stats(robust_err)}")
     print(f"  trim_max  images, fitted curve's largest     {stats(trim_max_err)}")
     line_err, line_max_err = character_lines(part, rec, spec, n_poses, seeds[0])
@@ -288,7 +316,8 @@ def main() -> int:
     print(
         f"\nRPS datum residuals, mm: median, max  RPS {stats(rps_res)}   best fit {stats(bf_res)}"
     )
-    print(f"features stage per part: median wall {statistics.median(wall):.0f} ms, "
+    print(f"features stage (with the flash's slide) per part: median wall "
+          f"{statistics.median(wall):.0f} ms, "
           f"cpu {statistics.median(cpu):.0f} ms; {unmeasured} parts not measured")  # fmt: skip
     pos = max((np.abs(img_err[k]).max() for k in ("x", "y") if img_err[k]), default=math.inf)
     dia = float(np.abs(img_err["d"]).max()) if img_err["d"] else math.inf

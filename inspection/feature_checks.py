@@ -38,6 +38,7 @@ from .deviations import (
 )
 from .features import (
     EdgeParams,
+    Flash,
     HoleSpec,
     boundary_samples,
     hole_from_cloud,
@@ -77,6 +78,7 @@ def check_features(
     tree: ClosestPointQuery,
     params: EdgeParams | None = None,
     line_points_cad: Points | None = None,
+    flash: Flash | None = None,
 ) -> Deviations:
     """``devs`` with each feature point's placeholder entry replaced by its characteristics'
     entries, and the part's verdict given again.
@@ -98,6 +100,9 @@ def check_features(
     line_points_cad : (M, 3) float64, mm, CAD frame, optional
         The cloud character lines are found in (default ``points_cad``): one
         whose matching was not shaped by the CAD.
+    flash : Flash, optional
+        The flash's slide, which the edge model predicts on the material by an
+        outline (without it, the material's light is taken as unpatterned).
     """
     by_name = {cp.name: cp for cp in comparison_points}
     out: list[ComparisonResult] = []
@@ -110,13 +115,15 @@ def check_features(
             continue
         offset, n_surface = _surface_offset(cp, points_cad, d)
         if cp.kind == "hole":
-            out += _hole_entries(cp, points_cad, offset, T_cad_rig, cameras, images, seen, params)
+            out += _hole_entries(
+                cp, points_cad, offset, T_cad_rig, cameras, images, seen, params, flash
+            )
         elif cp.kind == "character_line":
             lines = points_cad if line_points_cad is None else line_points_cad
             out += _line_entries(cp, tree, lines)
         else:
             out += _edge_entries(
-                cp, cad, offset, n_surface, T_cad_rig, cameras, images, seen, params
+                cp, cad, offset, n_surface, T_cad_rig, cameras, images, seen, params, flash
             )
     comparison = tuple(out)
     return dataclasses.replace(
@@ -167,13 +174,14 @@ def _unmeasured(cp: ComparisonPoint, reason: str, support: int = 0) -> list[Comp
     ]
 
 
-def _hole_entries(cp, P, offset, T, cameras, images, seen, params) -> list[ComparisonResult]:
+def _hole_entries(cp, P, offset, T, cameras, images, seen, params, flash) -> list[ComparisonResult]:
     spec = hole_spec(cp)
     need = cp.min_support if cp.min_support is not None else 20
     if seen:
         m, why = measure_hole(
-            spec, cameras, images, T, surface_offset_mm=offset, params=params, min_support=need
-        )
+            spec, cameras, images, T, surface_offset_mm=offset, params=params,
+            min_support=need, flash=flash,
+        )  # fmt: skip
     else:
         m, why = hole_from_cloud(spec, P, min_support=min(need, 12))
         if m is not None:
@@ -191,7 +199,7 @@ def _hole_entries(cp, P, offset, T, cameras, images, seen, params) -> list[Compa
 
 
 def _edge_entries(
-    cp, cad, offset, n_surface, T, cameras, images, seen, params
+    cp, cad, offset, n_surface, T, cameras, images, seen, params, flash
 ) -> list[ComparisonResult]:
     if not seen:
         return _unmeasured(cp, f"a {cp.kind} is measured in the images; none were given")
@@ -202,7 +210,7 @@ def _edge_entries(
     need = cp.min_support if cp.min_support is not None else 10
     m, why = measure_trim_edge(
         samples, outward, normals, cameras, images, T,
-        surface_offset_mm=offset, params=p, min_support=need,
+        surface_offset_mm=offset, params=p, min_support=need, flash=flash,
     )  # fmt: skip
     if m is None:
         return _unmeasured(cp, why or "not measured")

@@ -9,11 +9,18 @@ show the outline sharply, so the outline is measured in them:
    point) is sampled in the CAD frame and carried into each camera that
    faces it by the fit's pose;
 2. along each sample's in-plane normal, projected into the image, the grey
-   profile is read at sub-pixel steps from the air (dark: the belt below a
-   hole lies in the part's shadow) into the material, and the edge is placed
-   where a blurred step, fitted to the profile, has its edge (the material's
-   brightness may slope under it: the speckle); profiles without a clear
-   step are dropped;
+   profile is read at sub-pixel steps from the air into the material and
+   fitted by an edge model: the air's level, then from the edge on the
+   material's light blurred by the camera, where that light is the flash's
+   slide as it falls on the surface there (predicted from the projector and
+   the surface's plane, up to a gain) plus an unpatterned part (stray light,
+   the metal's sheen). The speckle's grain is as fine as the blur, so an edge
+   model that takes the material as even, or as a ramp, moves the edge
+   wherever a grain meets the rim. The edge is where the
+   model fits best over a fixed window, moved by the bias a curved outline's
+   blur gives (half the blur's variance times the curvature, towards the
+   air's convex side); saturated profiles, faint steps and air that is not
+   dark (the belt lit through the hole) are dropped;
 3. each edge pixel's ray is intersected with the surface's tangent plane at
    its sample, moved along the normal by the cloud's own offset there (the
    surface as measured, not as drawn);
@@ -40,16 +47,17 @@ import numpy as np
 import numpy.typing as npt
 from scipy.optimize import least_squares
 
-from .arrays import Image, Points, Transform
+from .arrays import Image, Points, Scalars, Transform
 from .edge_curve import CurveParams, EdgeCurve, curve_offset, nominal_curve
 from .errors import InvalidInput
-from .rig import Camera
+from .rig import Camera, Projector
 from .transforms import apply
 
 log = logging.getLogger(__name__)
 
 __all__ = [
     "EdgeParams",
+    "Flash",
     "HoleMeasurement",
     "HoleSpec",
     "TrimMeasurement",
@@ -61,11 +69,19 @@ __all__ = [
     "boundary_samples",
 ]
 
-# The profile is read every quarter pixel.
+# The profile is read every quarter pixel; the model is evaluated every fifth.
 _PROFILE_STEP_PX = 0.25
-# A profile whose air is brighter than the feature's darkest typical air by more than this
+_MODEL_STEP_PX = 0.2
+# A profile whose air is brighter than the feature's typical air by more than this
 # fraction of its step does not see the rim against the shadowed belt.
 _AIR_FRACTION = 0.2
+# A profile reaching this grey value is clipped: the sensor's saturation is no step.
+_SATURATED_DN = 250.0
+# The slide across the edge is averaged with the blur's along the edge (Gauss-Hermite
+# nodes at 0 and +-sqrt(3) sigma, for a blur of this sigma).
+_ALONG_SIGMA_PX = 0.75
+# Neighbouring samples within this distance give a sample's outline curvature.
+_CURVATURE_REACH_MM = 2.5
 
 
 @dataclass(frozen=True)
@@ -75,15 +91,19 @@ class EdgeParams:
     Attributes
     ----------
     search_px : float
-        The profile reaches this far on either side of the nominal outline
+        The edge is looked for this far on either side of the nominal outline
         (a hole shifted by up to about this many pixels is still found).
+    window_px : float
+        The edge model is fitted to the profile this far on either side of
+        the nominal outline, the same window for every place of the edge, so
+        that their fits compare.
+    blur_px : tuple of float
+        The camera's blur across the edge (Gaussian sigma, pixels, with the
+        pixel's area and the profile's interpolation) is the one of these that
+        fits a camera's profiles best.
     min_step_dn : float
-        A profile whose fitted step (the material's brightness at the edge over
-        the air's) is smaller is dropped: where a dark speckle grain lies on the
-        rim, the grain's own far edge competes with the rim and pulls the fit
-        (against the simulator's truth, profiles with steps below about 60 DN
-        came out a third to half a pixel off on the median, brighter ones within
-        a tenth).
+        A profile whose material is fainter than this at the edge (over the
+        air) is dropped: a dark speckle grain on the rim leaves it no step.
     sample_mm : float
         Spacing of the outline's samples.
     min_cos : float
@@ -94,11 +114,100 @@ class EdgeParams:
         dropped, and the fit repeated.
     """
 
-    search_px: float = 4.0
-    min_step_dn: float = 50.0
+    search_px: float = 2.5
+    window_px: float = 5.0
+    blur_px: tuple[float, ...] = (0.6, 0.7, 0.8, 0.9, 1.0)
+    min_step_dn: float = 20.0
     sample_mm: float = 0.5
     min_cos: float = 0.3
     reject_sigma: float = 3.0
+
+
+@dataclass(frozen=True, eq=False)
+class Flash:
+    """The flash's slide, as the edge model predicts the light on the part.
+
+    Build it once per rig (:meth:`build` renders the slide).
+
+    Attributes
+    ----------
+    projector : Projector
+    slide : (H, W) float32
+        The slide's relative intensity (:meth:`Pattern.image <inspection.rig.Pattern.image>`).
+    """
+
+    projector: Projector
+    slide: npt.NDArray[np.float32]
+
+    @classmethod
+    def build(cls, projector: Projector) -> Flash:
+        """The projector's slide, rendered."""
+        if not isinstance(projector, Projector):
+            raise InvalidInput(f"a Flash needs a Projector, got {type(projector).__name__}")
+        slide = projector.pattern.image(projector.width, projector.height)
+        return cls(projector, np.ascontiguousarray(slide, dtype=np.float32))
+
+    def along(
+        self,
+        camera: Camera,
+        uv0: npt.NDArray[np.float64],
+        step: npt.NDArray[np.float64],
+        t: npt.NDArray[np.float64],
+        plane_points: Points,
+        plane_normals: Points,
+    ) -> npt.NDArray[np.float32]:
+        """The slide's intensity on the surface seen along image lines.
+
+        Parameters
+        ----------
+        camera : the camera of the image
+        uv0 : (N, 2) float64, pixels
+            Where each line passes.
+        step : (N, 2) float64
+            Unit image directions of the lines.
+        t : (M,) float64, pixels
+            Places along the lines.
+        plane_points, plane_normals : (N, 3) float64, rig frame
+            The surface's plane under each line.
+
+        Returns
+        -------
+        (N, M) float32
+            The slide at ``uv0 + t * step`` where the pixel's ray meets the
+            plane, averaged along the edge (across the line) over the camera's
+            blur.
+        """
+        n = len(uv0)
+        across = np.column_stack([-step[:, 1], step[:, 0]])
+        # The map from a line's place to the slide is smooth (a homography through the
+        # lens's distortion): exact at three places, quadratic between.
+        knots = np.array([t[0], 0.5 * (t[0] + t[-1]), t[-1]])
+        # (3, M): the knots' Lagrange weights at each t.
+        lag = np.stack([(t - knots[1]) * (t - knots[2]), (t - knots[0]) * (t - knots[2]),
+                        (t - knots[0]) * (t - knots[1])])  # fmt: skip
+        lag /= np.array([(knots[0] - knots[1]) * (knots[0] - knots[2]),
+                         (knots[1] - knots[0]) * (knots[1] - knots[2]),
+                         (knots[2] - knots[0]) * (knots[2] - knots[1])])[:, None]  # fmt: skip
+        out = np.zeros((n, len(t)), np.float32)
+        node = math.sqrt(3.0) * _ALONG_SIGMA_PX
+        for off, weight in ((0.0, 2 / 3), (node, 1 / 6), (-node, 1 / 6)):
+            uv = uv0[:, None, :] + knots[None, :, None] * step[:, None, :]
+            uv = uv + off * across[:, None, :]
+            origin, direction = camera.rays(uv.reshape(-1, 2))
+            q = np.repeat(plane_points, 3, axis=0)
+            nrm = np.repeat(plane_normals, 3, axis=0)
+            lam = np.einsum("ij,ij->i", q - origin, nrm) / np.einsum("ij,ij->i", direction, nrm)
+            slide_uv = self.projector.project(origin + lam[:, None] * direction).reshape(n, 3, 2)
+            at = np.einsum("am,nak->nmk", lag, slide_uv)
+            out += np.float32(weight) * cv2.remap(
+                self.slide,
+                at[..., 0].astype(np.float32),
+                at[..., 1].astype(np.float32),
+                cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=0.0,
+            )
+        return out
 
 
 @dataclass(frozen=True)
@@ -313,6 +422,7 @@ def edge_points(
     normals: Points,
     surface_offset_mm: float = 0.0,
     params: EdgeParams | None = None,
+    flash: Flash | None = None,
 ) -> tuple[Points, npt.NDArray[np.int64], npt.NDArray[np.int64]]:
     """The outline found in the images near its nominal samples (steps 2 and 3 above).
 
@@ -329,6 +439,9 @@ def edge_points(
         Surface normals at the samples (towards the cameras).
     surface_offset_mm : float
         The measured surface's offset from the CAD along the normal there.
+    flash : Flash, optional
+        The flash's slide; without it the material's light is taken as
+        unpatterned (even lighting).
 
     Returns
     -------
@@ -345,7 +458,9 @@ def edge_points(
     q_rig = apply(T_rig_cad, samples + surface_offset_mm * normals)
     e_rig = into_material @ R.T
     n_rig = normals @ R.T
-    t = np.arange(-p.search_px, p.search_px + 1e-9, _PROFILE_STEP_PX)
+    curvature = _outline_curvature(samples, into_material, normals)
+    t = np.arange(-p.window_px, p.window_px + 1e-9, _PROFILE_STEP_PX)
+    model = _edge_model_grid(p)
     pts_out, idx_out, cam_out = [], [], []
     for ci, (cam, img) in enumerate(zip(cameras, images, strict=True)):
         view = cam.centre - q_rig
@@ -360,10 +475,10 @@ def edge_points(
         g_len = np.linalg.norm(g, axis=1)
         ok = np.isfinite(uv0).all(axis=1) & (g_len > 1e-6)
         h, w = img.shape
-        margin = p.search_px + 2
+        margin = p.window_px + 2
         ok &= (uv0[:, 0] > margin) & (uv0[:, 0] < w - 1 - margin)
         ok &= (uv0[:, 1] > margin) & (uv0[:, 1] < h - 1 - margin)
-        k, uv0, g = k[ok], uv0[ok], (g[ok] / g_len[ok, None])
+        k, uv0, mm_per_px, g = k[ok], uv0[ok], 0.5 / g_len[ok], g[ok] / g_len[ok, None]
         if len(k) == 0:
             continue
         where = uv0[:, None, :] + t[None, :, None] * g[:, None, :]
@@ -373,9 +488,15 @@ def edge_points(
             where[..., 1].astype(np.float32),
             cv2.INTER_LINEAR,
         )
-        edge_t, good = _step_fit(prof, t, p.min_step_dn)
+        slide = None
+        if flash is not None:
+            slide = flash.along(cam, uv0, g, model, q_rig[k], n_rig[k]).astype(np.float64)
+        edge_t, sigma, good = _fit_edges(prof, t, slide, model, p)
         if not good.any():
             continue
+        # A blurred outline's best-fitting step lies off the outline towards the side the
+        # outline bends around, by half the blur's variance times the curvature.
+        edge_t = edge_t + 0.5 * sigma**2 * curvature[k] * mm_per_px
         uv = uv0[good] + edge_t[good, None] * g[good]
         origin, direction = cam.rays(uv)
         kk = k[good]
@@ -391,57 +512,123 @@ def edge_points(
     return np.concatenate(pts_out), np.concatenate(idx_out), np.concatenate(cam_out)
 
 
-_SIGMAS_PX = (0.5, 0.65, 0.8, 1.0, 1.25)
-_T0_STEP_PX = 0.05
-_FIT_HALF_PX = 2.0
+def _edge_model_grid(p: EdgeParams) -> npt.NDArray[np.float64]:
+    """Where the edge model is evaluated along a profile (pixels): the window and the
+    blur's reach beyond it."""
+    reach = p.window_px + 3.0 * max(p.blur_px)
+    return np.arange(-reach, reach + 1e-9, _MODEL_STEP_PX)
 
 
-def _step_fit(prof: np.ndarray, t: np.ndarray, min_step: float) -> tuple[np.ndarray, np.ndarray]:
-    """Per profile (rows, from the dark air into the lit material): the edge of a blurred
-    step fitted to it, and whether that is a clear step inside the search.
+def _outline_curvature(samples: Points, into_material: Points, normals: Points) -> Scalars:
+    """Per sample, the outline's curvature in its surface plane (1/mm): positive where it
+    bends around the air (a hole's rim: 1/radius), negative around the material, from a
+    parabola through the samples within :data:`_CURVATURE_REACH_MM`."""
+    tangent = np.cross(normals, into_material)
+    out = np.zeros(len(samples))
+    d = samples[None, :, :] - samples[:, None, :]
+    near = np.linalg.norm(d, axis=2) <= _CURVATURE_REACH_MM
+    for i in range(len(samples)):
+        m = near[i]
+        if m.sum() < 5:
+            continue
+        s = d[i, m] @ tangent[i]
+        across = d[i, m] @ into_material[i]
+        A = np.column_stack([np.ones_like(s), s, s * s])
+        coef, *_ = np.linalg.lstsq(A, across, rcond=None)
+        # Along the material's direction the outline falls away as -kappa s^2 / 2.
+        out[i] = -2.0 * coef[2]
+    return out
 
-    The model over a window of +-2 px about the edge ``t0`` is
-    ``c + (a + b (t - t0)) Phi((t - t0) / sigma)``: the air's level ``c``, the
-    material's brightness ``a`` with its slope ``b`` (the speckle changes it
-    within a few pixels), a Gaussian blur ``sigma``. For each candidate
-    ``(t0, sigma)`` on a grid the three linear terms are solved in closed form;
-    the best candidate's ``t0`` is refined by a parabola through its neighbours'
-    costs.
+
+def _fit_edges(
+    prof: np.ndarray, t: np.ndarray, slide: np.ndarray | None, model: np.ndarray, p: EdgeParams
+) -> tuple[np.ndarray, float, np.ndarray]:
+    """Per profile (rows over ``t``, from the air into the material): the edge, the
+    camera's blur (one for all rows, pixels) and whether the edge is a clear one.
+
+    The model of a profile is ``c + K * (a (. - t0) (1 - H(. - t0)) + (h + g s)
+    H(. - t0))``, blurred by a Gaussian ``K`` across the edge: the air's level ``c``,
+    and before the edge ``t0`` its slope ``a`` (the belt seen through a hole may lie
+    in the penumbra of the flash's patch through it); from the edge on the material's
+    light over the air's, unpatterned (``h``: stray light, the metal's sheen) and the
+    slide ``s`` (``slide``, on the grid ``model``; without it, ``h`` alone). Every
+    candidate ``t0`` (the model's grid within ``search_px``) is fitted over the same
+    window, the levels by linear least squares, and the best one refined by a parabola
+    through its neighbours' costs; the blur is the one of ``p.blur_px`` whose profiles
+    fit best on the median.
     """
     from scipy.special import ndtr
 
-    t0s = np.arange(t[0] + _FIT_HALF_PX, t[-1] - _FIT_HALF_PX + 1e-9, _T0_STEP_PX)
-    n_rows = len(prof)
-    best = np.full((n_rows, len(t0s)), np.inf)
-    gain = np.zeros((n_rows, len(t0s)))
-    air = np.zeros((n_rows, len(t0s)))
-    for sigma in _SIGMAS_PX:
-        for j, t0 in enumerate(t0s):
-            m = np.abs(t - t0) <= _FIT_HALF_PX
-            u = t[m] - t0
-            phi = ndtr(u / sigma)
-            B = np.column_stack([np.ones_like(u), phi, u * phi])
-            coef, *_ = np.linalg.lstsq(B, prof[:, m].T, rcond=None)
-            sse = ((prof[:, m] - (B @ coef).T) ** 2).sum(axis=1)
-            better = sse < best[:, j]
-            best[:, j] = np.where(better, sse, best[:, j])
-            gain[:, j] = np.where(better, coef[1], gain[:, j])
-            air[:, j] = np.where(better, coef[0], air[:, j])
-    k = np.argmin(best, axis=1)
-    rows = np.arange(n_rows)
-    kc = np.clip(k, 1, len(t0s) - 2)
-    y0, y1, y2 = best[rows, kc - 1], best[rows, kc], best[rows, kc + 1]
+    scan = np.flatnonzero(np.abs(model) <= p.search_px + 1e-9)
+    n = len(prof)
+    rows = np.arange(n)
+    best: tuple[float, float, np.ndarray, np.ndarray, np.ndarray] | None = None
+    for sigma in p.blur_px:
+        # The blur of a step at each model place, seen at each t: the columns' building
+        # block, K(t - tau) summed over tau beyond the step.
+        kern = ndtr((model[None, :] + 0.5 * _MODEL_STEP_PX - t[:, None]) / sigma) - ndtr(
+            (model[None, :] - 0.5 * _MODEL_STEP_PX - t[:, None]) / sigma
+        )  # (T, M): the share of model cell m in the blur at t
+        plain = np.cumsum(kern[:, ::-1], axis=1)[:, ::-1][:, scan]  # (T, S)
+        # The columns over t per candidate, shared by all profiles (T, S) or each its own
+        # (n, T, S): the air's level, the air's slope (the belt's light through a hole
+        # need not be even), the unpatterned material, the slide on it.
+        before = np.cumsum(kern, axis=1) - kern  # the cells before each one
+        moment = np.cumsum(kern * model[None, :], axis=1) - kern * model[None, :]
+        cols: list[np.ndarray] = [
+            np.ones_like(plain),
+            moment[:, scan] - model[scan][None, :] * before[:, scan],
+            plain,
+        ]
+        if slide is not None:
+            lit = np.cumsum((kern[None, :, :] * slide[:, None, :])[:, :, ::-1], axis=2)
+            cols.append(lit[:, :, ::-1][:, :, scan])  # (n, T, S)
+        npar = len(cols)
+        A = np.empty((n, len(scan), npar, npar))
+        B = np.empty((n, len(scan), npar))
+        for i, ci in enumerate(cols):
+            B[..., i] = np.einsum("nts,nt->ns" if ci.ndim == 3 else "ts,nt->ns", ci, prof)
+            for j in range(i, npar):
+                cj = cols[j]
+                if ci.ndim == 2 and cj.ndim == 2:
+                    v = np.broadcast_to((ci * cj).sum(axis=0), (n, len(scan)))
+                elif ci.ndim == 2:
+                    v = np.einsum("ts,nts->ns", ci, cj)
+                elif cj.ndim == 2:
+                    v = np.einsum("nts,ts->ns", ci, cj)
+                else:
+                    v = np.einsum("nts,nts->ns", ci, cj)
+                A[..., i, j] = v
+                A[..., j, i] = v
+        A = A + 1e-9 * np.eye(npar)
+        coef = np.linalg.solve(A, B[..., None])[..., 0]
+        # The least-squares fit's residual: |y|^2 - coef . (X^T y).
+        sse = (prof * prof).sum(axis=1)[:, None] - (coef * B).sum(axis=2)
+        k = np.argmin(sse, axis=1)
+        total = float(np.median(sse[rows, k]))
+        if best is None or total < best[0]:
+            best = (total, sigma, sse, coef, k)
+    assert best is not None
+    _, sigma, sse, coef, k = best
+    kc = np.clip(k, 1, len(scan) - 2)
+    y0, y1, y2 = sse[rows, kc - 1], sse[rows, kc], sse[rows, kc + 1]
     den = y0 - 2 * y1 + y2
     frac = np.where(den > 1e-12, 0.5 * (y0 - y2) / np.where(den > 1e-12, den, 1.0), 0.0)
-    te = t0s[kc] + np.clip(frac, -0.5, 0.5) * _T0_STEP_PX
-    inside = (k > 0) & (k < len(t0s) - 1)
-    ok = inside & (gain[rows, k] >= min_step)
+    # Candidate j puts the edge between model cells j - 1 and j.
+    te = model[scan][kc] - 0.5 * _MODEL_STEP_PX + np.clip(frac, -0.5, 0.5) * _MODEL_STEP_PX
+    c = coef[rows, k, 0]
+    step = coef[rows, k, 2]
+    if slide is not None:
+        at = np.clip(np.searchsorted(model, te), 0, len(model) - 1)
+        step = step + coef[rows, k, 3] * slide[rows, at]
+    inside = (k > 0) & (k < len(scan) - 1)
+    window = np.abs(t) <= p.window_px + 1e-9
+    ok = inside & (step >= p.min_step_dn) & ~(prof[:, window] >= _SATURATED_DN).any(axis=1)
     # The air is the belt in the part's shadow; where the flash reaches the belt through
     # the hole beside the rim, the step found is the lit patch's, not the rim's.
-    c = air[rows, k]
     if ok.any():
-        ok &= c - np.median(c[ok]) <= _AIR_FRACTION * gain[rows, k]
-    return te, ok
+        ok &= c - np.median(c[ok]) <= _AIR_FRACTION * step
+    return te, sigma, ok
 
 
 def measure_hole(
@@ -453,8 +640,10 @@ def measure_hole(
     surface_offset_mm: float = 0.0,
     params: EdgeParams | None = None,
     min_support: int = 20,
+    flash: Flash | None = None,
 ) -> tuple[HoleMeasurement | None, str | None]:
-    """A hole's centre, diameter (and a slot's length and turn) from its rim in the images.
+    """A hole's centre, diameter (and a slot's length and turn) from its rim in the images
+    (``flash``: see :func:`edge_points`).
 
     Returns
     -------
@@ -467,7 +656,7 @@ def measure_hole(
     normals = np.tile(np.asarray(hole.normal, dtype=np.float64) / np.linalg.norm(hole.normal),
                       (len(samples), 1))  # fmt: skip
     pts, _, cam = edge_points(
-        cameras, images, T_cad_rig, samples, outward, normals, surface_offset_mm, p
+        cameras, images, T_cad_rig, samples, outward, normals, surface_offset_mm, p, flash
     )
     if len(pts) < min_support:
         if len(pts) == 0 and not _any_camera_faces(cameras, T_cad_rig, samples, normals, p):
@@ -573,6 +762,7 @@ def measure_trim_edge(
     params: EdgeParams | None = None,
     min_support: int = 10,
     curve: CurveParams | None = None,
+    flash: Flash | None = None,
 ) -> tuple[TrimMeasurement | None, str | None]:
     """A trim edge's offset along its outward normal, from its nominal ``samples``.
 
@@ -588,12 +778,14 @@ def measure_trim_edge(
         In-plane, normal to the edge, out of the material.
     normals : (K, 3) float64
         Surface normals.
+    flash : Flash, optional
+        See :func:`edge_points`.
     """
     p = params if params is not None else EdgeParams()
     if len(samples) == 0:
         return None, "no CAD edge near the point"
     pts, k, cam = edge_points(
-        cameras, images, T_cad_rig, samples, -outward, normals, surface_offset_mm, p
+        cameras, images, T_cad_rig, samples, -outward, normals, surface_offset_mm, p, flash
     )
     if len(pts) < min_support:
         if len(pts) == 0 and not _any_camera_faces(cameras, T_cad_rig, samples, normals, p):

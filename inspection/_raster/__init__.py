@@ -11,9 +11,11 @@ and triangle edges stay straight where they are straight:
    pixel, takes its exact viewing ray (precomputed by undistortion), looks up
    the face seen along that ray in the ideal buffer, and intersects the ray
    with that face's plane. Geometry is therefore exact to floating point
-   inside faces; only which face a pixel sees is decided at the resolution of
-   the buffer. The light it gets comes from :mod:`.flash`, the belt's from
-   :mod:`.belt`.
+   inside faces; which face a pixel sees is decided at the resolution of the
+   buffer, and where the buffer holds no face near the ray (faces thinner than
+   a pixel along an outline) by walking across the mesh's edges. A pixel on
+   the part's outline is shaded along several rays through its area. The
+   light it gets comes from :mod:`.flash`, the belt's from :mod:`.belt`.
 
 The projector's shadow map is the same rasteriser run from the projector.
 :func:`shade_board` renders the calibration board, :func:`sensor_noise`

@@ -53,7 +53,7 @@ from ..cadpoints import LocalModel, measure_points
 from ..deviations import FEATURE_KINDS, Deviations, Verdict, deviations
 from ..errors import InspectionError, InvalidInput
 from ..feature_checks import check_features, hole_spec
-from ..features import hole_frame
+from ..features import Flash, hole_frame
 from ..reconstruct import Cloud, Guide, Matching, Reconstructor
 from ..registration import LOSSES, Registration, register
 from ..rig import Camera, Rig
@@ -161,9 +161,17 @@ def _measure_frames(
     passes[-1] = dataclasses.replace(last, fit=final)
     search = passes[0].fit if start is not None else None
     cameras = np.array([cam.centre for cam in rec.rig.cameras], dtype=np.float64)
+    # The outlines' edge model predicts the flash's speckle on the material by them.
+    flash = None
+    if any(cp.kind in FEATURE_KINDS and cp.kind != "character_line"
+           for cp in part.comparison_points):  # fmt: skip
+        t = _mark()
+        flash = Flash.build(rec.rig.projector)
+        _lap(timings, "flash", t)
     return _judge(
         part, last.points, final, p, "rig", timings, t_start, tuple(passes), search,
         cameras=cameras, views=(tuple(rec.rig.cameras), tuple(frames)), unguided=first.points,
+        flash=flash,
     )  # fmt: skip
 
 
@@ -458,6 +466,7 @@ def _judge(
     cameras: np.ndarray | None = None,
     views: tuple[tuple[Camera, ...], tuple[npt.NDArray[np.uint8], ...]] = ((), ()),
     unguided: np.ndarray | None = None,
+    flash: Flash | None = None,
 ) -> Measurement:
     """5.-8.: the fit's quality, the deviations over the cloud and the surface, the features,
     the datum alignment, and the verdict.
@@ -466,8 +475,8 @@ def _judge(
     it (the guided passes): its ambiguity is the part's. ``cameras`` are the
     rig's camera centres (rig frame), whose view of the CAD has its occlusion edges;
     ``views`` the calibrated cameras and their frames, in which the features'
-    outlines are measured; ``unguided`` the first pass's cloud (``frame``), in which
-    character lines are found (None: ``points``)."""
+    outlines are measured, with ``flash``'s slide; ``unguided`` the first pass's cloud
+    (``frame``), in which character lines are found (None: ``points``)."""
     T = np.asarray(fit.transform, dtype=np.float64)
     quality = fit_quality(fit, search)
     if not np.isfinite(T).all():
@@ -487,7 +496,7 @@ def _judge(
         )
 
     lines = points if unguided is None else unguided
-    devs = _deviations_at(part, points, T, fit, p, frame, cameras, views, timings, lines)
+    devs = _deviations_at(part, points, T, fit, p, frame, cameras, views, timings, lines, flash)
 
     # 8. The datum alignment, where the part has one: the part measured again at its pose.
     rps = None
@@ -502,7 +511,7 @@ def _judge(
             )  # fmt: skip
         rps = rps_align(part.rps.datums, measured, init=T, hold=part.rps.mode == "best_fit_rps")
         T = rps.transform
-        devs = _deviations_at(part, points, T, fit, p, frame, cameras, views, timings, lines)
+        devs = _deviations_at(part, points, T, fit, p, frame, cameras, views, timings, lines, flash)
         _lap(timings, "rps", t)
     _lap(timings, "total", t_start)
     return Measurement(
@@ -532,6 +541,7 @@ def _deviations_at(
     views: tuple[tuple[Camera, ...], tuple[npt.NDArray[np.uint8], ...]],
     timings: _Laps,
     lines: np.ndarray,
+    flash: Flash | None = None,
 ) -> Deviations:
     """6., 7. and the features: the deviations of ``points`` placed by ``T`` (laps
     ``deviations`` and ``features``); character lines in ``lines`` placed by ``T``.
@@ -563,7 +573,7 @@ def _deviations_at(
         t = _mark()
         devs = check_features(
             devs, part.comparison_points, part.cad, points_cad, T, *views, tree=part.exact,
-            line_points_cad=points_cad if lines is points else apply(T, lines),
+            line_points_cad=points_cad if lines is points else apply(T, lines), flash=flash,
         )  # fmt: skip
         _lap(timings, "features", t)
     return devs

@@ -27,7 +27,11 @@ What a frame set contains, and why (each is a way real frames are hard):
   projected speckle is averaged over each pixel's footprint on the part (3 x 3
   samples placed through the footprint's Jacobian; ``pixel_samples``). Taken
   at the pixel's centre alone, the speckle's fine grain aliases, and
-  differently in each camera: an error no real sensor makes.
+  differently in each camera: an error no real sensor makes. A pixel on the
+  part's outline (a hole's rim, the part against the belt, a flange over the
+  floor) is the mean of ``edge_samples`` x ``edge_samples`` rays through it,
+  each meeting its own surface: outlines fall between pixel centres, as the
+  features' edge search measures them.
 
 Rendering: a numba z-buffer per camera into an undistorted buffer, then exact
 ray-plane intersections per real pixel (see :mod:`inspection._raster`); the

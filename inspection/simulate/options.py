@@ -46,6 +46,12 @@ class RenderOptions:
         ``pixel_samples`` x ``pixel_samples`` samples (1: the pixel's centre
         only, which aliases the speckle; see :mod:`inspection.simulate`). The empty
         belt, precomputed per rig, always uses the default.
+    edge_samples : int
+        A pixel that straddles the part's outline (a hole's rim, the part's
+        edge against the belt, an occluding flange) collects light from both
+        sides: ``edge_samples`` x ``edge_samples`` rays through its area, each
+        finding its own surface, are averaged (1: its centre decides, and
+        outlines fall on whole pixels).
     shot_noise : float
         Variance of the shot noise per DN of signal.
     read_noise_dn : float
@@ -76,6 +82,7 @@ class RenderOptions:
     shininess_broad: float = 40.0
     blur_px: float = 0.6
     pixel_samples: int = 3
+    edge_samples: int = 4
     shot_noise: float = 0.3
     read_noise_dn: float = 1.2
     part_dirt_spots: int = 6
@@ -104,14 +111,12 @@ class RenderOptions:
                 raise InvalidInput(f"RenderOptions.{name} must be finite and >= 0, got {value!r}")
         if not 0 < self.part_albedo <= 1:
             raise InvalidInput("RenderOptions.part_albedo must be in (0, 1]")
-        if isinstance(self.pixel_samples, bool) or not isinstance(
-            self.pixel_samples, (int, np.integer)
-        ):
-            raise InvalidInput("RenderOptions.pixel_samples must be an int")
-        if not 1 <= self.pixel_samples <= 8:
-            raise InvalidInput(
-                f"RenderOptions.pixel_samples must be in 1..8, got {self.pixel_samples}"
-            )
+        for name in ("pixel_samples", "edge_samples"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+                raise InvalidInput(f"RenderOptions.{name} must be an int")
+            if not 1 <= value <= 8:
+                raise InvalidInput(f"RenderOptions.{name} must be in 1..8, got {value}")
         if self.part_dirt_spots < 0 or self.lens_dirt_spots < 0:
             raise InvalidInput("dirt spot counts must be >= 0")
         if not np.isfinite(self.belt_shift_mm):

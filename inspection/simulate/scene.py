@@ -57,6 +57,28 @@ def _rasterize_view(V, faces, R, t, kvec, ox, oy, shape):
     return zbuf, fbuf, sx, sy
 
 
+def _face_neighbours(faces: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
+    """Per face, the faces across its three edges (-1: a boundary edge), (F, 3) int64.
+
+    Where more than two faces share an edge, each is given one of the others.
+    """
+    f = np.asarray(faces, dtype=np.int64)
+    n_f = len(f)
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    key = np.minimum(e[:, 0], e[:, 1]) * (int(f.max(initial=0)) + 1) + np.maximum(e[:, 0], e[:, 1])
+    owner = np.tile(np.arange(n_f), 3)
+    slot = np.repeat(np.arange(3), n_f)
+    order = np.argsort(key, kind="stable")
+    k, o, sl = key[order], owner[order], slot[order]
+    out = np.full((n_f, 3), -1, np.int64)
+    same = k[1:] == k[:-1]
+    # Consecutive edges with the same key are the same edge seen from two faces.
+    a = np.flatnonzero(same)
+    out[o[a], sl[a]] = o[a + 1]
+    out[o[a + 1], sl[a + 1]] = o[a]
+    return out
+
+
 def _part_dirt(V, faces, double_area, count, stream):
     """Dirt spots on the part surface: centres, radii and remaining reflectance."""
     if count == 0:

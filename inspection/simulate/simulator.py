@@ -31,6 +31,7 @@ from .scene import (
     _belt_texture,
     _board_texture,
     _CameraSetup,
+    _face_neighbours,
     _kvec,
     _lens_dust,
     _part_dirt,
@@ -154,6 +155,7 @@ class Simulator:
             n = n[good]
             norm = norm[good]
         normals = np.ascontiguousarray(n / norm[:, None])
+        neighbours = _face_neighbours(faces)
         dirt_c, dirt_r, dirt_k = _part_dirt(V, faces, norm, opts.part_dirt_spots, streams[0])
         travel_mm = self.rig.conveyor.speed_mm_s * opts.flash_us * 1e-6
         shifts = _sub_exposure_shifts(V, travel_mm, self._cams)
@@ -187,7 +189,7 @@ class Simulator:
         ) -> None:
             """Render one camera's signal (DN) at one instant of the flash into ``out``."""
             cam = setup.camera
-            _, fb, sx, sy = _rasterize_view(
+            zb, fb, sx, sy = _rasterize_view(
                 at.V, faces, cam.R, cam.t, setup.kvec, setup.ox, setup.oy, setup.buf_shape
             )
             n_c = normals @ cam.R.T
@@ -200,9 +202,11 @@ class Simulator:
                 setup.ox,
                 setup.oy,
                 fb,
+                zb,
                 sx,
                 sy,
                 faces,
+                neighbours,
                 planes,
                 normals,
                 np.ascontiguousarray(cam.R.T),
@@ -235,6 +239,7 @@ class Simulator:
                 setup.belt_alb,
                 setup.vignette * np.float32(opts.exposure_dn),
                 opts.pixel_samples,
+                opts.edge_samples,
                 out,
                 points,
                 flags,

@@ -2,15 +2,18 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import replace
 
 import numpy as np
 import pytest
 import trimesh
+from scipy import ndimage
 
 from inspection.board import CharucoSpec, board_lying_flat
 from inspection.calibration import detect_board
 from inspection.errors import InvalidInput
+from inspection.panel import Hole, PanelSpec, sheet_metal_panel, surface_point
 from inspection.rig import Rig, belt_pose
 from inspection.simulate import RenderOptions, simulate, simulate_board
 from inspection.transforms import apply
@@ -85,14 +88,20 @@ def test_truth_points_lie_on_the_part_or_the_belt(rig, panel, rendered) -> None:
 
 
 def test_pattern_on_the_part_and_shadow_behind_the_wall(rig, rendered) -> None:
+    """The speckle lies on the lit part, and the shadow is dark: inside it, that is, not
+    on its outline, where a pixel also collects the lit side's light (and the blur's)."""
     images, truths = rendered
+    shadows = 0
     for img, truth in zip(images, truths, strict=True):
         lit = truth.part & truth.lit & ~truth.saturated
         assert lit.sum() > 10000
         assert img[lit].std() > 25  # the speckle is there
         dark = truth.part & ~truth.lit
-        if dark.sum() > 200:
-            assert img[dark].mean() < 0.5 * img[lit].mean()
+        inside = ndimage.binary_erosion(dark, np.ones((5, 5), bool))
+        if inside.sum() > 100:
+            shadows += 1
+            assert img[inside].mean() < 0.2 * img[lit].mean()
+    assert shadows >= 1
 
 
 def test_faults_saturate_and_clean_options_do_not(rig, panel, rendered) -> None:
@@ -194,6 +203,64 @@ def test_a_pixel_integrates_the_pattern_over_its_area() -> None:
         RenderOptions(pixel_samples=0)
 
 
+def test_an_outline_pixel_collects_the_light_over_its_area() -> None:
+    """A pixel straddling the part's outline is the mean over its area of the part's
+    light and the belt's, as a sensor's is: at 3 x 3 rays it matches a render at three
+    times the resolution averaged over 3 x 3 blocks; decided at its centre
+    (``edge_samples=1``) it is all one or the other, far from it."""
+    plate = trimesh.creation.box((300.0, 200.0, 30.0))
+    plate.apply_translation((0.0, 0.0, 15.0))
+    sharp = replace(RenderOptions.clean(), blur_px=0.0)
+    w, h = 480, 384
+    fine = simulate(
+        Rig.nominal(3 * w, 3 * h), plate, np.eye(4),
+        options=replace(sharp, pixel_samples=1, edge_samples=1),
+    )  # fmt: skip
+    coarse, truths = simulate(
+        Rig.nominal(w, h), plate, np.eye(4), options=replace(sharp, edge_samples=3),
+        return_truth=True,
+    )  # fmt: skip
+    centred = simulate(Rig.nominal(w, h), plate, np.eye(4), options=replace(sharp, edge_samples=1))
+    for image, one, reference, truth in zip(coarse, centred, fine, truths, strict=True):
+        box = reference.astype(np.float64).reshape(h, 3, w, 3).mean(axis=(1, 3))
+        outline = ndimage.binary_dilation(truth.part) & ~ndimage.binary_erosion(truth.part)
+        assert outline.sum() > 500
+        area = float(np.abs(image[outline] - box[outline]).mean())
+        centre = float(np.abs(one[outline] - box[outline]).mean())
+        assert area < 1.0 and centre > 5 * area, (area, centre)
+    with pytest.raises(InvalidInput, match="edge_samples"):
+        RenderOptions(edge_samples=9)
+
+
+def test_a_hole_rim_drawn_by_slivers_renders_where_the_mesh_puts_it() -> None:
+    """The panel's holes are drawn by the grid's faces cut at the rim: slivers, and faces
+    smaller than a pixel, that hold no pixel centre of the z-buffer. A ray that meets
+    one finds it (it is not the belt): every pixel whose ray meets the sheet more than
+    0.1 mm from the rim shows the part, and none inside the hole does."""
+    spec = dataclasses.replace(
+        PanelSpec(holes=(Hole(170.0, 110.0, 16.0), Hole(-200.0, 120.0, 10.5)),
+                  hole_spacing_mm=0.7).scaled(400.0, 260.0)
+    )  # fmt: skip
+    rig = Rig.nominal()
+    T = belt_pose(0.0, 0.0, 0.0)
+    _, truths = simulate(rig, sheet_metal_panel(spec), T, options=RenderOptions.clean(),
+                         return_truth=True)  # fmt: skip
+    T_part_rig = np.linalg.inv(T)
+    for h in spec.holes:
+        (cx, cy, cz), n = surface_point(spec, h.x_mm, h.y_mm)
+        centre, n = np.array([cx, cy, cz]), np.asarray(n)
+        for cam, truth in zip(rig, truths, strict=True):
+            u, v = (int(c) for c in cam.project(apply(T, centre[None]))[0])
+            rows, cols = np.mgrid[v - 20 : v + 20, u - 20 : u + 20]
+            o, d = cam.rays(np.column_stack([cols.ravel(), rows.ravel()]).astype(np.float64))
+            o, d = apply(T_part_rig, o), d @ T_part_rig[:3, :3].T
+            hit = o + (((centre - o) @ n) / (d @ n))[:, None] * d
+            r = np.linalg.norm(hit[:, :2] - centre[:2], axis=1) - h.radius_mm
+            part = truth.part[rows.ravel(), cols.ravel()]
+            assert part[r > 0.1].all(), (cam.name, h, int((~part[r > 0.1]).sum()))
+            assert not part[r < -0.1].any(), (cam.name, h)
+
+
 _HASH_SCRIPT = """
 import hashlib, numpy as np, trimesh
 from inspection.rig import Rig
@@ -269,7 +336,9 @@ def test_a_long_flash_smears_the_frames_along_the_belt_only() -> None:
         hi = np.ceil(cam.project(top).max(axis=0)).astype(int) + 6
         u0, v0 = (int(c) for c in cam.project(np.array([[0.0, 0.0, 20.0]]))[0])
         rows, cols = slice(v0 - 3, v0 + 4), slice(lo[0], hi[0])  # across the x-edges
-        assert _steepest(b, rows, cols, 1) < 0.9 * _steepest(a, rows, cols, 1), cam.name
+        # The outline's pixels are area-sampled: the short flash's step already spans two
+        # pixels, and the smear softens it by less than a step decided at pixel centres.
+        assert _steepest(b, rows, cols, 1) < 0.95 * _steepest(a, rows, cols, 1), cam.name
         rows, cols = slice(lo[1], hi[1]), slice(u0 - 3, u0 + 4)  # across the y-edges
         assert _steepest(b, rows, cols, 0) == pytest.approx(_steepest(a, rows, cols, 0), rel=0.01)
     for t, t_long in zip(truth, truth_long, strict=True):
