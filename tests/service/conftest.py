@@ -1,5 +1,5 @@
 """Fixtures of the line's tests: one tree cache, one PostgreSQL server and one set of
-upload-measuring processes for the session."""
+upload-measuring processes for the session, and a part quick to build per module."""
 
 from __future__ import annotations
 
@@ -7,9 +7,14 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from linekit import PART, PARTS_DIR
 from pgserver import PgServer, ServerUnavailable
 
+from inspection.measure import PartModel
+from inspection.panel import sheet_metal_panel
 from service.api.measurer import UploadMeasurer
+from service.config import load_part_spec
+from service.parts import LoadedPart, measure_params
 
 
 @pytest.fixture(scope="session")
@@ -17,6 +22,15 @@ def trees(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The tree cache every test of the session shares: the demo panel's tree is built
     once, then loaded (by this process and by the line processes the tests start)."""
     return tmp_path_factory.mktemp("trees")
+
+
+@pytest.fixture(scope="module")
+def quick_part() -> LoadedPart:
+    """The demo panel on a coarse tree and without its alignment model: quick to build, for
+    tests of the worker's plumbing rather than of the measurement."""
+    spec = load_part_spec(PARTS_DIR / f"{PART}.toml")
+    model = PartModel.build(sheet_metal_panel(name=PART), spacing_mm=5.0, alignment=False)
+    return LoadedPart(spec, model, "quick-tree", measure_params(spec))
 
 
 @pytest.fixture(scope="session")

@@ -294,13 +294,6 @@ class Gated:
 
 
 @pytest.fixture(scope="module")
-def quick_part() -> LoadedPart:
-    spec = load_part_spec(PARTS_DIR / f"{PART}.toml")
-    model = PartModel.build(sheet_metal_panel(name=PART), spacing_mm=5.0, alignment=False)
-    return LoadedPart(spec, model, "quick-tree", measure_params(spec))
-
-
-@pytest.fixture(scope="module")
 def quick_sets(quick_part) -> list[FrameSet]:
     r = rig(QUICK, quick_part, seed=5)
     return [r.capture(seq, 1_800_000_000_000_000_000 + seq * 10**9) for seq in range(5)]

@@ -14,16 +14,14 @@ import threading
 import time
 
 import pytest
-from linekit import LINE, PART, PARTS_DIR, STATION, rig
+from linekit import LINE, PART, STATION, rig
 from test_worker import QUICK, Collect, job
 
-from inspection.measure import PartModel
 from inspection.panel import PanelSpec, sheet_metal_panel
-from service.config import load_part_spec
 from service.journal import Journal
 from service.models import Job as BuildJob
 from service.models import JobState, PartCreate, Status
-from service.parts import LoadedPart, PartBroken, PartRegistry, measure_params
+from service.parts import PartBroken, PartRegistry
 from service.pipeline import Pipeline
 from service.protocol import FrameSet
 from service.station_parts import StationParts
@@ -31,13 +29,6 @@ from service.store import ResultStore
 from service.worker import Job, JobQueue, Worker
 
 NEW = "bracket"
-
-
-@pytest.fixture(scope="module")
-def quick_part() -> LoadedPart:
-    spec = load_part_spec(PARTS_DIR / f"{PART}.toml")
-    model = PartModel.build(sheet_metal_panel(name=PART), spacing_mm=5.0, alignment=False)
-    return LoadedPart(spec, model, "quick-tree", measure_params(spec))
 
 
 @pytest.fixture(scope="module")
