@@ -127,6 +127,23 @@ def face_on_ray(
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _ray_jacobian(rays, i, j):  # pragma: no cover - compiled
+    """How the normalised ray of pixel (i, j) moves per pixel along u and v: the local
+    Jacobian of the undistortion map, by central differences (one-sided at the border).
+    Sub-pixel rays from it, to first order, err by ~1e-7 px over a pixel."""
+    H, W = rays.shape[0], rays.shape[1]
+    jl = max(j - 1, 0)
+    jr = min(j + 1, W - 1)
+    it = max(i - 1, 0)
+    ib = min(i + 1, H - 1)
+    dxu = (rays[i, jr, 0] - rays[i, jl, 0]) / (jr - jl)
+    dyu = (rays[i, jr, 1] - rays[i, jl, 1]) / (jr - jl)
+    dxv = (rays[ib, j, 0] - rays[it, j, 0]) / (ib - it)
+    dyv = (rays[ib, j, 1] - rays[it, j, 1]) / (ib - it)
+    return dxu, dyu, dxv, dyv
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _on_outline(fbuf, zbuf, bi, bj):  # pragma: no cover - compiled
     """Does the pixel at buffer cell (bi, bj) straddle the part's outline: part and
     no part, or depths far apart, among the 3 x 3 cells around?"""
@@ -482,16 +499,8 @@ def shade_scene(  # pragma: no cover - compiled
                     points[i, j, 2] = X2
                     flags[i, j] = 3 if irr > 0.0 else 1
             if edge_samples > 1 and _on_outline(fbuf, zbuf, bi, bj):
-                # The pixel's own rays, spread over its area through the local Jacobian of
-                # the undistortion (first order: errors ~1e-7 px over a pixel).
-                jl = max(j - 1, 0)
-                jr = min(j + 1, W - 1)
-                it = max(i - 1, 0)
-                ib = min(i + 1, H - 1)
-                dxu = (rays[i, jr, 0] - rays[i, jl, 0]) / (jr - jl)
-                dyu = (rays[i, jr, 1] - rays[i, jl, 1]) / (jr - jl)
-                dxv = (rays[ib, j, 0] - rays[it, j, 0]) / (ib - it)
-                dyv = (rays[ib, j, 1] - rays[it, j, 1]) / (ib - it)
+                # The pixel's own rays, spread over its area.
+                dxu, dyu, dxv, dyv = _ray_jacobian(rays, i, j)
                 acc = 0.0
                 for si in range(edge_samples):
                     dv = (si + 0.5) / edge_samples - 0.5
@@ -596,16 +605,7 @@ def shade_board(  # pragma: no cover - compiled
     inv_n = 1.0 / (ss * ss)
     for i in range(H):
         for j in range(W):
-            # Local Jacobian of the undistortion map: sub-pixel rays by a
-            # first-order expansion (errors ~1e-7 px over a pixel).
-            jl = max(j - 1, 0)
-            jr = min(j + 1, W - 1)
-            it = max(i - 1, 0)
-            ib = min(i + 1, H - 1)
-            dxu = (rays[i, jr, 0] - rays[i, jl, 0]) / (jr - jl)
-            dyu = (rays[i, jr, 1] - rays[i, jl, 1]) / (jr - jl)
-            dxv = (rays[ib, j, 0] - rays[it, j, 0]) / (ib - it)
-            dyv = (rays[ib, j, 1] - rays[it, j, 1]) / (ib - it)
+            dxu, dyu, dxv, dyv = _ray_jacobian(rays, i, j)
             acc = 0.0
             for si in range(ss):
                 dv = (si + 0.5) / ss - 0.5
