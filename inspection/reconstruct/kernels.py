@@ -820,48 +820,6 @@ def fill_row_gaps(disparity, passes):  # pragma: no cover
 
 
 @njit(cache=True, nogil=True)
-def fill_column_gaps(disparity, passes):  # pragma: no cover
-    """Fill NaN pixels from their measured column neighbours, in place, ``passes`` times.
-
-    As :func:`fill_row_gaps`, along the columns: each pass sets every NaN
-    pixel with a measured neighbour above or below to the mean of the
-    measured ones (values of the previous pass), so gaps of up to
-    ``2 * passes`` rows close.
-
-    Parameters
-    ----------
-    disparity : (H, W) float32
-        NaN where not measured; modified in place.
-    passes : int
-    """
-    H, W = disparity.shape
-    above = np.empty(W, np.float32)
-    here = np.empty(W, np.float32)
-    for _ in range(passes):
-        for x in range(W):
-            above[x] = np.nan
-        for y in range(H):
-            row = disparity[y]
-            for x in range(W):
-                here[x] = row[x]
-            for x in range(W):
-                if not np.isnan(here[x]):
-                    continue
-                s = np.float32(0.0)
-                c = 0
-                if not np.isnan(above[x]):
-                    s += above[x]
-                    c += 1
-                if y + 1 < H and not np.isnan(disparity[y + 1, x]):
-                    s += disparity[y + 1, x]
-                    c += 1
-                if c > 0:
-                    row[x] = s / np.float32(c)
-            for x in range(W):
-                above[x] = here[x]
-
-
-@njit(cache=True, nogil=True)
 def triangulate_matches(
     x_left,
     rows,
@@ -949,7 +907,6 @@ def triangulate_matches(
 __all__ = [
     "SHADE_TERMS",
     "field_slopes",
-    "fill_column_gaps",
     "fill_row_gaps",
     "refine_cyclopean",
     "refine_pixels",

@@ -441,7 +441,7 @@ def fill_gaps(disparity: npt.NDArray[np.float32], p: ReconstructParams) -> None:
     # ~50x more.
     kernels.fill_row_gaps(disparity, p.stride)
     if p.row_stride > 1:
-        kernels.fill_column_gaps(disparity, p.row_stride - 1)
+        kernels.fill_row_gaps(disparity.T, p.row_stride - 1)  # the columns: rows of the view
 
 
 __all__ = [
