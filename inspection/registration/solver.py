@@ -236,7 +236,8 @@ def register(
         if fit.m < fit.cap:
             _grow_subset(fit)
             continue
-        fit.stop = StopReason.CONVERGED if (step.tiny or step.accepted) else StopReason.NO_PROGRESS
+        settled = step.tiny or step.accepted or _at_minimum(fit, g)
+        fit.stop = StopReason.CONVERGED if settled else StopReason.NO_PROGRESS
         break
 
     # 5. Every point's figures at the final pose, and the pose's observability.
@@ -629,6 +630,20 @@ def _settled(fit: _Fit, e0: float, step: _Step) -> bool:
     ):
         settled = True
     return settled
+
+
+def _at_minimum(fit: _Fit, g: np.ndarray) -> bool:
+    """Whether the undamped (Gauss-Newton) step moves the points by less than the noise
+    leaves the pose uncertain (RMS, or the tolerance if larger): the pose is at the
+    model's minimum to within what the points can tell, and a cost that no damped step
+    lowered is rough there (points trading faces under so small a step), not far from
+    its minimum."""
+    delta, _, ok = lm_step(fit.H, g, 0.0)
+    if not ok:
+        return False  # a direction the points do not constrain: no minimum to speak of
+    # delta's rotation part is scaled by the points' reach: |delta| is the RMS displacement.
+    reach = max(fit.p.tolerance_mm, _uncertainty(fit.H, fit.sigma, fit.weight_sum))
+    return float(np.sqrt(delta @ delta)) <= reach
 
 
 def _view_rule_stuck(fit: _Fit, step: _Step) -> bool:
