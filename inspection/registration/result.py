@@ -18,13 +18,14 @@ class StopReason(enum.StrEnum):
 
     CONVERGED = "converged"
     """The last step was below the tolerance, or no step could lower the cost
-    and the predicted gain was negligible (a minimum)."""
+    while the Gauss-Newton step lay within the pose's own uncertainty (a
+    minimum, on a cost rough at that scale, e.g. correspondences trading faces)."""
     MAX_ITERATIONS = "max_iterations"
     """The iteration budget ran out before convergence."""
     NO_PROGRESS = "no_progress"
     """The trust region shrank to nothing without finding a lower cost while
-    the model still predicted a real gain (a rough cost, e.g. correspondences
-    jumping between faces)."""
+    the Gauss-Newton step still reached beyond the pose's uncertainty (or a
+    direction was unconstrained): the pose may be short of its minimum."""
 
 
 @dataclass(frozen=True, eq=False)

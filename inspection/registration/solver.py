@@ -41,7 +41,10 @@ The stages, as :func:`register` runs them:
    otherwise crawl along a direction the subset leaves loose. Then the scale
    narrows, or the subset grows ``subset_growth`` times, up to
    ``max_subset``; a pose those points do not pin down to
-   ``uncertainty_mm`` continues on every point.
+   ``uncertainty_mm`` continues on every point. On the last subset, a fit
+   that no damped step moves has converged if its Gauss-Newton step lies
+   within the pose's own uncertainty (the cost is rough at that scale), and
+   made no progress otherwise.
 5. *The result*: every point's residual and weight at the final pose (one
    query of the points the fit did not use), the observability and the
    covariance of the pose.
@@ -633,17 +636,37 @@ def _settled(fit: _Fit, e0: float, step: _Step) -> bool:
 
 
 def _at_minimum(fit: _Fit, g: np.ndarray) -> bool:
-    """Whether the undamped (Gauss-Newton) step moves the points by less than the noise
-    leaves the pose uncertain (RMS, or the tolerance if larger): the pose is at the
-    model's minimum to within what the points can tell, and a cost that no damped step
-    lowered is rough there (points trading faces under so small a step), not far from
-    its minimum."""
-    delta, _, ok = lm_step(fit.H, g, 0.0)
-    if not ok:
-        return False  # a direction the points do not constrain: no minimum to speak of
+    """Whether the pose is at the model's minimum to within what the points can tell,
+    so that a cost no damped step lowered is rough there (points trading faces under
+    so small a step), not far from its minimum."""
+    return gauss_newton_step_within_noise(fit.H, g, fit.sigma, fit.weight_sum, fit.p.tolerance_mm)
+
+
+def gauss_newton_step_within_noise(
+    H: np.ndarray, g: np.ndarray, sigma: float, vs: float, tolerance_mm: float
+) -> bool:
+    """Whether the undamped (Gauss-Newton) step ``H delta = -g`` is shorter than the
+    tolerance, or no longer than the noise typically displaces the pose, measured in
+    the metric of the pose's own covariance ``sigma^2 H^-1 / vs`` (``H`` normalised
+    by the weight total ``vs``): its squared Mahalanobis length at most the six
+    parameters' expected chi-square. The metric matters: a step along a
+    well-constrained direction is measured against that direction's small
+    uncertainty, not against the uncertainty of the loosest one. A pose with a
+    direction the points do not constrain has no minimum to speak of."""
+    if not (np.all(np.isfinite(H)) and np.all(np.isfinite(g))):
+        return False
+    eig = np.linalg.eigvalsh(H)
+    if eig[0] < _DEGENERATE_REL_EIG * max(float(eig[-1]), 1e-300):
+        return False
+    delta, _, ok = lm_step(H, g, 0.0)
+    if not ok or not np.all(np.isfinite(delta)):
+        return False
     # delta's rotation part is scaled by the points' reach: |delta| is the RMS displacement.
-    reach = max(fit.p.tolerance_mm, _uncertainty(fit.H, fit.sigma, fit.weight_sum))
-    return float(np.sqrt(delta @ delta)) <= reach
+    if float(np.sqrt(delta @ delta)) <= tolerance_mm:
+        return True
+    if not (sigma > 0.0 and vs > 0.0):
+        return False
+    return float(delta @ H @ delta) * vs / (sigma * sigma) <= len(delta)
 
 
 def _view_rule_stuck(fit: _Fit, step: _Step) -> bool:

@@ -103,10 +103,10 @@ def test_comparison_point_deviation(measured, name: str) -> None:
 
 
 def test_a_fit_that_stalls_at_its_minimum_measures_the_part(part) -> None:
-    """Part 71 of the defects benchmark (seed 1): its last fit stops with no step lowering a
-    cost that is rough at the micrometre (points trading faces), a Gauss-Newton step of
-    ~2 um short of a minimum the noise leaves ~6 um uncertain. That is a fit at its
-    minimum, and the part is measured: its 0.93 mm dent is found."""
+    """A part of the defects benchmark whose last fit ends with no damped step lowering a
+    cost rough at the micrometre (points trading faces), its Gauss-Newton step within
+    the pose's uncertainty: a fit at its minimum, so the part is measured and its dent
+    found."""
     from bench.bench_defects import draw
 
     mesh = part.cad.to_trimesh()

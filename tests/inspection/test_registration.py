@@ -632,3 +632,55 @@ def test_params_fail_fast(kwargs):
 def test_params_store_a_unit_view_direction():
     assert RegisterParams(view_direction=(0.0, 0.0, 2.0)).view_direction == (0.0, 0.0, 1.0)
     assert RegisterParams().view_direction is None
+
+
+def _plate_like_normal_matrix() -> np.ndarray:
+    """A normal matrix (normalised by the weight total) with three stiff directions and
+    three loose ones a hundred times weaker, as a flat sheet gives: tilts and the
+    normal's shift stiff, the in-plane slide and spin loose."""
+    rotation = Rotation.from_euler("xyz", [20.0, -35.0, 50.0], degrees=True).as_matrix()
+    basis = np.zeros((6, 6))
+    basis[:3, :3] = rotation
+    basis[3:, 3:] = rotation.T
+    return basis @ np.diag([1.0, 1.0, 0.01, 0.01, 0.01, 1.0]) @ basis.T, basis
+
+
+@pytest.mark.parametrize(
+    ("direction", "length_mm", "within"),
+    [
+        # sigma 0.01 mm on a weight total of 1e4: the pose's standard deviation is
+        # 0.1 um along a stiff direction, 1 um along a loose one.
+        (0, 0.5e-4, True),
+        (0, 2e-4, True),  # within the six parameters' chi-square (squared length 4)
+        (0, 3e-4, False),  # beyond it (9)
+        (0, 1e-3, False),  # as long as the loose direction's uncertainty, but along a stiff one
+        (5, 1e-3, False),
+        (2, 0.5e-3, True),
+        (3, 0.9e-3, True),
+        (4, 3e-3, False),
+    ],
+)
+def test_a_gauss_newton_step_is_judged_in_the_metric_of_the_poses_covariance(
+    direction: int, length_mm: float, within: bool
+) -> None:
+    from inspection.registration.solver import gauss_newton_step_within_noise
+
+    H, basis = _plate_like_normal_matrix()
+    delta = basis[:, direction] * length_mm
+    g = -H @ delta
+    assert gauss_newton_step_within_noise(H, g, 0.01, 1e4, 1e-6) is within
+
+
+def test_a_gauss_newton_step_without_a_minimum_or_a_noise_is_not_within_it() -> None:
+    from inspection.registration.solver import gauss_newton_step_within_noise
+
+    H, basis = _plate_like_normal_matrix()
+    g = -H @ (basis[:, 2] * 0.5e-3)
+    assert gauss_newton_step_within_noise(H, g, 0.01, 1e4, 1e-6)
+    # A direction the points do not constrain: no minimum, however short the step.
+    free = basis @ np.diag([1.0, 1.0, 0.01, 0.01, 1e-5, 1.0]) @ basis.T
+    assert not gauss_newton_step_within_noise(free, -free @ (basis[:, 2] * 1e-5), 0.01, 1e4, 1e-6)
+    # No noise estimate: only the tolerance counts.
+    assert not gauss_newton_step_within_noise(H, g, 0.0, 1e4, 1e-6)
+    assert gauss_newton_step_within_noise(H, g, 0.0, 1e4, 1e-3)
+    assert not gauss_newton_step_within_noise(H, np.full(6, np.nan), 0.01, 1e4, 1e-6)
