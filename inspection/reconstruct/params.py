@@ -59,10 +59,11 @@ class ReconstructParams:
     stride : int
         Refine every ``stride``-th column of the rectified left image (1: every pixel).
     row_stride : int
-        ... of every ``row_stride``-th row (1: every row). The windows span
-        ``window`` rows, so the rows left out cost the averages at the
-        comparison points little; the fitted pose, which rests on the bends
-        and outlines, loses a little more.
+        Refine every ``row_stride``-th row of the rectified left image (1:
+        every row); the rows between are filled from their measured
+        neighbours. The windows span ``window`` rows, so the rows left out
+        cost the averages at the comparison points little; the fitted pose,
+        which rests on the bends and outlines, loses more.
     warp_passes : int
         Passes of warped refinement after the square-window one (0: none):
         windows whose disparity field bends or slopes are fitted again with
