@@ -1163,6 +1163,14 @@ def _split_sql(script: str) -> list[str]:
     return [s.strip() for s in script.split(";") if s.strip()]
 
 
+def archived_rows(n: int, max_points: int) -> slice | np.ndarray:
+    """The rows of ``n`` points the deviation archive keeps: all, or ``max_points`` of
+    them evenly strided."""
+    if n <= max_points:
+        return slice(None)
+    return np.linspace(0, n - 1, max_points).round().astype(np.int64)
+
+
 class DeviationArchive:
     """Per-point deviations of each inspection, one compressed ``.npz`` per result id.
 
@@ -1198,10 +1206,8 @@ class DeviationArchive:
             raise ValueError(
                 f"points (N, 3) and distances (N,) expected, got {p.shape} and {d.shape}"
             )
-        if len(p) > self.max_points:
-            keep = np.linspace(0, len(p) - 1, self.max_points).round().astype(np.int64)
-            p, d = p[keep], d[keep]
-        p, d = p.astype(np.float32), d.astype(np.float32)
+        keep = archived_rows(len(p), self.max_points)
+        p, d = p[keep].astype(np.float32), d[keep].astype(np.float32)
         self.directory.mkdir(parents=True, exist_ok=True)
         target = self.path(id_)
         tmp = target.with_name(target.name + ".tmp.npz")

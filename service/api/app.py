@@ -66,8 +66,8 @@ def create_app(
         processes of their own (``measurer``).
     measurer : UploadMeasurer, optional
         The measuring processes of the uploads (the caller closes one it passes);
-        default: ``[http] max_measurements`` of them, started with the first upload
-        and ended with the app. Not used with a ``pipeline``.
+        default: ``[http] max_measurements`` of them, started and ended with the
+        app. Not used with a ``pipeline``.
     bus : ResultHub, optional
         Fan-out of new results to ``/v1/stream``. Pass the one the worker or
         a zenoh subscriber publishes into; default: a new one, fed by the

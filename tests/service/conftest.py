@@ -47,8 +47,8 @@ def pg_server() -> Iterator[PgServer]:
 
 @pytest.fixture(scope="session")
 def upload_measurer() -> Iterator[UploadMeasurer]:
-    """The process that measures the API's uploads, shared by the apps of the session:
-    started once (the first upload pays its start), as one app starts it for its life."""
+    """One measuring process for the API's uploads, shared by the apps of the session
+    as one app keeps its own for its life: the first upload pays for its start."""
     measurer = UploadMeasurer(1)
     yield measurer
     measurer.close()

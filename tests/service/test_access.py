@@ -9,6 +9,7 @@ API's measuring capacity refused at once (503 with Retry-After).
 from __future__ import annotations
 
 import os
+import select
 import signal
 import threading
 from contextlib import contextmanager
@@ -257,6 +258,15 @@ def test_an_upload_is_measured_in_a_process_of_its_own_at_a_lower_priority(
         assert by_process[key] == by_thread[key], key
 
 
+def _kill_and_wait(pid: int) -> None:
+    fd = os.pidfd_open(pid)
+    try:
+        os.kill(pid, signal.SIGKILL)
+        assert select.select([fd], [], [], 60.0)[0], "a killed process did not end"
+    finally:
+        os.close(fd)
+
+
 def _cpu_s(pid: int) -> float:
     fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
@@ -275,9 +285,7 @@ def test_a_measuring_process_that_dies_costs_its_own_upload_a_503_and_no_other(
         with serve(*line, tmp_path, measurer=measurer, max_upload_mb=60.0) as (client, _):
             assert upload(client).status_code == 200
             (pid,) = measurer.pids()
-            os.kill(pid, signal.SIGKILL)
-            while pid in measurer.pids():  # the kill lands
-                threading.Event().wait(0.05)
+            _kill_and_wait(pid)
             assert upload(client).status_code == 200  # started again for it
             (pid,) = measurer.pids()
             # A large cloud, killed once its process has spent a second measuring it.
@@ -287,15 +295,52 @@ def test_a_measuring_process_that_dies_costs_its_own_upload_a_503_and_no_other(
             t.start()
             try:
                 while _cpu_s(pid) < before + 1.0 and t.is_alive():
-                    threading.Event().wait(0.05)
-                os.kill(pid, signal.SIGKILL)
+                    t.join(0.05)  # the upload's answer, or a second of measuring
+                _kill_and_wait(pid)
             finally:
                 t.join(120)
+            assert not t.is_alive(), "the upload was not answered"
             r = answer["r"]
             assert r.status_code == 503 and code(r) == "measurer_died", r.text
             assert int(r.headers["retry-after"]) > 0
             assert upload(client).status_code == 200  # a new process, the place given back
             assert measurer.pids() and measurer.pids() != [pid]
+            assert client.get("/v1/health/live").status_code == 200
+    finally:
+        measurer.close()
+
+
+def test_a_measurer_closed_mid_upload_answers_it_and_leaves_no_process(
+    line,  # noqa: F811
+    tmp_path,
+    monkeypatch,
+):
+    """An API stopping while an upload is measured waits for it only so long: past that
+    the upload is answered 503, its process is gone, and later uploads are refused."""
+    monkeypatch.delenv(KEYS_ENV, raising=False)
+    measurer = UploadMeasurer(1, close_s=0.0)
+    try:
+        with serve(*line, tmp_path, measurer=measurer, max_upload_mb=60.0) as (client, _):
+            assert upload(client).status_code == 200
+            (pid,) = measurer.pids()
+            answer: dict = {}
+            t = threading.Thread(target=lambda: answer.setdefault("r", upload(client, n=1_500_000)))
+            before = _cpu_s(pid)
+            t.start()
+            try:
+                while _cpu_s(pid) < before + 1.0 and t.is_alive():
+                    t.join(0.05)  # the upload's answer, or a second of measuring
+                measurer.close()
+            finally:
+                t.join(120)
+            assert not t.is_alive(), "the upload was not answered"
+            r = answer["r"]
+            assert r.status_code == 503 and code(r) == "measurer_died", r.text
+            assert measurer.pids() == []
+            with pytest.raises(ProcessLookupError):
+                os.kill(pid, 0)  # ended and reaped
+            r = upload(client)
+            assert r.status_code == 503 and code(r) == "measurer_died", r.text
             assert client.get("/v1/health/live").status_code == 200
     finally:
         measurer.close()
