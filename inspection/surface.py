@@ -21,8 +21,10 @@ links the nodes within the defect search's support radius. Per part:
   and bumps apart. Edge points carry their own rim's artefacts, so a node
   away from the edges is smoothed over points away from the edges only,
   and a region must cover ``min_area_mm2`` away from the edges; flagged
-  nodes at an edge then join the region they touch. So a dent by a hole is
-  found, with its part at the rim, and a hole's rim alone is not a defect.
+  nodes at an edge join the region they touch, and join into one region
+  the pieces of a dent that a bend or an edge runs across. So a dent by a
+  hole or on a bend is found whole, with its part at the rim, and a hole's
+  rim alone is not a defect.
 """
 
 from __future__ import annotations
@@ -490,8 +492,9 @@ class SurfaceModel:
         comparison: tuple[tuple[str, tuple[float, float, float]], ...],
     ) -> tuple[SurfaceDefect, ...]:
         """Regions out of the band: a node away from the edges is smoothed over points away
-        from the edges, a node at an edge over all; regions need ``min_area_mm2`` away from
-        the edges, then take in the flagged edge nodes they touch."""
+        from the edges, a node at an edge over all; a region is the flagged nodes away from
+        the edges joined through the flagged edge nodes they touch, and needs
+        ``min_area_mm2`` away from the edges."""
         M = len(self.keys)
         rim = edge_mm <= self.edge_mm
         median_inner, count_inner, median_all, count_all = _node_medians(
@@ -504,17 +507,27 @@ class SurfaceModel:
         judged = n >= min_support
         out: list[SurfaceDefect] = []
         for flagged in (judged & (s < params.lower_mm), judged & (s > params.upper_mm)):
-            core = np.flatnonzero(flagged & ~rim)
-            if len(core) == 0:
+            core = flagged & ~rim
+            if not core.any():
                 continue
-            k, label = connected_components(self.join[core][:, core], directed=False)
-            core_area = np.bincount(label, self.areas[core], k)
-            rim_nodes = flagged & rim
+            # A dent across a bend is cut in two by the band of edge nodes, as wide as
+            # the bend and the edge distance on both sides: the flagged edge nodes
+            # within twice the support of the core join its pieces into one region.
+            # Its peak is read within the support of the core alone, as edge nodes
+            # further out rest on the rim's artefacts.
+            inside = np.flatnonzero(core)
+            beside = np.flatnonzero(flagged & rim)
+            gap, _ = cKDTree(self.centres[inside]).query(
+                self.centres[beside], distance_upper_bound=2.0 * self.support_mm
+            )
+            peaked = core.copy()
+            peaked[beside[gap <= self.support_mm]] = True
+            kept = np.union1d(inside, beside[np.isfinite(gap)])
+            k, label = connected_components(self.join[kept][:, kept], directed=False)
+            core_area = np.bincount(label, self.areas[kept] * core[kept], k)
             for j in np.flatnonzero(core_area >= params.min_area_mm2):
-                members = core[label == j]
-                touching = np.asarray(self.support[members].sum(axis=0)).ravel() > 0
-                region = np.union1d(members, np.flatnonzero(touching & rim_nodes))
-                out.append(self._defect(region, s, count_all, comparison))
+                region = kept[label == j]
+                out.append(self._defect(region, peaked[region], s, count_all, comparison))
         out.sort(key=lambda f: -f.area_mm2)
         return tuple(out)
 
@@ -529,10 +542,12 @@ class SurfaceModel:
     def _defect(
         self,
         region: np.ndarray,
+        peaked: np.ndarray,
         s: np.ndarray,
         counts: np.ndarray,
         comparison: tuple[tuple[str, tuple[float, float, float]], ...],
     ) -> SurfaceDefect:
+        """The defect of the nodes ``region``, its peak among those ``peaked`` marks."""
         a = self.areas[region]
         v = s[region]
         w = a * np.abs(v)
@@ -544,7 +559,7 @@ class SurfaceModel:
         return SurfaceDefect(
             center_mm=centre,
             area_mm2=float(a.sum()),
-            peak_mm=float(v[np.argmax(np.abs(v))]),
+            peak_mm=float(v[peaked][np.argmax(np.abs(v[peaked]))]),
             mean_mm=float((a * v).sum() / a.sum()),
             nearest_point=nearest,
             points=int(counts[region].sum()),

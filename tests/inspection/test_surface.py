@@ -133,6 +133,21 @@ def test_a_hole_rim_is_not_a_defect_but_a_dent_by_the_hole_is(panel):
     assert f.peak_mm == pytest.approx(-0.4, abs=0.05)
 
 
+@pytest.mark.parametrize("depth_mm", [1.5, -1.5])
+def test_a_dent_across_the_embossing_edge_is_one_defect_where_it_is(panel, depth_mm):
+    """The band of edge nodes along a rounded bend is wider than the support: a dent
+    centred on it would leave a piece of core on either side."""
+    cad = panel[0]
+    cx, cy = SPEC.emboss_center_mm
+    dent = dent_at(cad, cx + 0.5 * SPEC.emboss_size_mm[0], cy, depth_mm, radius_mm=16.0)
+    devs = judge(panel, cloud(cad, [dent], seed=7))
+    assert len(devs.defects) == 1, [f.describe() for f in devs.defects]
+    f = devs.defects[0]
+    assert f.kind == ("dent" if depth_mm > 0 else "bump")
+    assert np.linalg.norm(f.center_mm - dent.center_mm) < 3.0
+    assert f.peak_mm == pytest.approx(-depth_mm, abs=0.1)
+
+
 def test_occlusion_edges_are_the_silhouettes_the_cameras_see():
     box = trimesh.creation.box((100.0, 100.0, 100.0))
     surface = SurfaceModel.build(box.vertices, box.faces, box.face_normals)
