@@ -525,7 +525,8 @@ class SurfaceModel:
             kept = np.union1d(inside, beside[np.isfinite(gap)])
             k, label = connected_components(self.join[kept][:, kept], directed=False)
             core_area = np.bincount(label, self.areas[kept] * core[kept], k)
-            for j in np.flatnonzero(core_area >= params.min_area_mm2):
+            has_core = np.bincount(label, core[kept], k) > 0  # edge nodes alone are no defect
+            for j in np.flatnonzero(has_core & (core_area >= params.min_area_mm2)):
                 region = kept[label == j]
                 out.append(self._defect(region, peaked[region], s, count_all, comparison))
         out.sort(key=lambda f: -f.area_mm2)

@@ -132,6 +132,16 @@ def test_a_hole_rim_is_not_a_defect_but_a_dent_by_the_hole_is(panel):
     assert f.kind == "dent" and np.linalg.norm(f.center_mm - dent.center_mm) < 5.0
     assert f.peak_mm == pytest.approx(-0.4, abs=0.05)
 
+    # The sunk ring beside a dent, every region counted however small: edge nodes that
+    # no piece of the dent's core joins are still no defect of their own.
+    dent = dent_at(cad, hole.x_mm - hole.radius_mm - 6.0, hole.y_mm, 0.4, radius_mm=12.0)
+    pts = cloud(cad, [dent], seed=5)
+    gap = np.hypot(pts[:, 0] - hole.x_mm, pts[:, 1] - hole.y_mm) - hole.radius_mm
+    pts[(gap >= 0) & (gap < 2.0) & (pts[:, 2] > 20.0), 2] -= 0.5
+    devs = judge(panel, pts, params=SurfaceParams(min_area_mm2=0.0))
+    assert [f.kind for f in devs.defects] == ["dent"]
+    assert np.linalg.norm(devs.defects[0].center_mm - dent.center_mm) < 5.0
+
 
 @pytest.mark.parametrize("depth_mm", [1.5, -1.5])
 def test_a_dent_across_the_embossing_edge_is_one_defect_where_it_is(panel, depth_mm):
