@@ -512,17 +512,12 @@ class SurfaceModel:
                 continue
             # A dent across a bend is cut in two by the band of edge nodes, as wide as
             # the bend and the edge distance on both sides: the flagged edge nodes
-            # within twice the support of the core join its pieces into one region.
-            # Its peak is read within the support of the core alone, as edge nodes
-            # further out rest on the rim's artefacts.
-            inside = np.flatnonzero(core)
-            beside = np.flatnonzero(flagged & rim)
-            gap, _ = cKDTree(self.centres[inside]).query(
-                self.centres[beside], distance_upper_bound=2.0 * self.support_mm
-            )
-            peaked = core.copy()
-            peaked[beside[gap <= self.support_mm]] = True
-            kept = np.union1d(inside, beside[np.isfinite(gap)])
+            # within two supports of the core join its pieces into one region. Its
+            # peak is read within one support of the core, as edge nodes further
+            # out rest on the rim's artefacts.
+            beside = flagged & rim
+            peaked = core | (beside & (self.support @ core.astype(np.float64) > 0))
+            kept = np.flatnonzero(core | (beside & (self.support @ peaked.astype(np.float64) > 0)))
             k, label = connected_components(self.join[kept][:, kept], directed=False)
             core_area = np.bincount(label, self.areas[kept] * core[kept], k)
             has_core = np.bincount(label, core[kept], k) > 0  # edge nodes alone are no defect
