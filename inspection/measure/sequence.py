@@ -39,6 +39,7 @@ input that cannot be measured (no surface seen, no fit) gives a
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import math
 import time
@@ -50,7 +51,7 @@ import numpy.typing as npt
 from ..alignment import align
 from ..alignment.rps import rps_align
 from ..cadpoints import LocalModel, measure_points
-from ..deviations import FEATURE_KINDS, Deviations, Verdict, deviations
+from ..deviations import FEATURE_KINDS, ComparisonPoint, Deviations, Verdict, deviations
 from ..errors import InspectionError, InvalidInput
 from ..feature_checks import check_features, hole_spec
 from ..features import Flash, hole_frame
@@ -496,23 +497,29 @@ def _judge(
         )
 
     lines = points if unguided is None else unguided
-    devs = _deviations_at(part, points, T, fit, p, frame, cameras, views, timings, lines, flash)
+    at = functools.partial(
+        _deviations_at, part, points, fit=fit, p=p, frame=frame, cameras=cameras, views=views,
+        timings=timings, lines=lines, flash=flash,
+    )  # fmt: skip
 
-    # 8. The datum alignment, where the part has one: the part measured again at its pose.
+    # 8. The datum alignment, where the part has one: its datums measured at the fit's pose
+    # place it, and the whole part is measured once, at the pose the datums give.
     rps = None
     if part.rps is not None:
         t = _mark()
-        measured, why = _datums_measured(part, devs, T)
+        names = {d.name for d in part.rps.datums}
+        datums = at(T, only=[cp for cp in part.comparison_points if cp.name in names])
+        measured, why = _datums_measured(part, datums, T)
         if measured is None:
             _lap(timings, "rps", t)
             return dataclasses.replace(
                 _unmeasured(why or "", timings, t_start, *passes, frame=frame),
-                transform=T, registration=fit, quality=quality, deviations=devs, points=points,
+                transform=T, registration=fit, quality=quality, deviations=at(T), points=points,
             )  # fmt: skip
         rps = rps_align(part.rps.datums, measured, init=T, hold=part.rps.mode == "best_fit_rps")
         T = rps.transform
-        devs = _deviations_at(part, points, T, fit, p, frame, cameras, views, timings, lines, flash)
         _lap(timings, "rps", t)
+    devs = at(T)
     _lap(timings, "total", t_start)
     return Measurement(
         verdict=devs.verdict,
@@ -534,6 +541,7 @@ def _deviations_at(
     part: PartModel,
     points: np.ndarray,
     T: np.ndarray,
+    *,
     fit: Registration,
     p: MeasureParams,
     frame: Frame,
@@ -542,12 +550,17 @@ def _deviations_at(
     timings: _Laps,
     lines: np.ndarray,
     flash: Flash | None = None,
+    only: Sequence[ComparisonPoint] | None = None,
 ) -> Deviations:
     """6., 7. and the features: the deviations of ``points`` placed by ``T`` (laps
     ``deviations`` and ``features``); character lines in ``lines`` placed by ``T``.
 
+    ``only``: these comparison points alone, and no search of the surface (the
+    datums that place the part before it is measured).
+
     A guided pass takes its windows' shape from the CAD, which pulls a crease
     towards its drawn place: lines are found in the unguided first pass."""
+    comparison_points = part.comparison_points if only is None else tuple(only)
     t = _mark()
     viewpoints = directions = None
     if cameras is not None:
@@ -558,21 +571,21 @@ def _deviations_at(
     devs = deviations(
         part.exact,
         points_cad,
-        part.comparison_points,
+        comparison_points,
         min_support=p.min_support,
         max_distance_mm=p.register.max_distance_mm,
-        surface=part.surface,
+        surface=part.surface if only is None else None,
         surface_params=p.surface,
         outlier_mm=rejection_mm(fit),
         viewpoints=viewpoints,
         view_directions=directions,
     )
-    devs = _held_to_the_pose(devs, part.comparison_points, fit, p)
+    devs = _held_to_the_pose(devs, comparison_points, fit, p)
     _lap(timings, "deviations", t)
-    if any(cp.kind in FEATURE_KINDS for cp in part.comparison_points):
+    if any(cp.kind in FEATURE_KINDS for cp in comparison_points):
         t = _mark()
         devs = check_features(
-            devs, part.comparison_points, part.cad, points_cad, T, *views, tree=part.exact,
+            devs, comparison_points, part.cad, points_cad, T, *views, tree=part.exact,
             line_points_cad=points_cad if lines is points else apply(T, lines), flash=flash,
         )  # fmt: skip
         _lap(timings, "features", t)
