@@ -581,8 +581,12 @@ def _fit_edges(
             plain,
         ]
         if slide is not None:
-            lit = np.cumsum((kern[None, :, :] * slide[:, None, :])[:, :, ::-1], axis=2)
-            cols.append(lit[:, :, ::-1][:, :, scan])  # (n, T, S)
+            # The slide's light beyond each candidate: what lies past the last one in one
+            # product, summed back over the candidates' own cells.
+            a, b = scan[0], scan[-1] + 1
+            lit = np.cumsum((kern[None, :, a:b] * slide[:, None, a:b])[:, :, ::-1], axis=2)
+            lit = lit[:, :, ::-1] + (slide[:, b:] @ kern[:, b:].T)[:, :, None]
+            cols.append(lit)  # (n, T, S)
         npar = len(cols)
         A = np.empty((n, len(scan), npar, npar))
         B = np.empty((n, len(scan), npar))
