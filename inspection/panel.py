@@ -161,22 +161,26 @@ def vary_holes(
     radius_mm: float = 0.1,
 ) -> tuple[PanelSpec, tuple[HoleShift, ...]]:
     """The panel as made: each hole shifted by up to ``shift_mm`` in x and y and its radius
-    changed by up to ``radius_mm`` (uniform), and the shifts (the truth)."""
-    shifts = tuple(
-        HoleShift(*(float(v) for v in rng.uniform(-1, 1, 3) * [shift_mm, shift_mm, radius_mm]))
-        for _ in spec.holes
-    )
+    changed by up to ``radius_mm`` (uniform), and the shifts (the truth).
+
+    A hole is made no smaller than its rim can be drawn (1.5 x the spacing across holes):
+    a hole drawn at that size only grows, and its shift says by how much."""
+    smallest = 1.5 * (spec.hole_spacing_mm if spec.hole_spacing_mm > 0 else spec.spacing_mm)
+    shifts = []
+    for h in spec.holes:
+        dx, dy, dr = (float(v) for v in rng.uniform(-1, 1, 3) * [shift_mm, shift_mm, radius_mm])
+        shifts.append(HoleShift(dx, dy, max(dr, min(smallest - h.radius_mm, 0.0))))
     holes = tuple(
         Hole(
             h.x_mm + s.dx_mm,
             h.y_mm + s.dy_mm,
-            h.radius_mm + s.dr_mm,
+            max(h.radius_mm + s.dr_mm, min(smallest, h.radius_mm)),
             h.length_mm + 2 * s.dr_mm if h.length_mm > 0 else 0.0,
             h.angle_deg,
         )  # fmt: skip
         for h, s in zip(spec.holes, shifts, strict=True)
     )
-    return dataclasses.replace(spec, holes=holes), shifts
+    return dataclasses.replace(spec, holes=holes), tuple(shifts)
 
 
 def surface_point(

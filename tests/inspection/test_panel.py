@@ -3,7 +3,7 @@ import pytest
 import trimesh
 
 from inspection import InvalidInput
-from inspection.panel import Hole, PanelSpec, panel_height, sheet_metal_panel
+from inspection.panel import Hole, PanelSpec, panel_height, sheet_metal_panel, vary_holes
 
 
 @pytest.fixture(scope="module")
@@ -84,6 +84,23 @@ def test_surface_matches_the_height_function(panel):
 def test_scaled_panel_fits_the_rig_volume():
     small = sheet_metal_panel(PanelSpec().scaled(400.0, 260.0))
     assert small.extents[0] <= 420 and small.extents[1] <= 280
+
+
+def test_a_hole_drawn_as_small_as_its_rim_allows_is_made_no_smaller():
+    # The second hole is drawn at 1.5 x the 4 mm spacing its rim is drawn by.
+    spec = PanelSpec(holes=(Hole(100.0, 50.0, 9.0), Hole(-100.0, 0.0, 6.0)))
+    rng = np.random.default_rng(3)
+    grew = shrank = 0
+    for _ in range(12):
+        made, shifts = vary_holes(spec, rng, shift_mm=0.1, radius_mm=0.05)
+        sheet_metal_panel(made)  # refused if a rim could not be drawn
+        for drawn, h, s in zip(spec.holes, made.holes, shifts, strict=True):
+            assert h.radius_mm == pytest.approx(drawn.radius_mm + s.dr_mm, abs=1e-12)
+            assert abs(s.dr_mm) <= 0.05 and abs(s.dx_mm) <= 0.1 and abs(s.dy_mm) <= 0.1
+        assert made.holes[1].radius_mm >= 6.0 and shifts[1].dr_mm >= 0.0
+        grew += shifts[1].dr_mm > 0
+        shrank += shifts[0].dr_mm < 0
+    assert grew and shrank
 
 
 @pytest.mark.parametrize(
