@@ -25,10 +25,13 @@ Character lines: extra parts, the holes as drawn and the character line bent
 across itself near each point (a smooth bump 80 mm wide, up to 0.5 mm),
 ``.line`` and ``.line_max`` against the truth carried into the CAD frame by
 the fit's pose.
-RPS: a hole fixing x and y, the slot fixing y, three surface points fixing
-z, and a second hole's x (seven directions, so the datums have residuals):
-the residuals after the RPS alignment beside those the best fit leaves at the
-same datums.
+RPS: a hole fixing x and y, the slot (its axis pointing at that hole) the
+direction across its axis, three surface points fixing z, and a second hole's
+x (seven directions, so the datums have residuals): the residuals after the
+RPS alignment beside those the best fit leaves at the same datums; and the
+holes in the RPS frame, the measured ones placed by the measured datums
+against the made ones placed by the made datums, which is how a drawing
+locates them (no fit's pose in it).
 
 Goals: holes within 0.05 mm in position and diameter, trim edges within 0.1 mm.
 ``BENCH_FEATURE_POSES`` (default 6) and ``BENCH_FEATURE_SEEDS`` (default "11,12").
@@ -66,7 +69,7 @@ def scene():
     spec = PanelSpec(
         holes=(
             Hole(170.0, 110.0, 16.0),
-            Hole(150.0, -100.0, 10.0, length_mm=40.0, angle_deg=20.0),
+            Hole(150.0, -100.0, 10.0, length_mm=40.0, angle_deg=84.56),
             Hole(-200.0, 120.0, 10.5),
         ),
         hole_spacing_mm=0.7,
@@ -161,6 +164,7 @@ def main() -> int:
     trim_max_err: list[float] = []
     rps_res: list[float] = []
     bf_res: list[float] = []
+    rps_err: dict[str, list[float]] = {"x": [], "y": []}
     wall, cpu = [], []
     unmeasured = 0
     print(f"{'part':>10} {'hole':>4} {'dx img':>8} {'dy img':>8} {'dd img':>8} "
@@ -284,6 +288,22 @@ def main() -> int:
                 for v in d.directions:
                     bf_res.append(abs(float(np.dot(v, measured_cad[i] - P[i]))))
             del bf
+            # The holes in the RPS frame: the measured ones placed by the measured datums,
+            # against the made ones placed by the made datums (surface points stay put).
+            made = {n: np.asarray(by_name[n].position) + [sh.dx_mm, sh.dy_mm, 0.0]
+                    for n, sh in zip(("H1", "S2", "H3"), shifts, strict=True)}  # fmt: skip
+            T_true = rps_align(
+                datums, np.array([made.get(d.name, np.asarray(d.position)) for d in datums])
+            ).transform
+            for i, name in enumerate(("H1", "S2", "H3")):
+                cp = by_name[name]
+                x, y, _ = hole_frame(cp.normal, hole_spec(cp).axis)
+                ex, ey = entries[f"{name}.x"], entries[f"{name}.y"]
+                q = np.asarray(cp.position) + ex.deviation_mm * x + ey.deviation_mm * y
+                e = apply(rps.transform, apply(np.linalg.inv(T_bf), q[None]))[0]
+                e = e - apply(T_true, made[name][None])[0]
+                rps_err["x"].append(float(e @ x))
+                rps_err["y"].append(float(e @ y))
 
     def stats(xs: list[float]) -> str:
         if not xs:
@@ -316,6 +336,8 @@ def main() -> int:
     print(
         f"\nRPS datum residuals, mm: median, max  RPS {stats(rps_res)}   best fit {stats(bf_res)}"
     )
+    print("holes in the RPS frame against the made part in its own RPS frame, mm: "
+          f"x {stats(rps_err['x'])}  y {stats(rps_err['y'])}")  # fmt: skip
     print(f"features stage (with the flash's slide) per part: median wall "
           f"{statistics.median(wall):.0f} ms, "
           f"cpu {statistics.median(cpu):.0f} ms; {unmeasured} parts not measured")  # fmt: skip
