@@ -88,8 +88,8 @@ class Station:
 
     def __post_init__(self) -> None:
         self.keys = Keys(self.cfg.line.name, self.cfg.zenoh.prefix)
-        for name, p in self.parts.items():
-            self.cads.setdefault(name, (p.spec, p.cad))
+        if not self.cads:
+            self.cads = {name: (p.spec, p.cad) for name, p in self.parts.items()}
 
     @classmethod
     def load(

@@ -109,11 +109,12 @@ def test_the_features_demo_line_loads_its_part_with_checks_and_rps():
     assert kinds["C1"] == "character_line"
     scheme = rps_scheme(spec)
     assert scheme is not None and scheme.mode == "rps"
-    # The line file is line.toml but for its part, its holes made off their place and a
-    # slower trigger (the features and the RPS take their time).
+    # The line file is line.toml but for its part, alone, and a slower trigger (the
+    # features and the RPS take their time); the default line sends it beside demo-panel.
     base = (root / "line.toml").read_text().splitlines()
     other = (root / "line-features.toml").read_text().splitlines()
-    changed = {b for b, o in zip(base[1:], other[4:], strict=True) if b != o}
-    assert {c.split("=")[0].strip() for c in changed} == {
-        "parts", "hole_shift_mm", "hole_radius_mm", "trigger_period_s",
-    }  # fmt: skip
+    changed = {b for b, o in zip(base[4:], other[4:], strict=True) if b != o}
+    assert {c.split("=")[0].strip() for c in changed} == {"parts", "trigger_period_s"}
+    default = load_line_config(root / "line.toml")
+    assert {p.stem for p in default.part_spec_paths()} == {"demo-panel", spec.name}
+    assert default.simulator.hole_shift_mm == cfg.simulator.hole_shift_mm

@@ -29,11 +29,24 @@ ENV = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
 
 
 def line_file(
-    tmp_path: Path, trees: Path, period_s: float = 2.0, queue_size: int = 4, metrics_port: int = 0
+    tmp_path: Path,
+    trees: Path,
+    period_s: float = 2.0,
+    queue_size: int = 4,
+    metrics_port: int = 0,
+    parts: tuple[str, ...] = ("demo-panel",),
+    sends: tuple[str, ...] | None = None,
 ) -> Path:
     """A copy of the default line with the repo's parts and the session's tree cache; a
-    worker on its own serves its metrics on ``metrics_port`` (0: any free port)."""
+    worker on its own serves its metrics on ``metrics_port`` (0: any free port). The
+    station holds ``parts`` (the default line's first alone: its plumbing is the same)
+    and the simulator sends ``sends`` (None: all of them)."""
     text = (ROOT / "configs" / "line.toml").read_text()
+    held = 'parts = ["demo-panel", "demo-panel-features"]\n'
+    assert held in text, "the default line's parts changed: update line_file"
+    text = text.replace(held, f"parts = {json.dumps(list(parts))}\n")
+    if sends is not None:
+        text = text.replace('# parts = ["demo-panel"]', f"parts = {json.dumps(list(sends))}")
     text = text.replace('parts_dir = "parts"', f'parts_dir = "{ROOT / "configs" / "parts"}"')
     text = text.replace('trees_dir = "trees"', f'trees_dir = "{trees}"')
     text = text.replace("trigger_period_s = 2.0", f"trigger_period_s = {period_s}")
@@ -83,7 +96,10 @@ def test_cli_run_serves_zenoh_rest_and_mcap(tmp_path, trees):
     data = tmp_path / "data"
     # A short queue: SIGINT lets the worker finish what it accepted, and no more
     # than one part waits (the flash rig takes seconds per part on this machine).
-    config = line_file(tmp_path, trees, period_s=3.0, queue_size=1)
+    # make run's parts, the simulator sending the one with holes, trim edges and an RPS.
+    features = "demo-panel-features"
+    config = line_file(tmp_path, trees, period_s=3.0, queue_size=1,
+                       parts=("demo-panel", features), sends=(features,))  # fmt: skip
     run = cli("run", "--config", str(config), "--data-dir", str(data),
               "--http-port", str(http_port), "--zenoh-listen", f"tcp/127.0.0.1:{port}")  # fmt: skip
     try:
@@ -114,8 +130,18 @@ def test_cli_run_serves_zenoh_rest_and_mcap(tmp_path, trees):
         assert code == 200 and one["cad_hash"] and one["serial"] and one["tree_hash"]
         code, ctype, png = get_bytes(f"{base}/v1/inspections/{measured[0]['id']}/colormap.png")
         assert code == 200 and ctype == "image/png" and png[:8] == b"\x89PNG\r\n\x1a\n"
-        code, part = get_json(f"{base}/v1/parts/demo-panel")
+        assert one["part"] == features and one["status"] in ("pass", "fail"), one["reason"]
+        code, part = get_json(f"{base}/v1/parts/{features}")
         assert code == 200 and part["state"] == "ready" and part["tree_hash"] == one["tree_hash"]
+        kinds = {c["name"]: c["kind"] for c in one["comparison"]}
+        for name in ("H1.x", "H1.y", "H1.d", "S2.len", "H3.d"):
+            assert kinds[name] == "hole"
+        assert kinds["E1.trim"] == kinds["E3.trim_max"] == "trim_edge"
+        holes = [c for c in one["comparison"] if c["kind"] in ("hole", "trim_edge")]
+        assert all(c["verdict"] in ("pass", "fail") for c in holes), holes
+        # The RPS places H1 on its nominal (it fixes x and y, 3-2-1): measured again at the
+        # pose it gave, it is found there within the edge search's repeatability.
+        assert all(abs(c["deviation_mm"]) < 0.02 for c in holes if c["name"] in ("H1.x", "H1.y"))
     finally:
         code = stop(run)
     assert code == 0, run.stderr.read()[-3000:]

@@ -338,8 +338,9 @@ def test_worker_and_api_measure_with_the_same_loaded_part(tmp_path, trees):
     demo(trees)  # the tree is in the session's cache
     cfg = load_line_config(
         ROOT / "configs" / "line.toml",
-        overrides={("storage", "data_dir"): str(tmp_path), ("storage", "trees_dir"): str(trees)},
-    )
+        overrides={("storage", "data_dir"): str(tmp_path), ("storage", "trees_dir"): str(trees),
+                   ("station", "parts"): [PART]},
+    )  # fmt: skip
     station = Station.load(cfg, warm_up=False)
     try:
         assert station.registry is not None and station.registry.ready()
@@ -363,7 +364,7 @@ def test_simulator_parts_never_stop_a_worker_that_does_not_simulate(tmp_path, tr
     cfg = load_line_config(
         ROOT / "configs" / "line.toml",
         overrides={("storage", "data_dir"): str(tmp_path), ("storage", "trees_dir"): str(trees),
-                   ("simulator", "parts"): [PART, "bracket"]},
+                   ("station", "parts"): [PART], ("simulator", "parts"): [PART, "bracket"]},
     )  # fmt: skip
     with pytest.raises(ConfigError, match="'bracket' is neither a part of station"):
         Station.load(cfg, build_trees=False, warm_up=False)
