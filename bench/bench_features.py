@@ -298,7 +298,7 @@ def main() -> int:
             T_true = rps_align(
                 datums, np.array([made.get(d.name, np.asarray(d.position)) for d in datums])
             ).transform
-            for i, name in enumerate(("H1", "S2", "H3")):
+            for name in ("H1", "S2", "H3"):
                 cp = by_name[name]
                 x, y, _ = hole_frame(cp.normal, hole_spec(cp).axis)
                 ex, ey = entries[f"{name}.x"], entries[f"{name}.y"]
