@@ -14,9 +14,11 @@ for the fits that place the guide), ``BENCH_E2E_STRIDE``
 refines every n-th column of the rectified images, and ``BENCH_E2E_RECON``
 (``name=value`` pairs, comma-separated, e.g. ``warp_passes=1,shading=0``)
 sets any other field of ``ReconstructParams``, instead of the line's
-choices. Last, the same poses rendered with a longer flash
+choices. Then the same poses rendered with a longer flash
 (``BENCH_E2E_LONG_FLASH_US``, default 2000; 0 leaves it out): what a slow
-flash costs when the part moves during the exposure.
+flash costs when the part moves during the exposure. Last
+(``BENCH_E2E_RPS=0`` leaves it out), the default line's second part, aligned
+by its RPS: the pose its datums give beside the best fit it starts from.
 
 Per trial: the rotation error of the fitted pose; the largest displacement
 of the part's bounding-box corners (also after the first pass and after the
@@ -257,7 +259,57 @@ def main() -> int:
                   f"{centre:.3f} mm, worst comparison point {err:.3f} mm")  # fmt: skip
         print(f"  max: rotation {worst[0]:.4f} deg, origin {worst[1]:.3f} mm, "
               f"comparison point {worst[2]:.3f} mm")  # fmt: skip
+    if os.environ.get("BENCH_E2E_RPS", "1") != "0":
+        rps_beside(rec, truth_rig, seeds, pose_error)
     return 0 if ok else 1
+
+
+def rps_beside(rec, truth_rig, seeds, pose_error) -> None:  # type: ignore[no-untyped-def]
+    """The default line's second part (configs/parts/demo-panel-features.toml, holes as
+    drawn) at the same poses: the pose its RPS gives beside the best fit it starts from,
+    against the truth (its datums' own place)."""
+    import tempfile
+    from pathlib import Path
+
+    import trimesh
+
+    from inspection.measure import measure_frames
+    from inspection.rig import belt_pose
+    from inspection.simulate import simulate
+    from service.config import load_part_spec
+    from service.parts import load_part
+
+    parts = Path(__file__).resolve().parents[1] / "configs" / "parts"
+    spec = load_part_spec(parts / "demo-panel-features.toml")
+    with tempfile.TemporaryDirectory() as trees:
+        loaded = load_part(spec, parts, Path(trees))
+    mesh = trimesh.Trimesh(loaded.cad.vertices, loaded.cad.faces, process=False)
+    print(f"\n{spec.name}, aligned by its RPS (H1, the slot, three surface points), the same "
+          "poses: rotation deg and origin mm of the RPS pose | of its best fit")  # fmt: skip
+    rps, fit = [], []
+    for seed in seeds:
+        for x, y, deg in POSES:
+            T_rig_part = belt_pose(x, y, deg)
+            m = measure_frames(loaded.model, rec, simulate(truth_rig, mesh, T_rig_part, seed=seed),
+                               loaded.params)  # fmt: skip
+            if m.rps is None or m.transform is None or m.registration is None:
+                print(f"{seed:4d} ({x:+.0f}, {y:+.0f}, {deg:+.0f}): not aligned: {m.reason}")
+                continue
+            row = []
+            for T, out in ((m.transform, rps), (m.registration.transform, fit)):
+                dT = np.asarray(T) @ T_rig_part
+                out.append((pose_error(dT)[0], float(np.linalg.norm(dT[:3, 3]))))
+                row.append(out[-1])
+            (ar, orr), (af, of) = row
+            where = f"({x:+.0f}, {y:+.0f}, {deg:+.0f})"
+            print(f"{seed:4d} {where:>20} {ar:8.4f} {orr:7.3f} | {af:8.4f} {of:7.3f}")
+    for label, rows in (("RPS", rps), ("best fit", fit)):
+        if rows:
+            a, o = (np.array(c) for c in zip(*rows, strict=True))
+            print(
+                f"  {label:8s} rotation median {np.median(a):.4f} max {a.max():.4f} deg, "
+                f"origin median {np.median(o):.3f} max {o.max():.3f} mm ({len(a)} trials)"
+            )
 
 
 if __name__ == "__main__":
