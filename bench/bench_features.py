@@ -298,13 +298,14 @@ def main() -> int:
             T_true = rps_align(
                 datums, np.array([made.get(d.name, np.asarray(d.position)) for d in datums])
             ).transform
+            # From the best fit's CAD frame to the measured datums'.
+            to_rps = rps.transform @ np.linalg.inv(T_bf)
             for name in ("H1", "S2", "H3"):
                 cp = by_name[name]
                 x, y, _ = hole_frame(cp.normal, hole_spec(cp).axis)
                 ex, ey = entries[f"{name}.x"], entries[f"{name}.y"]
                 q = np.asarray(cp.position) + ex.deviation_mm * x + ey.deviation_mm * y
-                e = apply(rps.transform, apply(np.linalg.inv(T_bf), q[None]))[0]
-                e = e - apply(T_true, made[name][None])[0]
+                e = apply(to_rps, q[None])[0] - apply(T_true, made[name][None])[0]
                 fixed = [np.asarray(v) for d in datums if d.name == name for v in d.directions]
                 for key, axis in (("x", x), ("y", y)):
                     # A direction its own datum fixes is placed there by construction.
@@ -314,7 +315,7 @@ def main() -> int:
             # the best fit's frame, the made one as the made datums move the drawn part's.
             for cp, measured, true_trim in trims_found:
                 q, n = np.asarray(cp.position), np.asarray(cp.normal)
-                moved = apply(rps.transform, apply(np.linalg.inv(T_bf), q[None]))[0] - q
+                moved = apply(to_rps, q[None])[0] - q
                 made_moved = apply(T_true, q[None])[0] - q
                 rps_trim.append(measured + moved @ n - (true_trim + made_moved @ n))
 
