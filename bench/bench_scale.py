@@ -1,7 +1,8 @@
 """Scale-out: parts per second in process, and on one and two single-threaded Dask workers.
 
 The line's station as ``configs/line.toml`` sets it up (the flash rig's full
-frames, guided matching, the demo panel, loaded by ``Station.load``),
+frames, guided matching, the demo panel alone as the line bench holds it,
+loaded by ``Station.load``),
 measuring the same pre-rendered FrameSets through each executor the
 station's worker can use, with the worker's own bound on jobs in flight
 (the executor's slots: 1 in process, the cluster's threads + 1 on Dask):
@@ -42,7 +43,6 @@ from typing import Any
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-ROOT = Path(__file__).resolve().parents[1]
 TOLERANCE_MM = 1e-6
 
 
@@ -117,6 +117,7 @@ def differences(a: Any, b: Any) -> list[str]:
 
 
 def main() -> int:
+    from bench.bench_line import line_config
     from service.config import load_line_config, parse_dask_address
     from service.dask_executor import DaskExecutor
     from service.executor import InProcessExecutor
@@ -128,18 +129,10 @@ def main() -> int:
     guided = os.environ.get("BENCH_SCALE_GUIDED")
 
     with tempfile.TemporaryDirectory() as tmp:
-        conf = ROOT / "configs"
-        text = (conf / "line.toml").read_text()
-        # demo-panel alone, best fitted: the figures stay comparable.
-        held = 'parts = ["demo-panel", "demo-panel-features"]'
-        text = text.replace(held, 'parts = ["demo-panel"]')
-        text = text.replace('parts_dir = "parts"', f'parts_dir = "{conf / "parts"}"')
-        text = text.replace('trees_dir = "trees"', f'trees_dir = "{Path(tmp) / "trees"}"')
-        (Path(tmp) / "line.toml").write_text(text)
         overrides: dict[tuple[str, str], Any] = {("storage", "data_dir"): tmp}
         if guided is not None:
             overrides[("station", "guided_matching")] = guided == "1"
-        cfg = load_line_config(Path(tmp) / "line.toml", overrides=overrides)
+        cfg = load_line_config(line_config(Path(tmp), Path(tmp) / "trees"), overrides=overrides)
         station = Station.load(cfg)
         try:
             pipeline = station.pipeline()
