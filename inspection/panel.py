@@ -166,21 +166,17 @@ def vary_holes(
     A hole is made no smaller than its rim can be drawn (1.5 x the spacing across holes):
     a hole drawn at that size only grows, and its shift says by how much."""
     smallest = 1.5 * (spec.hole_spacing_mm if spec.hole_spacing_mm > 0 else spec.spacing_mm)
-    shifts = []
+    holes, shifts = [], []
     for h in spec.holes:
         dx, dy, dr = (float(v) for v in rng.uniform(-1, 1, 3) * [shift_mm, shift_mm, radius_mm])
-        shifts.append(HoleShift(dx, dy, max(dr, min(smallest - h.radius_mm, 0.0))))
-    holes = tuple(
-        Hole(
-            h.x_mm + s.dx_mm,
-            h.y_mm + s.dy_mm,
-            max(h.radius_mm + s.dr_mm, min(smallest, h.radius_mm)),
-            h.length_mm + 2 * s.dr_mm if h.length_mm > 0 else 0.0,
-            h.angle_deg,
-        )  # fmt: skip
-        for h, s in zip(spec.holes, shifts, strict=True)
-    )
-    return dataclasses.replace(spec, holes=holes), tuple(shifts)
+        radius = h.radius_mm + dr
+        if radius < min(smallest, h.radius_mm):
+            radius = min(smallest, h.radius_mm)
+            dr = radius - h.radius_mm
+        length = h.length_mm + 2 * dr if h.length_mm > 0 else 0.0
+        holes.append(Hole(h.x_mm + dx, h.y_mm + dy, radius, length, h.angle_deg))
+        shifts.append(HoleShift(dx, dy, dr))
+    return dataclasses.replace(spec, holes=tuple(holes)), tuple(shifts)
 
 
 def surface_point(
