@@ -23,7 +23,10 @@ mirror lobe, dirt or noise): what is left clean is the windows' geometry,
 the difference is light and noise. The same spot of the same part rendered
 without its dent (``undented``, against the CAD) shows the matcher's error
 there when the part does not depart from its CAD. The defect search's depth error
-(``peak_mm`` against the depth) is printed per part beside its cloud's.
+(``peak_mm`` against the depth) is printed per part beside its cloud's, and
+per render the scatter of the field the search smooths, away from the dent
+and the edges (``bench_defects.field_scatter``): rendered clean, what the
+windows' geometry leaves; as rendered, the light and the noise too.
 
 ``BENCH_DENT_PARTS`` (default 16) dented parts from ``BENCH_DEFECTS_SEED``
 (default 1). Run: ``make bench BENCH=dent_bias``. No goal, no peer: a
@@ -46,7 +49,7 @@ STEEP_DEG = 10.0
 
 
 def main() -> int:
-    from bench.bench_defects import draw, rim_slope_deg, scene
+    from bench.bench_defects import draw, field_scatter, rim_slope_deg, scene
     from inspection.defects import press
     from inspection.measure import measure_frames
     from inspection.simulate import RenderOptions, simulate
@@ -67,6 +70,7 @@ def main() -> int:
     print(f"{'part':>4} {'depth':>6} {'slope':>5} {'render':>11} {'stage':>6} {bins} {'defect':>7}")
     # (render, stage, steep) -> per part, per bin: the part's median error
     table: dict[tuple[str, str, bool], list[list[float]]] = {}
+    scatter: dict[str, list[float]] = {}
     found_errors: list[float] = []
     clean_errors: list[float] = []
     for k in range(1, 2 * n_parts, 2):  # bench_defects dents the odd parts
@@ -97,6 +101,9 @@ def main() -> int:
             m = measure_frames(part, rec, frames, params)
             clouds = {"square": square} | {p.name: p.points for p in m.passes}
             found = _defect_error(m, dent) if pressed else float("nan")
+            if m.deviations is not None:
+                away = (dent.center_mm, dent.radius_mm + 10.0)
+                scatter.setdefault(name, []).append(field_scatter(part, m, params, beyond=away))
             if np.isfinite(found):
                 (found_errors if name == "as rendered" else clean_errors).append(found)
             for stage in STAGES:
@@ -130,6 +137,10 @@ def main() -> int:
                         for c in cols
                     )
                     print(f"{label:>16} ({len(rows):2d}) {name:>11} {stage:>6} {cells}")
+    if scatter:
+        cells = ", ".join(f"{name} {statistics.median(v):.4f}" for name, v in scatter.items())
+        print(f"\nfield smoothed over the support, away from the dent and the edges: "
+              f"standard deviation, median over the parts: {cells} mm")  # fmt: skip
     defect = np.array(found_errors)
     if defect.size:
         print(
