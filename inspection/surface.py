@@ -24,7 +24,12 @@ links the nodes within the defect search's support radius. Per part:
   nodes at an edge join the region they touch, and join into one region
   the pieces of a dent that a bend or an edge runs across. So a dent by a
   hole or on a bend is found whole, with its part at the rim, and a hole's
-  rim alone is not a defect.
+  rim alone is not a defect. The large artefacts are at the outline, the
+  holes and the silhouettes, where windows straddle a depth jump; a bend
+  away from all of them (a character line, an embossing's shoulder seen
+  from every camera) is rounded by little, so a node there whose field
+  leaves the band by more than that rounding's allowance counts towards the
+  area as one away from the edges, and a dent on it is found.
 """
 
 from __future__ import annotations
@@ -76,6 +81,11 @@ _LATERAL_SLOPE = 0.1
 ``_LATERAL_MM + _LATERAL_SLOPE * |distance|``."""
 _EDGE_STEP_MM = 0.5
 """Edges are sampled at this step to measure distances to them."""
+_BEND_ALLOWANCE_MM = 0.15
+"""How far the reconstruction's rounding of a bend away from the outline and the
+silhouettes takes the field, at most: on undented parts the field smoothed there reaches
+0.1-0.25 mm. A node there counts towards a defect's area where its field leaves the band
+by more than this."""
 
 
 @dataclass(frozen=True)
@@ -246,6 +256,7 @@ class SurfaceModel:
     join: sp.csr_matrix = field(repr=False)
     boundary: np.ndarray = field(repr=False)
     boundary_mm: np.ndarray = field(repr=False)
+    outline_mm: np.ndarray = field(repr=False)
     edge_faces: np.ndarray = field(repr=False)
     edge_ends: np.ndarray = field(repr=False)
     face_normals: np.ndarray = field(repr=False)
@@ -325,14 +336,14 @@ class SurfaceModel:
         pair = starts[counts == 2]
         edge_faces = np.stack([owner[pair], owner[pair + 1]], axis=1)
         edge_ends = V[edges[pair]]
-        if len(boundary):
-            boundary_mm, _ = cKDTree(boundary).query(centres)
-        else:
-            boundary_mm = np.full(M, np.inf)
+        boundary_mm, outline_mm = (
+            cKDTree(b).query(centres)[0] if len(b) else np.full(M, np.inf)
+            for b in (boundary, sampled)
+        )
         return cls(
             origin=origin, dims=dims, keys=keys, centres=centres, normals=normals, areas=areas,
             support=support, join=join, boundary=boundary, boundary_mm=boundary_mm,
-            edge_faces=edge_faces, edge_ends=edge_ends, face_normals=N,
+            outline_mm=outline_mm, edge_faces=edge_faces, edge_ends=edge_ends, face_normals=N,
             centre_tree=cKDTree(centres), node_mm=node,
         )  # fmt: skip
 
@@ -431,13 +442,20 @@ class SurfaceModel:
         )  # fmt: skip
         nodes = self._nearest_nodes(nodes, closest, normals)
         occlusion = self.occlusion_edges(viewpoints, directions)
-        edge_mm = self.edge_distance(occlusion)
+        occlusion_mm = self._occlusion_distance(occlusion)
+        edge_mm = np.minimum(self.boundary_mm, occlusion_mm)
         edge = off | self._near_edges(closest, nodes, occlusion, edge_mm)
         far = (np.abs(d) > max_distance_mm) & ~edge
         outlier = (np.abs(d) > outlier_mm) & ~edge & ~far
         classes = PointClasses(edge=edge, outlier=outlier, far=far)
         usable = ~off & (np.abs(d) <= max_distance_mm) & (nodes >= 0)
-        found = self._defects(d, nodes, usable, edge, edge_mm, params, min_support, comparison)
+        # A node at a bend alone, away from the outline, the holes and the silhouettes, is
+        # judged like one away from the edges, with an allowance: such a bend is rounded
+        # by little.
+        quiet = (self.outline_mm > 2 * self.edge_mm) & (occlusion_mm > 2 * self.edge_mm)
+        found = self._defects(
+            d, nodes, usable, edge, edge_mm, quiet, params, min_support, comparison
+        )
         return classes, found
 
     def off_edge(
@@ -453,10 +471,15 @@ class SurfaceModel:
     def edge_distance(self, occlusion: Points) -> np.ndarray:
         """(M,) mm: each node's distance to the boundary or an occlusion edge (inf beyond
         twice :attr:`edge_mm`)."""
+        return np.minimum(self.boundary_mm, self._occlusion_distance(occlusion))
+
+    def _occlusion_distance(self, occlusion: Points) -> np.ndarray:
+        """(M,) mm: each node's distance to the occlusion edges (inf beyond twice
+        :attr:`edge_mm`)."""
         if len(occlusion) == 0:
-            return self.boundary_mm
+            return np.full(len(self.keys), np.inf)
         near, _ = cKDTree(occlusion).query(self.centres, distance_upper_bound=2 * self.edge_mm)
-        return np.minimum(self.boundary_mm, near)
+        return np.asarray(near, dtype=np.float64)
 
     def _near_edges(
         self, closest: Points, nodes: np.ndarray, occlusion: Points, edge_mm: np.ndarray
@@ -487,14 +510,16 @@ class SurfaceModel:
         usable: np.ndarray,
         edge: np.ndarray,
         edge_mm: np.ndarray,
+        quiet: np.ndarray,
         params: SurfaceParams,
         min_support: int,
         comparison: tuple[tuple[str, tuple[float, float, float]], ...],
     ) -> tuple[SurfaceDefect, ...]:
         """Regions out of the band: a node away from the edges is smoothed over points away
         from the edges, a node at an edge over all; a region is the flagged nodes away from
-        the edges joined through the flagged edge nodes they touch, and needs
-        ``min_area_mm2`` away from the edges."""
+        the edges, or at a ``quiet`` edge (a bend alone) beyond the band by more than the
+        bend's allowance, joined through the flagged edge nodes they touch, and needs
+        ``min_area_mm2`` of those."""
         M = len(self.keys)
         rim = edge_mm <= self.edge_mm
         median_inner, count_inner, median_all, count_all = _node_medians(
@@ -505,25 +530,33 @@ class SurfaceModel:
         s = np.where(rim, at_rim[0], inner[0])
         n = np.where(rim, at_rim[1], inner[1])
         judged = n >= min_support
+        allowance = _BEND_ALLOWANCE_MM * self.node_mm / NODE_MM
         out: list[SurfaceDefect] = []
-        for flagged in (judged & (s < params.lower_mm), judged & (s > params.upper_mm)):
-            core = flagged & ~rim
+        for flagged, beyond in (
+            (judged & (s < params.lower_mm), s < params.lower_mm - allowance),
+            (judged & (s > params.upper_mm), s > params.upper_mm + allowance),
+        ):
+            away = flagged & ~rim
+            core = away | (flagged & quiet & beyond)
             if not core.any():
                 continue
             # A dent across a bend is cut in two by the band of edge nodes, as wide as
             # the bend and the edge distance on both sides: the flagged edge nodes
             # within two supports of the core join its pieces into one region. Its
-            # peak is read within one support of the core, as edge nodes further
-            # out rest on the rim's artefacts.
+            # peak is read within one support of the nodes away from the edges (on a
+            # quiet bend's nodes where it has none), as edge nodes further out rest
+            # on the rim's artefacts.
             beside = flagged & rim
-            peaked = core | (beside & (self.support @ core.astype(np.float64) > 0))
-            kept = np.flatnonzero(core | (beside & (self.support @ peaked.astype(np.float64) > 0)))
+            peaked = away | (beside & (self.support @ away.astype(np.float64) > 0))
+            reach = self.support @ (peaked | core).astype(np.float64) > 0
+            kept = np.flatnonzero(core | (beside & reach))
             k, label = connected_components(self.join[kept][:, kept], directed=False)
             core_area = np.bincount(label, self.areas[kept] * core[kept], k)
             has_core = np.bincount(label, core[kept], k) > 0  # edge nodes alone are no defect
             for j in np.flatnonzero(has_core & (core_area >= params.min_area_mm2)):
                 region = kept[label == j]
-                out.append(self._defect(region, peaked[region], s, count_all, comparison))
+                read = peaked[region] if peaked[region].any() else core[region]
+                out.append(self._defect(region, read, s, count_all, comparison))
         out.sort(key=lambda f: -f.area_mm2)
         return tuple(out)
 

@@ -158,6 +158,33 @@ def test_a_dent_across_the_embossing_edge_is_one_defect_where_it_is(panel, depth
     assert f.peak_mm == pytest.approx(-depth_mm, abs=0.1)
 
 
+@pytest.mark.parametrize("depth_mm", [0.4, -0.4])
+def test_a_dent_on_the_character_line_is_found(panel, depth_mm):
+    """The character line's two bends, with the edge distance on both sides, leave no node
+    of a small dent on it away from the edges; away from the outline and the silhouettes
+    such a bend is judged past its allowance."""
+    cad = panel[0]
+    dent = dent_at(cad, -20.0, SPEC.character_line_y_mm, depth_mm, radius_mm=12.0)
+    devs = judge(panel, cloud(cad, [dent], seed=11))
+    assert len(devs.defects) == 1, [f.describe() for f in devs.defects]
+    f = devs.defects[0]
+    assert f.kind == ("dent" if depth_mm > 0 else "bump")
+    assert np.linalg.norm(f.center_mm - dent.center_mm) < 3.0
+    assert f.peak_mm == pytest.approx(-depth_mm, abs=0.05)
+
+
+@pytest.mark.parametrize("shift_mm", [0.25, -0.25])
+def test_the_rounding_of_the_character_line_is_not_a_defect(panel, shift_mm):
+    """The reconstruction rounds a bend: the field along one stretch of the line, lifted or
+    sunk by as much as the undented rig's reaches there, stays within the allowance."""
+    cad = panel[0]
+    pts = cloud(cad, seed=12)
+    y = SPEC.character_line_y_mm
+    band = (np.abs(pts[:, 1] - y) < EDGE_MM) & (np.abs(pts[:, 0] + 20.0) < 20.0)
+    pts[band & (pts[:, 2] > 20.0), 2] += shift_mm
+    assert judge(panel, pts).defects == ()
+
+
 def test_occlusion_edges_are_the_silhouettes_the_cameras_see():
     box = trimesh.creation.box((100.0, 100.0, 100.0))
     surface = SurfaceModel.build(box.vertices, box.faces, box.face_normals)
