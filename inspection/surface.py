@@ -28,8 +28,9 @@ links the nodes within the defect search's support radius. Per part:
   holes and the silhouettes, where windows straddle a depth jump; a bend
   away from all of them (a character line, an embossing's shoulder seen
   from every camera) is rounded by little, so a node there whose field
-  leaves the band by more than that rounding's allowance counts towards the
-  area as one away from the edges, and a dent on it is found.
+  leaves the band by more than that rounding's allowance, and which kept
+  its points, counts towards the area as one away from the edges, and a
+  dent on it is found.
 """
 
 from __future__ import annotations
@@ -531,6 +532,12 @@ class SurfaceModel:
         n = np.where(rim, at_rim[1], inner[1])
         judged = n >= min_support
         allowance = _BEND_ALLOWANCE_MM * self.node_mm / NODE_MM
+        # Where the cloud lost most of its points on a bend, the few left are the
+        # reconstruction's trouble, not the surface: a quiet node counts only where its
+        # support holds at least half the points a node away from the edges holds.
+        away_n = n[judged & ~rim]
+        dense = n >= 0.5 * float(np.median(away_n)) if len(away_n) else np.zeros(M, bool)
+        quiet = quiet & dense
         out: list[SurfaceDefect] = []
         for flagged, beyond in (
             (judged & (s < params.lower_mm), s < params.lower_mm - allowance),
