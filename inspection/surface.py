@@ -84,9 +84,8 @@ _EDGE_STEP_MM = 0.5
 """Edges are sampled at this step to measure distances to them."""
 _BEND_ALLOWANCE_MM = 0.15
 """How far the reconstruction's rounding of a bend away from the outline and the
-silhouettes takes the field, at most: on undented parts the field smoothed there reaches
-0.1-0.25 mm. A node there counts towards a defect's area where its field leaves the band
-by more than this."""
+silhouettes may take the field beyond the band: a node there counts towards a defect's
+area only where its field leaves the band by more than this, mm."""
 
 
 @dataclass(frozen=True)
@@ -468,11 +467,6 @@ class SurfaceModel:
         lateral = np.linalg.norm(offset - along[:, None] * normals, axis=1)
         lateral_mm = _LATERAL_MM * self.node_mm / NODE_MM
         return lateral > lateral_mm + _LATERAL_SLOPE * np.abs(np.asarray(distances))
-
-    def edge_distance(self, occlusion: Points) -> np.ndarray:
-        """(M,) mm: each node's distance to the boundary or an occlusion edge (inf beyond
-        twice :attr:`edge_mm`)."""
-        return np.minimum(self.boundary_mm, self._occlusion_distance(occlusion))
 
     def _occlusion_distance(self, occlusion: Points) -> np.ndarray:
         """(M,) mm: each node's distance to the occlusion edges (inf beyond twice
