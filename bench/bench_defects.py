@@ -221,7 +221,8 @@ def main() -> int:
 def field_scatter(part, m, params, *, beyond=None) -> float:  # type: ignore[no-untyped-def]
     """The standard deviation of the field smoothed as the defect search smooths it (the
     median per node of the points away from the edges, their point-weighted mean over the
-    support), over the nodes the search judges that lie a cell clear of every edge
+    support), over the nodes the search judges that lie a cell clear of the boundaries and
+    bends
     (``beyond``: ``(centre, mm)``, and that far from it), CAD frame."""
     from inspection.transforms import apply
 
@@ -230,16 +231,7 @@ def field_scatter(part, m, params, *, beyond=None) -> float:  # type: ignore[no-
     cl = part.exact.query(P)
     nodes = surface.nodes_of(np.asarray(cl.points), np.asarray(cl.normals))
     classes = m.deviations.classes
-    keep = (nodes >= 0) & ~classes.edge & ~classes.far
-    order = np.argsort(nodes[keep], kind="stable")
-    k, d = nodes[keep][order], np.asarray(cl.distances)[keep][order]
-    heads = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
-    medians = np.zeros(len(surface.keys))
-    counts = np.zeros(len(surface.keys))
-    medians[k[heads]] = [np.median(v) for v in np.split(d, heads[1:])]
-    counts[k[heads]] = np.diff(np.r_[heads, len(k)])
-    total = surface.support @ counts
-    field = (surface.support @ (medians * counts)) / np.maximum(total, 1.0)
+    field, total = surface.smoothed(cl.distances, nodes, ~classes.edge & ~classes.far)
     clear = surface.boundary_mm > surface.edge_mm + surface.node_mm
     judged = (total >= params.min_support) & clear
     if beyond is not None:

@@ -561,6 +561,18 @@ class SurfaceModel:
         out.sort(key=lambda f: -f.area_mm2)
         return tuple(out)
 
+    def smoothed(
+        self, distances: Scalars, nodes: np.ndarray, keep: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(M,) each node's field as the defect search smooths it, from the points ``keep``
+        selects (their signed ``distances`` and :meth:`nodes_of`): the point-weighted mean,
+        over the support, of the nodes' medians (NaN where no point), and the points it
+        rests on."""
+        d = np.asarray(distances, dtype=np.float64)
+        sel = np.asarray(keep, dtype=bool) & (np.asarray(nodes) >= 0)
+        median, count, _, _ = _node_medians(d, np.asarray(nodes), sel, sel, len(self.keys))
+        return self._smoothed(median, count)
+
     def _smoothed(self, median: np.ndarray, count: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per node: the point-weighted mean of the node medians within the support, and the
         points it rests on."""

@@ -185,6 +185,20 @@ def test_the_rounding_of_the_character_line_is_not_a_defect(panel, shift_mm):
     assert judge(panel, pts).defects == ()
 
 
+def test_the_smoothed_field_is_the_one_the_search_reads_its_peak_on(panel):
+    cad, tree, surface = panel
+    dent = dent_at(cad, -20.0, 10.0, 0.5)
+    pts = cloud(cad, [dent], seed=2)
+    devs = judge(panel, pts)
+    (f,) = devs.defects
+    cl = tree.query(pts)
+    nodes = surface.nodes_of(cl.points, cl.normals)
+    field, count = surface.smoothed(cl.distances, nodes, ~devs.classes.edge)
+    near = np.linalg.norm(surface.centres - dent.center_mm, axis=1) < dent.radius_mm
+    assert np.nanmin(field[near]) == pytest.approx(f.peak_mm, abs=1e-12)
+    assert np.isnan(field[count == 0]).all() and (count[near] > 100).all()
+
+
 def test_occlusion_edges_are_the_silhouettes_the_cameras_see():
     box = trimesh.creation.box((100.0, 100.0, 100.0))
     surface = SurfaceModel.build(box.vertices, box.faces, box.face_normals)
