@@ -150,12 +150,16 @@ def test_a_dent_across_the_embossing_edge_is_one_defect_where_it_is(panel, depth
     cad = panel[0]
     cx, cy = SPEC.emboss_center_mm
     dent = dent_at(cad, cx + 0.5 * SPEC.emboss_size_mm[0], cy, depth_mm, radius_mm=16.0)
-    devs = judge(panel, cloud(cad, [dent], seed=7))
+    assert_one_defect_where_it_is(panel, dent, seed=7, depth_tol_mm=0.1)
+
+
+def assert_one_defect_where_it_is(panel, dent: Dent, *, seed: int, depth_tol_mm: float) -> None:
+    devs = judge(panel, cloud(panel[0], [dent], seed=seed))
     assert len(devs.defects) == 1, [f.describe() for f in devs.defects]
     f = devs.defects[0]
-    assert f.kind == ("dent" if depth_mm > 0 else "bump")
+    assert f.kind == ("dent" if dent.depth_mm > 0 else "bump")
     assert np.linalg.norm(f.center_mm - dent.center_mm) < 3.0
-    assert f.peak_mm == pytest.approx(-depth_mm, abs=0.1)
+    assert f.peak_mm == pytest.approx(-dent.depth_mm, abs=depth_tol_mm)
 
 
 @pytest.mark.parametrize("depth_mm", [0.4, -0.4])
@@ -165,12 +169,7 @@ def test_a_dent_on_the_character_line_is_found(panel, depth_mm):
     such a bend is judged past its allowance."""
     cad = panel[0]
     dent = dent_at(cad, -20.0, SPEC.character_line_y_mm, depth_mm, radius_mm=12.0)
-    devs = judge(panel, cloud(cad, [dent], seed=11))
-    assert len(devs.defects) == 1, [f.describe() for f in devs.defects]
-    f = devs.defects[0]
-    assert f.kind == ("dent" if depth_mm > 0 else "bump")
-    assert np.linalg.norm(f.center_mm - dent.center_mm) < 3.0
-    assert f.peak_mm == pytest.approx(-depth_mm, abs=0.05)
+    assert_one_defect_where_it_is(panel, dent, seed=11, depth_tol_mm=0.05)
 
 
 @pytest.mark.parametrize("shift_mm", [0.25, -0.25])
