@@ -219,11 +219,10 @@ def main() -> int:
 
 
 def field_scatter(part, m, params, *, beyond=None) -> float:  # type: ignore[no-untyped-def]
-    """The standard deviation of the field smoothed as the defect search smooths it (the
-    median per node of the points away from the edges, their point-weighted mean over the
-    support), over the nodes the search judges that lie a cell clear of the boundaries and
-    bends
-    (``beyond``: ``(centre, mm)``, and that far from it), CAD frame."""
+    """The standard deviation of the field the defect search smooths
+    (``SurfaceModel.smoothed`` of the points away from the edges), over the nodes it
+    judges that lie a cell clear of the boundaries and bends (and, with ``beyond``
+    ``(centre, mm)``, that far from ``centre``, CAD frame)."""
     from inspection.transforms import apply
 
     surface = part.surface
