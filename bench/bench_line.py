@@ -123,7 +123,10 @@ def line_config(tmp: Path, trees: Path) -> Path:
     (``make bench BENCH=features`` measures the part with holes and an RPS)."""
     conf = ROOT / "configs"
     text = (conf / "line.toml").read_text()
-    text = text.replace('parts = ["demo-panel", "demo-panel-features"]', 'parts = ["demo-panel"]')
+    both = 'parts = ["demo-panel", "demo-panel-features"]'
+    if both not in text:
+        raise SystemExit(f"{conf / 'line.toml'}: the station no longer reads {both}")
+    text = text.replace(both, 'parts = ["demo-panel"]')
     text = text.replace('parts_dir = "parts"', f'parts_dir = "{conf / "parts"}"')
     text = text.replace('trees_dir = "trees"', f'trees_dir = "{trees}"')
     text = text.replace("metrics_port = 9464 ", "metrics_port = 0 ")

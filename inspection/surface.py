@@ -449,12 +449,8 @@ class SurfaceModel:
         outlier = (np.abs(d) > outlier_mm) & ~edge & ~far
         classes = PointClasses(edge=edge, outlier=outlier, far=far)
         usable = ~off & (np.abs(d) <= max_distance_mm) & (nodes >= 0)
-        # A node at a bend alone, away from the outline, the holes and the silhouettes, is
-        # judged like one away from the edges, with an allowance: such a bend is rounded
-        # by little.
-        quiet = (self.outline_mm > 2 * self.edge_mm) & (occlusion_mm > 2 * self.edge_mm)
         found = self._defects(
-            d, nodes, usable, edge, edge_mm, quiet, params, min_support, comparison
+            d, nodes, usable, edge, edge_mm, occlusion_mm, params, min_support, comparison
         )
         return classes, found
 
@@ -505,16 +501,16 @@ class SurfaceModel:
         usable: np.ndarray,
         edge: np.ndarray,
         edge_mm: np.ndarray,
-        quiet: np.ndarray,
+        occlusion_mm: np.ndarray,
         params: SurfaceParams,
         min_support: int,
         comparison: tuple[tuple[str, tuple[float, float, float]], ...],
     ) -> tuple[SurfaceDefect, ...]:
         """Regions out of the band: a node away from the edges is smoothed over points away
         from the edges, a node at an edge over all; a region is the flagged nodes away from
-        the edges, or at a ``quiet`` edge (a bend alone) beyond the band by more than the
-        bend's allowance, joined through the flagged edge nodes they touch, and needs
-        ``min_area_mm2`` of those."""
+        the edges, or at a quiet edge (a bend alone, ``occlusion_mm`` and the outline far
+        off) beyond the band by more than the bend's allowance, joined through the flagged
+        edge nodes they touch, and needs ``min_area_mm2`` of those."""
         M = len(self.keys)
         rim = edge_mm <= self.edge_mm
         median_inner, count_inner, median_all, count_all = _node_medians(
@@ -526,12 +522,15 @@ class SurfaceModel:
         n = np.where(rim, at_rim[1], inner[1])
         judged = n >= min_support
         allowance = _BEND_ALLOWANCE_MM * self.node_mm / NODE_MM
-        # Where the cloud lost most of its points on a bend, the few left are the
-        # reconstruction's trouble, not the surface: a quiet node counts only where its
+        # A node at a bend alone, away from the outline, the holes and the silhouettes, is
+        # judged like one away from the edges, with an allowance: such a bend is rounded by
+        # little. Where the cloud lost most of its points there, the few left are the
+        # reconstruction's trouble, not the surface: such a node counts only where its
         # support holds at least half the points a node away from the edges holds.
         away_n = n[judged & ~rim]
         dense = n >= 0.5 * float(np.median(away_n)) if len(away_n) else np.zeros(M, bool)
-        quiet = quiet & dense
+        far_off = 2 * self.edge_mm
+        quiet = (self.outline_mm > far_off) & (occlusion_mm > far_off) & dense
         out: list[SurfaceDefect] = []
         for flagged, beyond in (
             (judged & (s < params.lower_mm), s < params.lower_mm - allowance),
