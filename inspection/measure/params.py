@@ -50,6 +50,10 @@ class MeasureParams:
         next matching pass (the first pass's, the guided pass's before its
         bends are matched again): the guide needs the pose, not its last
         micrometre, which the final fit on ``max_points`` gives.
+    pose_points : int
+        ... and to this size on the comparison-point path, whose one fit
+        places the part for the points' windows: their deviations are taken
+        along the CAD's normals, which a pose slightly off barely moves.
     min_inlier_fraction : float
         A fit keeping fewer of the points is an error.
     max_rms_mm : float
@@ -78,6 +82,7 @@ class MeasureParams:
     use_weights: bool = True
     max_points: int = 150_000
     guide_points: int = 60_000
+    pose_points: int = 15_000
     min_inlier_fraction: float = 0.5
     max_rms_mm: float = 1.0
     ambiguous_is_error: bool = False
@@ -104,6 +109,8 @@ class MeasureParams:
             raise InvalidInput(f"max_points must be an integer >= 100, got {self.max_points}")
         if not (isinstance(self.guide_points, int) and self.guide_points >= 100):
             raise InvalidInput(f"guide_points must be an integer >= 100, got {self.guide_points}")
+        if not (isinstance(self.pose_points, int) and self.pose_points >= 100):
+            raise InvalidInput(f"pose_points must be an integer >= 100, got {self.pose_points}")
         if not 0.0 <= self.min_inlier_fraction <= 1.0:
             raise InvalidInput(
                 f"min_inlier_fraction must lie in [0, 1], got {self.min_inlier_fraction}"

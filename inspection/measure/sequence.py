@@ -185,9 +185,9 @@ def _measure_at_points(
     t_start = _mark()
     path = "comparison_points"
 
-    # 1. A sparse pass (the windows of every few rows): enough to place the part.
+    # 1. A sparse pass (every few rows, and nothing more): enough to place the part.
     t = _mark()
-    cloud, _ = rec.match(frames, sparse=True)
+    cloud = rec.sparse_cloud(frames)
     _lap(timings, "reconstruct", t)
     first = _pass("first", cloud)
     if len(first.points) == 0:
@@ -197,7 +197,7 @@ def _measure_at_points(
     # 2. Its global alignment and fine fit.
     t = _mark()
     try:
-        fit = _fit(part, first.points, first.weights, p, max_points=p.guide_points)
+        fit = _fit(part, first.points, first.weights, p, max_points=p.pose_points)
     except InspectionError as exc:
         _lap(timings, "align", t)
         return _unmeasured(f"alignment failed: {exc}", timings, t_start, first, path=path)

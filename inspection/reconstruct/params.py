@@ -96,7 +96,10 @@ class ReconstructParams:
     sparse_rows : int
         A sparse first pass (:meth:`Reconstructor.match
         <inspection.reconstruct.Reconstructor.match>` with ``sparse=True``)
-        gives points from every ``sparse_rows``-th rectified row only.
+        gives points from every ``sparse_rows``-th rectified row only;
+        :meth:`Reconstructor.sparse_cloud
+        <inspection.reconstruct.Reconstructor.sparse_cloud>` matches those
+        rows alone.
     threads : int
         Stereo pairs matched at once (one thread each, from the pool the
         :class:`Reconstructor` owns; 1: no pool, the pairs one after the other).

@@ -13,7 +13,9 @@ the pairs' points into one :class:`~.result.Cloud`:
    (:mod:`.guided`). A *sparse* first pass (``match(frames, sparse=True)``)
    only places the guide: the warped passes refit, and the cloud holds, the
    windows of every ``sparse_rows``-th row (the guided pass starts from every
-   square window, not from the warped ones);
+   square window, not from the warped ones); :meth:`Reconstructor.sparse_cloud`
+   matches those rows only, square windows included, for a cloud that only
+   places the part;
 2. **guided pass** (:meth:`Reconstructor.guided`): from the first pass's
    :class:`Matching`, the warped windows again, following a guide at the pose
    fitted to the first cloud, and the ring pairs matched from the guide;
@@ -198,6 +200,22 @@ class Reconstructor:
             raise InvalidInput("sparse=True places a guide: it is for the unguided first pass")
         return self._first_pass(frames, prior, guide, keep_frames=True, sparse=sparse)
 
+    def sparse_cloud(
+        self, frames: Sequence[npt.NDArray[np.uint8]], *, prior: Prior | None = None
+    ) -> Cloud:
+        """A cloud to place the part with, and nothing more: every stage, the square
+        windows included, on every ``params.sparse_rows``-th rectified row only.
+
+        The rows between are neither refined nor triangulated; the warped
+        windows follow, and the other pair's check reads, the field of the
+        sparse rows filled across them. Nothing is kept for a :meth:`guided`
+        pass: ``match(frames, sparse=True)`` gives a cloud of the same rows
+        and what the guided pass starts from, at the cost of every square
+        window.
+        """
+        cloud, _ = self._first_pass(frames, prior, None, keep_frames=False, rows_only=True)
+        return cloud
+
     def guided(self, matching: Matching, guide: Guide) -> tuple[Cloud, Matching]:
         """Match the frames of ``matching`` again, with the windows following ``guide``.
 
@@ -286,8 +304,11 @@ class Reconstructor:
         guide: Guide | None,
         keep_frames: bool,
         sparse: bool = False,
+        rows_only: bool = False,
     ) -> tuple[Cloud, Matching]:
         p = self.params
+        # The pairs' own stages see the sparse rows as the rows refined.
+        per_pair = replace(p, row_stride=max(p.row_stride, p.sparse_rows)) if rows_only else p
         imgs = _check_frames(self.rig, frames)
         timings: dict[str, float] = {}
         t0 = time.perf_counter()
@@ -320,12 +341,14 @@ class Reconstructor:
             if not (usable[pair.left] and usable[pair.right]):
                 return skipped(self.rig, pair, usable)
             left, right = imgs[pair.left], imgs[pair.right]
-            out = match_pair(pair, self.foreground_disparity[k], left, right, lo, hi, p, timings, k)
+            out = match_pair(
+                pair, self.foreground_disparity[k], left, right, lo, hi, per_pair, timings, k
+            )
             if isinstance(out, PairState):
                 if guide is not None:
                     out = finish_guided(pair, out, p, timings, k, guide)
                 else:
-                    out = finish_pair(pair, out, p, timings, k, sparse=sparse)
+                    out = finish_pair(pair, out, per_pair, timings, k, sparse=sparse)
             timings[f"pair{pair.name}"] = (time.perf_counter() - t1) * 1e3
             return out
 

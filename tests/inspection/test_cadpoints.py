@@ -3,6 +3,7 @@ a point cannot be measured."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -147,10 +148,26 @@ def test_the_comparison_point_path_measures_through_the_sequence(on_points) -> N
     assert m.transform is not None and m.registration is not None
 
 
+def test_the_comparison_point_path_places_the_part_on_a_subsample(scene, part) -> None:  # type: ignore[no-untyped-def]
+    _, frames, _, _ = scene
+    params = MeasureParams(
+        path="comparison_points", surface=SurfaceParams(fails_part=False), pose_points=3000
+    )
+    with Reconstructor.build(Rig.default()) as rec:
+        m = measure_frames(part, rec, frames, params)
+    assert m.registration is not None and 0 < m.registration.subset_sizes[-1] <= 3000
+    assert len(m.points) > 3 * 3000
+    dent, flat = m.deviations.comparison
+    assert dent.deviation_mm == pytest.approx(-DENT_MM, abs=0.05)
+    assert flat.deviation_mm == pytest.approx(0.0, abs=0.05)
+
+
 def test_the_path_is_refused_where_it_cannot_judge() -> None:
     with pytest.raises(InvalidInput, match="surface"):
         MeasureParams(path="comparison_points")  # defects fail parts by default
     p = MeasureParams(path="comparison_points", surface=SurfaceParams(fails_part=False))
+    with pytest.raises(InvalidInput, match="pose_points"):
+        dataclasses.replace(p, pose_points=50)
     with pytest.raises(InvalidInput, match="frames"):
         measure_cloud(None, np.zeros((20, 3)), p)  # type: ignore[arg-type]
 

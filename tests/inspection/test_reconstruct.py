@@ -384,6 +384,30 @@ def test_a_sparse_first_pass_places_the_guide_and_matches_the_same(
         reconstructor.match(frames, guide=guide, sparse=True)
 
 
+def test_a_sparse_cloud_matches_its_rows_alone_and_places_the_part_as_well(
+    reconstructor: Reconstructor, panel_scene
+) -> None:
+    cad, tree, T, frames, plain = panel_scene
+    cloud = reconstructor.sparse_cloud(frames)
+    sparse, _ = reconstructor.match(frames, sparse=True)
+    rows = reconstructor.params.sparse_rows
+    assert 0.8 * len(sparse) < len(cloud) < 1.2 * len(sparse)
+    for k, pair in enumerate(reconstructor.pairs):
+        mine = cloud.points[cloud.pair == k]
+        _, y, _ = pair.project(mine)
+        assert np.median(np.abs(y - rows * np.round(y / rows))) < 0.1
+        full = plain.points[plain.pair == k]
+        np.testing.assert_allclose(
+            np.ptp(mine[:, :2], axis=0), np.ptp(full[:, :2], axis=0), atol=3.0
+        )
+    # The windows follow the sparse rows' field filled across the rows between: the
+    # surface as good as the full pass's, on the bends too.
+    r, bent = _surface_errors(tree, T, cloud)
+    r_full, bent_full = _surface_errors(tree, T, plain)
+    assert len(r) > 0.95 * len(cloud) and _rms(r) < 1.1 * _rms(r_full)
+    assert _rms(r[bent]) < 1.1 * _rms(r_full[bent_full])
+
+
 def test_field_slopes_against_numpy() -> None:
     rng = np.random.default_rng(3)
     field_ = rng.normal(size=(40, 50)).astype(np.float32)
