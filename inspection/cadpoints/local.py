@@ -14,7 +14,9 @@ cameras see the point's face. There, and only there:
    support radius is fitted with the matching's warped kernel
    (:func:`~inspection.reconstruct.kernels.refine_warped`), its shape the
    CAD's disparity field: only each window's own disparity is measured, so
-   a dent is not guided away;
+   a dent is not guided away; a window on a bend also fits the light that
+   changes with the surface there, as the cloud path's guided windows do
+   (:func:`~inspection.reconstruct.warping.shading`);
 4. each accepted window's disparity places the surface on the pixel's ray;
    its offset from the CAD point, along the facet's normal, is the window's
    deviation;
@@ -45,6 +47,7 @@ from ..reconstruct import Reconstructor, ReconstructParams, kernels
 from ..reconstruct.matching import local_normalise, spline_rows
 from ..reconstruct.pairs import RectifiedPair, rectified_pair
 from ..reconstruct.params import SATURATION_DN
+from ..reconstruct.warping import refine_shaded, shading
 from ..rig import Rig
 from ..transforms import apply
 from ..validate import validate_transform
@@ -339,8 +342,23 @@ def _one_pair(
     out_d = np.empty(len(sel), np.float32)
     score = np.empty(len(sel), np.float32)
     step = np.empty(len(sel), np.float32)
-    kernels.refine_warped(left_n, right_n, wl, wr, shape, mask, px, py, d0, hw,
-                          p.iterations, out_d, score, step)  # fmt: skip
+    # Windows on a bend also fit the sheen, as the cloud path's guided windows do.
+    shade, bent = shading(field_, p.window, p.shading_bend)
+    on_bend = bent[py, px]
+    for sel_, shaded in ((~on_bend, False), (on_bend, True)):
+        i = np.flatnonzero(sel_)
+        if len(i) == 0:
+            continue
+        d_i = np.empty(len(i), np.float32)
+        s_i = np.empty(len(i), np.float32)
+        t_i = np.empty(len(i), np.float32)
+        if shaded:
+            refine_shaded(left_n, right_n, wl, wr, shape, mask, shade, px[i], py[i], d0[i], hw,
+                          p.iterations, d_i, s_i, t_i)  # fmt: skip
+        else:
+            kernels.refine_warped(left_n, right_n, wl, wr, shape, mask, px[i], py[i], d0[i], hw,
+                                  p.iterations, d_i, s_i, t_i)  # fmt: skip
+        out_d[i], score[i], step[i] = d_i, s_i, t_i
     ok = (
         np.isfinite(out_d)
         & (score >= p.min_score)

@@ -43,6 +43,11 @@ class LocalParams:
     max_sigma_fraction : float
         A point whose own uncertainty (3 sigma) exceeds this fraction of its
         tolerance band is not measurable.
+    shading_bend : float
+        A window spans a bend when a slope of the CAD's disparity field
+        (px/px) varies by more than this over it; there it also fits light
+        that changes with the surface's orientation, as the cloud path's
+        guided windows do (``ReconstructParams.shading_bend``). inf: nowhere.
     """
 
     window: int = 9
@@ -58,6 +63,7 @@ class LocalParams:
     calibration_px: float = 0.02
     max_motion_mm: float = DEFAULT_MAX_MOTION_MM
     max_sigma_fraction: float = 0.25
+    shading_bend: float = 0.01
 
     def __post_init__(self) -> None:
         for name in ("window", "norm_window"):
@@ -80,6 +86,8 @@ class LocalParams:
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise InvalidInput(f"LocalParams.{name} must be finite and > 0, got {v!r}")
+        if not (isinstance(self.shading_bend, (int, float)) and self.shading_bend > 0):
+            raise InvalidInput(f"LocalParams.shading_bend must be > 0, got {self.shading_bend!r}")
         if not (math.isfinite(self.calibration_px) and self.calibration_px >= 0):
             raise InvalidInput(
                 f"LocalParams.calibration_px must be finite and >= 0, got {self.calibration_px}"

@@ -37,7 +37,7 @@ that a window spans a bend (a slope of the guide's field that varies by more
 than ``shading_bend`` across it), the window also fits light that is a
 quadratic function of the surface's orientation
 (:func:`.kernels.refine_warped_shaded`): the regressors are the monomials of
-the guide's two disparity slopes, a function of the normal (:func:`_shading`).
+the guide's two disparity slopes, a function of the normal (:func:`shading`).
 They come from the CAD, not from the images, so they cannot mimic the speckle.
 """
 
@@ -210,7 +210,7 @@ def warp(
 ) -> None:
     """Refit the selected windows warped by ``shape``, in place: with
     :func:`.kernels.refine_warped`, or with ``shade`` (the surface
-    coordinates of :func:`_shading`) :func:`.kernels.refine_warped_shaded`."""
+    coordinates of :func:`shading`) :func:`refine_shaded`."""
     idx = np.nonzero(sel)[0]
     d2 = np.empty(len(idx), np.float32)
     s2 = np.empty(len(idx), np.float32)
@@ -220,49 +220,85 @@ def warp(
     if shade is None:
         kernels.refine_warped(left_n, right_n, wl, wr, shape, mask, *pixels, *fit)
     else:
-        kernels.refine_warped_shaded(
-            left_n, right_n, wl, wr, shape, mask, *shade, _SHADING_RIDGE, *pixels, *fit
-        )
+        refine_shaded(
+            left_n, right_n, wl, wr, shape, mask, shade, *pixels, p.warp_window // 2,
+            p.warp_iterations, d2, s2, st2,
+        )  # fmt: skip
     d_ref[idx], score[idx], step[idx] = d2, s2, st2
+
+
+def refine_shaded(
+    left_n: npt.NDArray[np.float32],
+    right_n: npt.NDArray[np.float32],
+    wl: npt.NDArray[np.float32],
+    wr: npt.NDArray[np.float32],
+    shape: npt.NDArray[np.float32],
+    mask: npt.NDArray[np.float32],
+    shade: tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]],
+    px: npt.NDArray[np.int64],
+    py: npt.NDArray[np.int64],
+    d0: npt.NDArray[np.float32],
+    radius: int,
+    iterations: int,
+    out_d: npt.NDArray[np.float32],
+    out_score: npt.NDArray[np.float32],
+    out_step: npt.NDArray[np.float32],
+) -> None:
+    """:func:`.kernels.refine_warped_shaded` with the surface coordinates ``shade`` of
+    :func:`shading` and the ridge the guided windows use; arguments as the kernel's."""
+    kernels.refine_warped_shaded(
+        left_n, right_n, wl, wr, shape, mask, *shade, _SHADING_RIDGE, px, py, d0, radius,
+        iterations, out_d, out_score, out_step,
+    )  # fmt: skip
 
 
 def guide_maps(guide: npt.NDArray[np.float32], p: ReconstructParams) -> tuple[Any, ...]:
     """What the warped kernels take of a guide's disparity field over a crop
     (NaN off the part): the field with 0 off the part, its mask (1 on the
     part), and with ``p.shading`` the surface coordinates and the windows on
-    bends of :func:`_shading` (else None, None)."""
+    bends of :func:`shading` (else None, None)."""
     on_part = np.isfinite(guide)
     g_field = np.where(on_part, guide, 0.0).astype(np.float32)
     g_mask = on_part.astype(np.float32)
     if not p.shading:
         return g_field, g_mask, None, None
-    su, sv, bent = _shading(guide, on_part, p)
-    return g_field, g_mask, (su, sv), bent
+    shade, bent = shading(guide, p.warp_window, p.shading_bend)
+    return g_field, g_mask, shade, bent
 
 
-def _shading(
-    field_: npt.NDArray[np.float32], on_part: npt.NDArray[np.bool_], p: ReconstructParams
-) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], npt.NDArray[np.bool_]]:
-    """Surface coordinates for light that changes with the surface, and the windows on bends.
+def shading(
+    field_: npt.NDArray[np.floating[Any]], window: int, bend: float
+) -> tuple[tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]], npt.NDArray[np.bool_]]:
+    """Surface coordinates for light that changes with the surface, and the windows on bends,
+    of a CAD's disparity field (px, NaN off the part).
 
-    The slopes ``(a, b)`` of the guide's disparity field (px/px, one-sided at
-    its outline; :func:`.kernels.field_slopes`) are a function of the surface normal: scaled by
+    The slopes ``(a, b)`` of the field (px/px, one-sided at its outline;
+    :func:`.kernels.field_slopes`) are a function of the surface normal: scaled by
     ``_SHADING_SCALE`` (to about 1 on a bend), they are the coordinates whose
     quadratic monomials :func:`.kernels.refine_warped_shaded` fits the light
-    with. A window spans a bend where either slope varies, over the window's
-    on-part pixels, by more than ``p.shading_bend``.
+    with. A window of side ``window`` spans a bend where either slope varies,
+    over its on-part pixels, by more than ``bend``.
     """
+    on_part = np.isfinite(field_)
     a = np.empty(field_.shape, np.float32)
     b = np.empty(field_.shape, np.float32)
     kernels.field_slopes(np.ascontiguousarray(field_, dtype=np.float32), a, b)
-    k = np.ones((p.warp_window, p.warp_window), np.uint8)
+    k = np.ones((window, window), np.uint8)
     bent = np.zeros(on_part.shape, bool)
     for g in (a, b):
         hi = cv2.dilate(np.where(on_part, g, np.float32(-1e30)), k)
         lo = cv2.erode(np.where(on_part, g, np.float32(1e30)), k)
-        bent |= hi - lo > p.shading_bend
+        bent |= hi - lo > bend
     scale = np.float32(_SHADING_SCALE)
-    return scale * a, scale * b, bent
+    return (scale * a, scale * b), bent
 
 
-__all__ = ["bends", "finish_pair", "guide_maps", "warp", "warped_passes"]
+__all__ = [
+    "bends",
+    "finish_pair",
+    "guide_maps",
+    "refine_shaded",
+    "shading",
+    "warp",
+    "warped_passes",
+]

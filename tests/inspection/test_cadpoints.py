@@ -202,3 +202,38 @@ def test_frames_without_a_part_are_refused(part) -> None:  # type: ignore[no-unt
     dark = [np.zeros((1024, 1280), np.uint8)] * 4
     with pytest.raises(InvalidInput):
         outline_pose(model, dark)
+
+
+# --------------------------------------------------------------------------- windows on a bend
+
+
+def test_windows_on_the_character_line_fit_its_sheen() -> None:
+    # Across the line the normal turns and each camera sees the flash's sheen change by
+    # another amount; windows that fit only a gain and an offset read the point low.
+    spec = PanelSpec().scaled(400.0, 260.0)
+    cad = sheet_metal_panel(spec)
+    mesh = cad.to_trimesh()
+    loc, _, tri = mesh.ray.intersects_location(
+        [[0.0, spec.character_line_y_mm, 500.0]], [[0.0, 0.0, -1.0]]
+    )
+    k = int(np.argmax(loc[:, 2]))
+    line = ComparisonPoint("line", tuple(loc[k]), tuple(mesh.face_normals[tri[k]]), -0.2, 0.2, 10.0)
+    model = LocalModel.build(cad, [line], Rig.default())
+    shaded, plain = [], []
+    for pose, seed in (((40.0, -30.0, 25.0), 1), ((0.0, 0.0, 0.0), 1), ((0.0, 0.0, 0.0), 3)):
+        T_rig_part = belt_pose(*pose)
+        frames = simulate(Rig.nominal(), mesh, T_rig_part, seed=seed)
+        T_cad_rig = np.linalg.inv(T_rig_part)
+        (on,) = measure_points(model, frames, T_cad_rig)
+        (off,) = measure_points(model, frames, T_cad_rig, LocalParams(shading_bend=math.inf))
+        shaded.append(on.deviation_mm)
+        plain.append(off.deviation_mm)
+    # The CAD is the part: the truth is 0.
+    assert abs(np.mean(shaded)) < 0.02
+    assert abs(np.mean(shaded)) < 0.5 * abs(np.mean(plain))
+
+
+def test_a_bad_shading_bend_is_refused() -> None:
+    for bad in (0.0, -0.01, math.nan, "0.01"):
+        with pytest.raises(InvalidInput, match="shading_bend"):
+            LocalParams(shading_bend=bad)  # type: ignore[arg-type]
