@@ -197,7 +197,10 @@ def image_pose(
     The outline of a part that is nearly symmetric in outline does not tell
     its turn from the opposite one; every candidate whose outline fits within
     ``close`` times the best's residual is refined, and the refinement with
-    the smallest residual (mm) wins.
+    the smallest residual (mm) wins, converged or not: the turn the wrong way
+    round fits with a residual several times larger, while whether a fit has
+    settled within its rounds says little about which turn is right. The fit
+    says whether it converged.
 
     Raises
     ------
@@ -212,7 +215,7 @@ def image_pose(
             fit = refine_pose(model, frames, T)
         except InvalidInput:
             continue
-        if fit.converged and (best is None or fit.rms_mm < best.rms_mm):
+        if np.isfinite(fit.rms_mm) and (best is None or fit.rms_mm < best.rms_mm):
             best = fit
     if best is None:
         raise InvalidInput("no pose from the images: the sites did not fit any outline pose")
