@@ -820,6 +820,48 @@ def fill_row_gaps(disparity, passes):  # pragma: no cover
 
 
 @njit(cache=True, nogil=True)
+def fill_column_gaps(disparity, passes):  # pragma: no cover
+    """:func:`fill_row_gaps` along the columns: each pass sets every NaN pixel with a
+    measured neighbour above or below to the mean of the measured ones (values of the
+    previous pass), in place, ``passes`` times.
+
+    Row by row in memory order (a transposed view's strided walk is an order of
+    magnitude slower): the row above is kept as it was before this pass, the row
+    below is not yet touched.
+
+    Parameters
+    ----------
+    disparity : (H, W) float32, C-contiguous
+        NaN where not measured; modified in place.
+    passes : int
+    """
+    H, W = disparity.shape
+    above = np.full(W, np.nan, np.float32)
+    here = np.empty(W, np.float32)
+    nowhere = np.full(W, np.nan, np.float32)
+    for _ in range(passes):
+        above[:] = np.nan
+        here[:] = disparity[0]
+        for y in range(H):
+            row = disparity[y]
+            below = disparity[y + 1] if y + 1 < H else nowhere
+            for x in range(W):
+                if not np.isnan(here[x]):
+                    continue
+                a = above[x]
+                b = below[x]
+                if np.isnan(a):
+                    if not np.isnan(b):
+                        row[x] = b
+                elif np.isnan(b):
+                    row[x] = a
+                else:
+                    row[x] = (a + b) / np.float32(2.0)
+            above[:] = here
+            here[:] = below
+
+
+@njit(cache=True, nogil=True)
 def triangulate_matches(
     x_left,
     rows,
@@ -907,6 +949,7 @@ def triangulate_matches(
 __all__ = [
     "SHADE_TERMS",
     "field_slopes",
+    "fill_column_gaps",
     "fill_row_gaps",
     "refine_cyclopean",
     "refine_pixels",

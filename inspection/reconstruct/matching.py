@@ -442,8 +442,8 @@ def fill_gaps(disparity: npt.NDArray[np.float32], p: ReconstructParams) -> None:
     kernels.fill_row_gaps(disparity, p.stride)
     if p.row_stride > 1:
         # Gaps of row_stride - 1 rows close in row_stride // 2 passes; more would only grow
-        # the outlines by rows no pair measured. The columns are the rows of the transpose.
-        kernels.fill_row_gaps(disparity.T, p.row_stride // 2)
+        # the outlines by rows no pair measured.
+        kernels.fill_column_gaps(disparity, p.row_stride // 2)
 
 
 __all__ = [
