@@ -86,7 +86,8 @@ class LocalParams:
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise InvalidInput(f"LocalParams.{name} must be finite and > 0, got {v!r}")
-        if not (isinstance(self.shading_bend, (int, float)) and self.shading_bend > 0):
+        v = self.shading_bend
+        if isinstance(v, bool) or not (isinstance(v, (int, float)) and v > 0):
             raise InvalidInput(f"LocalParams.shading_bend must be > 0, got {self.shading_bend!r}")
         if not (math.isfinite(self.calibration_px) and self.calibration_px >= 0):
             raise InvalidInput(

@@ -234,6 +234,6 @@ def test_windows_on_the_character_line_fit_its_sheen() -> None:
 
 
 def test_a_bad_shading_bend_is_refused() -> None:
-    for bad in (0.0, -0.01, math.nan, "0.01"):
+    for bad in (0.0, -0.01, math.nan, "0.01", True):
         with pytest.raises(InvalidInput, match="shading_bend"):
             LocalParams(shading_bend=bad)  # type: ignore[arg-type]
