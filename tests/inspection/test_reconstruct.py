@@ -350,6 +350,23 @@ def _in_plane_errors(T_cad_rig: np.ndarray, T_rig_part: np.ndarray) -> tuple[flo
     return abs(float(turn)), float(np.linalg.norm(dT[:3, 3]))
 
 
+def _assert_on_the_rows_over_the_whole_part(
+    reconstructor: Reconstructor, cloud: Cloud, plain: Cloud
+) -> None:
+    """Each pair's points lie on every sparse_rows-th rectified row, over the extent of
+    its points in the full pass ``plain``."""
+    rows = reconstructor.params.sparse_rows
+    for k, pair in enumerate(reconstructor.pairs):
+        mine = cloud.points[cloud.pair == k]
+        _, y, _ = pair.project(mine)
+        # Fused points move along the other pair's ray: off their row by a fraction.
+        assert np.median(np.abs(y - rows * np.round(y / rows))) < 0.1
+        full = plain.points[plain.pair == k]
+        np.testing.assert_allclose(
+            np.ptp(mine[:, :2], axis=0), np.ptp(full[:, :2], axis=0), atol=3.0
+        )
+
+
 def test_a_sparse_first_pass_places_the_guide_and_matches_the_same(
     reconstructor: Reconstructor, panel_scene
 ) -> None:
@@ -361,15 +378,7 @@ def test_a_sparse_first_pass_places_the_guide_and_matches_the_same(
     rows = reconstructor.params.sparse_rows
     share = reconstructor.params.row_stride / rows
     assert 0.6 * share * len(plain) < len(sparse) < 1.4 * share * len(plain)
-    for k, pair in enumerate(reconstructor.pairs):
-        mine = sparse.points[sparse.pair == k]
-        _, y, _ = pair.project(mine)
-        # Fused points move along the other pair's ray: off their row by a fraction.
-        assert np.median(np.abs(y - rows * np.round(y / rows))) < 0.1
-        full = plain.points[plain.pair == k]
-        np.testing.assert_allclose(
-            np.ptp(mine[:, :2], axis=0), np.ptp(full[:, :2], axis=0), atol=3.0
-        )
+    _assert_on_the_rows_over_the_whole_part(reconstructor, sparse, plain)
     # As good a surface as the full pass's, point for point: the same windows, fewer.
     r, _ = _surface_errors(tree, T, sparse)
     r_full, _ = _surface_errors(tree, T, plain)
@@ -390,16 +399,8 @@ def test_a_sparse_cloud_matches_its_rows_alone_and_places_the_part_as_well(
     cad, tree, T, frames, plain = panel_scene
     cloud = reconstructor.sparse_cloud(frames)
     sparse, _ = reconstructor.match(frames, sparse=True)
-    rows = reconstructor.params.sparse_rows
     assert 0.8 * len(sparse) < len(cloud) < 1.2 * len(sparse)
-    for k, pair in enumerate(reconstructor.pairs):
-        mine = cloud.points[cloud.pair == k]
-        _, y, _ = pair.project(mine)
-        assert np.median(np.abs(y - rows * np.round(y / rows))) < 0.1
-        full = plain.points[plain.pair == k]
-        np.testing.assert_allclose(
-            np.ptp(mine[:, :2], axis=0), np.ptp(full[:, :2], axis=0), atol=3.0
-        )
+    _assert_on_the_rows_over_the_whole_part(reconstructor, cloud, plain)
     # The windows follow the sparse rows' field filled across the rows between: the
     # surface as good as the full pass's, on the bends too.
     r, bent = _surface_errors(tree, T, cloud)
