@@ -43,11 +43,11 @@ import numpy.typing as npt
 from ..deviations import ComparisonPoint, robust_location
 from ..errors import InvalidInput
 from ..perspective import FacetSet, RayCaster, draw_map, pinhole_faces, rectified_rays
-from ..reconstruct import Reconstructor, ReconstructParams, kernels
+from ..reconstruct import Reconstructor, ReconstructParams
 from ..reconstruct.matching import local_normalise, spline_rows
 from ..reconstruct.pairs import RectifiedPair, rectified_pair
 from ..reconstruct.params import SATURATION_DN
-from ..reconstruct.warping import refine_shaded, shading
+from ..reconstruct.warping import refit_windows, shading
 from ..rig import Rig
 from ..transforms import apply
 from ..validate import validate_transform
@@ -345,20 +345,10 @@ def _one_pair(
     # Windows on a bend also fit the sheen, as the cloud path's guided windows do.
     shade, bent = shading(field_, p.window, p.shading_bend)
     on_bend = bent[py, px]
-    for sel_, shaded in ((~on_bend, False), (on_bend, True)):
-        i = np.flatnonzero(sel_)
-        if len(i) == 0:
-            continue
-        d_i = np.empty(len(i), np.float32)
-        s_i = np.empty(len(i), np.float32)
-        t_i = np.empty(len(i), np.float32)
-        if shaded:
-            refine_shaded(left_n, right_n, wl, wr, shape, mask, shade, px[i], py[i], d0[i], hw,
-                          p.iterations, d_i, s_i, t_i)  # fmt: skip
-        else:
-            kernels.refine_warped(left_n, right_n, wl, wr, shape, mask, px[i], py[i], d0[i], hw,
-                                  p.iterations, d_i, s_i, t_i)  # fmt: skip
-        out_d[i], score[i], step[i] = d_i, s_i, t_i
+    images = (left_n, right_n, wl, wr, shape, mask, px, py)
+    fit = (d0, hw, p.iterations, out_d, score, step)
+    refit_windows(*images, ~on_bend, *fit)
+    refit_windows(*images, on_bend, *fit, shade)
     ok = (
         np.isfinite(out_d)
         & (score >= p.min_score)

@@ -208,48 +208,50 @@ def warp(
     p: ReconstructParams,
     shade: tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]] | None = None,
 ) -> None:
-    """Refit the selected windows warped by ``shape``, in place: with
-    :func:`.kernels.refine_warped`, or with ``shade`` (the surface
-    coordinates of :func:`shading`) :func:`refine_shaded`."""
-    idx = np.nonzero(sel)[0]
-    d2 = np.empty(len(idx), np.float32)
-    s2 = np.empty(len(idx), np.float32)
-    st2 = np.empty(len(idx), np.float32)
-    pixels = (px[idx].astype(np.int64), py[idx].astype(np.int64), d_ref[idx].astype(np.float32))
-    fit = (p.warp_window // 2, p.warp_iterations, d2, s2, st2)
-    if shade is None:
-        kernels.refine_warped(left_n, right_n, wl, wr, shape, mask, *pixels, *fit)
-    else:
-        refine_shaded(
-            left_n, right_n, wl, wr, shape, mask, shade, *pixels, p.warp_window // 2,
-            p.warp_iterations, d2, s2, st2,
-        )  # fmt: skip
-    d_ref[idx], score[idx], step[idx] = d2, s2, st2
+    """Refit the selected windows warped by ``shape``, in place, from ``d_ref``
+    (:func:`refit_windows` with the warped passes' window and iterations)."""
+    refit_windows(
+        left_n, right_n, wl, wr, shape, mask, px, py, sel, d_ref, p.warp_window // 2,
+        p.warp_iterations, d_ref, score, step, shade,
+    )  # fmt: skip
 
 
-def refine_shaded(
+def refit_windows(
     left_n: npt.NDArray[np.float32],
     right_n: npt.NDArray[np.float32],
     wl: npt.NDArray[np.float32],
     wr: npt.NDArray[np.float32],
     shape: npt.NDArray[np.float32],
     mask: npt.NDArray[np.float32],
-    shade: tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]],
-    px: npt.NDArray[np.int64],
-    py: npt.NDArray[np.int64],
-    d0: npt.NDArray[np.float32],
+    px: npt.NDArray[np.intp],
+    py: npt.NDArray[np.intp],
+    sel: npt.NDArray[np.bool_],
+    start: npt.NDArray[np.float32],
     radius: int,
     iterations: int,
     out_d: npt.NDArray[np.float32],
     out_score: npt.NDArray[np.float32],
     out_step: npt.NDArray[np.float32],
+    shade: tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]] | None = None,
 ) -> None:
-    """:func:`.kernels.refine_warped_shaded` with the surface coordinates ``shade`` of
-    :func:`shading` and the ridge the guided windows use; arguments as the kernel's."""
-    kernels.refine_warped_shaded(
-        left_n, right_n, wl, wr, shape, mask, *shade, _SHADING_RIDGE, px, py, d0, radius,
-        iterations, out_d, out_score, out_step,
-    )  # fmt: skip
+    """Fit the selected windows warped by ``shape`` from the disparities ``start``, and
+    write their fits to the outputs at the same rows: with
+    :func:`.kernels.refine_warped`, or with ``shade`` (the surface coordinates of
+    :func:`shading`) :func:`.kernels.refine_warped_shaded` and the ridge the guided
+    windows use. ``start`` may be ``out_d``."""
+    idx = np.nonzero(sel)[0]
+    d2 = np.empty(len(idx), np.float32)
+    s2 = np.empty(len(idx), np.float32)
+    st2 = np.empty(len(idx), np.float32)
+    pixels = (px[idx].astype(np.int64), py[idx].astype(np.int64), start[idx].astype(np.float32))
+    fit = (radius, iterations, d2, s2, st2)
+    if shade is None:
+        kernels.refine_warped(left_n, right_n, wl, wr, shape, mask, *pixels, *fit)
+    else:
+        kernels.refine_warped_shaded(
+            left_n, right_n, wl, wr, shape, mask, *shade, _SHADING_RIDGE, *pixels, *fit
+        )
+    out_d[idx], out_score[idx], out_step[idx] = d2, s2, st2
 
 
 def guide_maps(guide: npt.NDArray[np.float32], p: ReconstructParams) -> tuple[Any, ...]:
@@ -297,7 +299,7 @@ __all__ = [
     "bends",
     "finish_pair",
     "guide_maps",
-    "refine_shaded",
+    "refit_windows",
     "shading",
     "warp",
     "warped_passes",
