@@ -865,7 +865,9 @@ def start_line(
         opened.append(janitor)
         sinks = [archive_sink(archive), store_sink(store), *extra_sinks, hub_sink(hub)]
         alarms = [store.put_alarm, hub.publish, recorder.record_alarm]
-        published = [zenoh_alarm_sink(session, station.keys), *alarms]
+        # Stored before published: whoever sees an alarm on zenoh can then find
+        # it (and acknowledge it) over REST.
+        published = [*alarms, zenoh_alarm_sink(session, station.keys)]
         monitor = spc_monitor(cfg, station, store, published)
         parts = follow_store_parts(cfg, station, recorder)
         opened.append(parts)
@@ -1018,8 +1020,8 @@ def run_worker(
                     station,
                     store,
                     [
-                        zenoh_alarm_sink(session, station.keys),
                         store.put_alarm,
+                        zenoh_alarm_sink(session, station.keys),
                         recorder.record_alarm,
                     ],
                 ),

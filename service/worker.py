@@ -1177,7 +1177,8 @@ class ZenohWorker:
             max_seq_jump=max_seq_jump,
             resume=resume,
             is_stored=store.has if store is not None else None,
-            alarms=[zenoh_alarm_sink(session, keys), *alarms],
+            # Stored before published, as results are.
+            alarms=[*alarms, zenoh_alarm_sink(session, keys)],
             journal=journal,
             metrics=metrics,
             cameras=[(c["name"], c["width"], c["height"]) for c in cals] or None,
