@@ -570,15 +570,35 @@ def test_the_ingest_never_uses_a_seq_twice_across_restarts(tmp_path, quick_part)
         Ingest(rig(QUICK, quick_part), sent.append, period_s=0.01, seq_state=state)
 
 
-def test_alarms_are_published_on_the_station_alarm_key(framesets, quick_part):
+def test_alarms_are_published_on_the_station_alarm_key_once_stored(tmp_path, framesets, quick_part):
+    """Whoever sees an alarm on zenoh can find it in the store: it is stored first (the
+    store here is slow on purpose, so that a publication ahead of it shows)."""
+    import time
+
     from service.models import Alarm
+    from service.store import ResultStore
 
     port = free_port()
     keys = Keys(LINE)
     got = Collect()
-    with bus.open_session(peer(port)) as wsess, bus.open_session(client(port)) as csess:
+    found: list[Alarm | None] = []
+
+    def slow_put(alarm: Alarm) -> None:
+        time.sleep(0.3)
+        store.put_alarm(alarm)
+
+    def on_alarm(sample) -> None:
+        found.append(store.alarm(Alarm.model_validate_json(sample.payload.to_bytes()).id))
+
+    with (
+        ResultStore(tmp_path / "results.sqlite") as store,
+        bus.open_session(peer(port)) as wsess,
+        bus.open_session(client(port)) as csess,
+    ):
         alarms = csess.declare_subscriber(keys.alarms(), bus.zenoh.handlers.FifoChannel(16))
-        zw = ZenohWorker(wsess, keys, STATION, pipeline(quick_part), queue_size=4, sinks=[got])
+        seen = csess.declare_subscriber(keys.alarms(), on_alarm)
+        zw = ZenohWorker(wsess, keys, STATION, pipeline(quick_part), queue_size=4, sinks=[got],
+                         alarms=[slow_put])  # fmt: skip
         try:
             pub = bus.frame_publisher(csess, keys.frames(STATION))
             assert bus.wait_for_subscribers(pub, 10)
@@ -590,10 +610,12 @@ def test_alarms_are_published_on_the_station_alarm_key(framesets, quick_part):
         finally:
             zw.close()
             alarms.undeclare()
+            seen.undeclare()
     assert str(sample.key_expr) == keys.alarm(STATION)
     alarm = Alarm.model_validate_json(sample.payload.to_bytes())
     assert alarm.kind.value == "seq_jump" and alarm.seq == 10**12 and alarm.station == STATION
     assert alarm.triggered_ns == framesets[1].triggered_ns
+    assert found and found[0] is not None and found[0].id == alarm.id
 
 
 def bomb_png(side: int) -> bytes:
