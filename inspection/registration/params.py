@@ -81,7 +81,9 @@ class RegisterParams:
         the last subset; more points are slower and only help weakly
         constrained parts (see ``uncertainty_mm``).
     subset_growth : int
-        Factor by which the subset grows once the pose has converged on it.
+        Factor by which the subset grows once the pose has converged on it
+        (straight to the last subset when a grown one would leave out fewer
+        points than it holds).
     subset_tolerance_factor : float
         The tolerances are this much looser on the smaller subsets: the first
         step on the next, larger one finishes the job.

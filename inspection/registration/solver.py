@@ -39,7 +39,8 @@ The stages, as :func:`register` runs them:
    last subset, so does a step that lowers the cost by less than the subset's
    noise can tell apart (1 % of sigma^2 / n), since damped steps would
    otherwise crawl along a direction the subset leaves loose. Then the scale
-   narrows, or the subset grows ``subset_growth`` times, up to
+   narrows, or the subset grows ``subset_growth`` times (to the last one
+   when that would leave out fewer points than it holds), up to
    ``max_subset``; a pose those points do not pin down to
    ``uncertainty_mm`` continues on every point. On the last subset, a fit
    that no damped step moves has converged if its Gauss-Newton step lies
@@ -703,8 +704,12 @@ def _grow_subset(fit: _Fit) -> None:
     """The next subset: only the new points are queried, at the current pose.
     A new cost on more points: the trust region starts afresh, and the scale
     is estimated afresh on them (the smallest of many noisy estimates on few
-    points would be biased low)."""
+    points would be biased low). A subset that would leave out fewer points than it
+    holds is skipped for all of them: its iterations would cost nearly as much as
+    the last subset's and settle nearly the same pose."""
     m, m2 = fit.m, min(fit.cap, fit.p.subset_growth * fit.m)
+    if fit.cap - m2 < m2:
+        m2 = fit.cap
     new, d = match(fit.tree, fit.T, fit.P[m:m2], fit.distance)
     fit.V[m:m2] *= np.abs(d) <= fit.p.max_distance_mm
     fit.match = concatenated(fit.match, new)

@@ -369,6 +369,17 @@ def test_small_last_subsets_fit_a_large_cloud(panel, max_subset):
     assert reg.weights.shape == (5000,) and reg.inlier_fraction > 0.95
 
 
+def test_a_subset_that_would_leave_out_few_points_grows_to_all_of_them(panel):
+    """64, 512, then 4096 of 5000 points would leave 904 out, fewer than it holds: the fit
+    goes from 512 points to all 5000 and lands as well."""
+    cad, tree = panel
+    data, _, T_true = scenario(cad, n=5000, deg=3.0, mm=5.0, seed=11)
+    reg = register(tree, data, initial_subset=64, max_subset=None, uncertainty_mm=None)
+    rot, disp = pose_errors(reg.transform, T_true, data)
+    assert reg.converged and rot <= 0.005 and disp <= 0.005
+    assert sorted(set(reg.subset_sizes.tolist())) == [64, 512, 5000]
+
+
 @pytest.mark.parametrize("seed", [3, 4, 10, 15])
 def test_a_loose_first_subset_does_not_wander(panel, seed):
     """Points on the panel's top alone (what a rig sees of it without its
