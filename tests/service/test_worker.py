@@ -570,25 +570,40 @@ def test_the_ingest_never_uses_a_seq_twice_across_restarts(tmp_path, quick_part)
         Ingest(rig(QUICK, quick_part), sent.append, period_s=0.01, seq_state=state)
 
 
-def test_alarms_are_published_on_the_station_alarm_key_once_stored(tmp_path, framesets, quick_part):
-    """Whoever sees an alarm on zenoh can find it in the store: it is stored first (the
-    store here is slow on purpose, so that a publication ahead of it shows)."""
-    import time
+class NotingSession:
+    """A worker's real session that notes the key of each put before making it."""
 
+    def __init__(self, session, log: list[tuple[str, str]]) -> None:
+        self._session, self._log = session, log
+
+    def put(self, key, *args, **kwargs):
+        self._log.append(("published", str(key)))
+        return self._session.put(key, *args, **kwargs)
+
+    def __getattr__(self, name: str):
+        return getattr(self._session, name)
+
+
+def test_alarms_are_published_on_the_station_alarm_key_once_stored(tmp_path, framesets, quick_part):
+    """Whoever sees an alarm on zenoh can find it in the store: it is stored before it is
+    published, and a subscriber that looks it up the moment it arrives finds it."""
     from service.models import Alarm
     from service.store import ResultStore
 
     port = free_port()
     keys = Keys(LINE)
     got = Collect()
+    log: list[tuple[str, str]] = []
     found: list[Alarm | None] = []
+    looked = threading.Event()
 
-    def slow_put(alarm: Alarm) -> None:
-        time.sleep(0.3)
+    def put(alarm: Alarm) -> None:
         store.put_alarm(alarm)
+        log.append(("stored", keys.alarm(alarm.station)))
 
     def on_alarm(sample) -> None:
         found.append(store.alarm(Alarm.model_validate_json(sample.payload.to_bytes()).id))
+        looked.set()
 
     with (
         ResultStore(tmp_path / "results.sqlite") as store,
@@ -597,8 +612,8 @@ def test_alarms_are_published_on_the_station_alarm_key_once_stored(tmp_path, fra
     ):
         alarms = csess.declare_subscriber(keys.alarms(), bus.zenoh.handlers.FifoChannel(16))
         seen = csess.declare_subscriber(keys.alarms(), on_alarm)
-        zw = ZenohWorker(wsess, keys, STATION, pipeline(quick_part), queue_size=4, sinks=[got],
-                         alarms=[slow_put])  # fmt: skip
+        zw = ZenohWorker(NotingSession(wsess, log), keys, STATION, pipeline(quick_part),
+                         queue_size=4, sinks=[got], alarms=[put])  # fmt: skip
         try:
             pub = bus.frame_publisher(csess, keys.frames(STATION))
             assert bus.wait_for_subscribers(pub, 10)
@@ -606,6 +621,7 @@ def test_alarms_are_published_on_the_station_alarm_key_once_stored(tmp_path, fra
             pub.put(encode_frameset(at(framesets[1], 10**12)))
             assert got.wait(2, 30)
             sample = alarms.handler.recv()
+            assert looked.wait(10)
             pub.undeclare()
         finally:
             zw.close()
@@ -615,6 +631,7 @@ def test_alarms_are_published_on_the_station_alarm_key_once_stored(tmp_path, fra
     alarm = Alarm.model_validate_json(sample.payload.to_bytes())
     assert alarm.kind.value == "seq_jump" and alarm.seq == 10**12 and alarm.station == STATION
     assert alarm.triggered_ns == framesets[1].triggered_ns
+    assert [what for what, key in log if key == keys.alarm(STATION)] == ["stored", "published"]
     assert found and found[0] is not None and found[0].id == alarm.id
 
 
