@@ -20,7 +20,8 @@ them alike, and the median of the rounds' own cKDTree / GridTree ratios is
 printed too. Ratios are peer time / grid time; the first line starting
 ``RATIO`` gives the headline one: against cKDTree with one thread each
 (numba's threads set to 1, ``workers=1``), wall and CPU time; the second the
-same pair on every core. On a shared machine a parallel launch of a few
+same pair on every core, its CPU time read over calls back to back (see
+:mod:`bench.cpu`). On a shared machine a parallel launch of a few
 milliseconds waits for a core held elsewhere far longer than one of a second
 does (and OpenMP's threads spin while they wait, which counts as CPU time),
 so only the one-thread pair compares the searches alike under load.
@@ -47,6 +48,8 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from bench.cpu import cpu_per_call  # noqa: E402
+
 N_NEAR = 50_000
 N_FAR = 2_000
 N_SAMPLES = 1_000_000
@@ -54,6 +57,9 @@ N_SAMPLES = 1_000_000
 # times per round, each peer once).
 ROUNDS = 9
 GRID_PER_ROUND = 3
+# GridTree calls back to back for its CPU time on every core.
+CPU_CALLS = 30
+KD_CPU_CALLS = 3
 # The near queries' speed against cKDTree in the same run.
 RATIO_GOAL = 100.0
 SHARED_COUNTER = Path(__file__).resolve().parents[1].parent / "shared/data/cad/counter.unitsmm.STL"
@@ -234,16 +240,23 @@ def main() -> int:
     # that a burst of load from elsewhere hits every method alike; each
     # round's own ratio to GridTree is kept too (paired ratios).
     near_times: dict[str, list[float]] = {name: [] for name, _ in methods}
-    near_cpu: dict[str, list[float]] = {name: [] for name, _ in methods}
     for _, fn in methods:
         fn(near)  # warm-up
     for _ in range(ROUNDS):
         for name, fn in methods:
             for _ in range(GRID_PER_ROUND if name.startswith("GridTree") else 1):
-                start, cpu = time.perf_counter(), time.process_time()
+                start = time.perf_counter()
                 fn(near)
                 near_times[name].append(time.perf_counter() - start)
-                near_cpu[name].append(time.process_time() - cpu)
+    # CPU on every core over calls back to back, the threads' spinning after
+    # them included (see bench.cpu: read around one parallel call, the clock
+    # misses the other threads' share).
+    near_cpu = {
+        name: cpu_per_call(
+            lambda fn=fn: fn(near), CPU_CALLS if name.startswith("GridTree") else KD_CPU_CALLS
+        )[0]
+        for name, fn in methods[:2]
+    }
     single = _single_threaded(tree, kd, near)
     rows = []
     for name, fn in methods:
@@ -295,7 +308,7 @@ def main() -> int:
     kd_best = rows[1][6] / grid_best
     kd_paired = float(np.median(paired))
     grid_name, kd_name = methods[0][0], methods[1][0]
-    kd_cpu = statistics.median(near_cpu[kd_name]) / statistics.median(near_cpu[grid_name])
+    kd_cpu = near_cpu[kd_name] / near_cpu[grid_name]
     s_grid = np.array(single["grid"])
     s_kd = np.array(single["kd"])
     s_ratio = float(np.median(s_kd) / np.median(s_grid))
@@ -316,7 +329,8 @@ def main() -> int:
         f"cKDTree(workers=-1) on {N_NEAR // 1000}k queries within 3 mm (medians; "
         f"{kd_best:.1f}x best repeats; "
         f"{kd_paired:.1f}x median of the {ROUNDS} rounds' own ratios; {kd_cpu:.1f}x in CPU "
-        f"time), both on every core ({threads}: numba's threads, cKDTree's workers)"
+        f"time over {CPU_CALLS} calls, {near_cpu[grid_name] * 1e3:.2f} ms per call, the threads' "
+        f"spinning included), both on every core ({threads}: numba's threads, cKDTree's workers)"
     )
     off = e_near > 1e-3
     print(
