@@ -469,8 +469,7 @@ class SurfaceModel:
         :attr:`edge_mm`)."""
         if len(occlusion) == 0:
             return np.full(len(self.keys), np.inf)
-        near, _ = cKDTree(occlusion).query(self.centres, distance_upper_bound=2 * self.edge_mm)
-        return np.asarray(near, dtype=np.float64)
+        return _nearest_within(_f64(self.centres), _f64(occlusion), 2.0 * self.edge_mm)
 
     def _near_edges(
         self, closest: Points, nodes: np.ndarray, occlusion: Points, edge_mm: np.ndarray
@@ -488,9 +487,7 @@ class SurfaceModel:
         unsure = np.flatnonzero(~near & (at <= reach + half_cell))
         samples = np.concatenate([self.boundary, np.asarray(occlusion).reshape(-1, 3)])
         if len(unsure) and len(samples):
-            dist, _ = cKDTree(samples).query(
-                np.asarray(closest)[unsure], distance_upper_bound=reach + 1e-9
-            )
+            dist = _nearest_within(_f64(np.asarray(closest)[unsure]), _f64(samples), reach + 1e-9)
             near[unsure] = dist <= reach
         return near
 
@@ -651,6 +648,86 @@ def _node_medians(
 
 def _f64(a: object) -> np.ndarray:
     return np.ascontiguousarray(a, dtype=np.float64)
+
+
+# Cells of the binned samples of :func:`_nearest_within`, at most, and per
+# sample: past that the cells grow wider than the reach (still exact, with
+# more samples per cell) rather than the grid outgrowing the search.
+_MAX_SAMPLE_CELLS = 1 << 22
+_CELLS_PER_SAMPLE = 8
+
+
+@njit(cache=True, nogil=True)
+def _nearest_within(queries, samples, reach):  # pragma: no cover - compiled
+    """(Q,) float64, mm: each query point's distance to its nearest sample where that
+    is below ``reach``, inf elsewhere (what ``cKDTree(samples).query(queries,
+    distance_upper_bound=reach)`` gives).
+
+    The samples are binned into cells at least ``reach`` wide over their box
+    grown by ``reach``, so that a query searches its own cell and the 26
+    around it, and a query outside the box none.
+    """
+    nq = queries.shape[0]
+    out = np.full(nq, np.inf)
+    ns = samples.shape[0]
+    if ns == 0 or not reach > 0.0:
+        return out
+    lo = np.empty(3)
+    dims = np.empty(3, dtype=np.int64)
+    ext = np.empty(3)
+    for a in range(3):
+        lo[a] = samples[:, a].min() - reach
+        ext[a] = samples[:, a].max() + reach - lo[a]
+    max_cells = min(_MAX_SAMPLE_CELLS, _CELLS_PER_SAMPLE * ns + 64)
+    cell = reach
+    while True:
+        total = 1
+        for a in range(3):
+            dims[a] = int(ext[a] / cell) + 1
+            total *= dims[a]
+        if total <= max_cells:
+            break
+        cell *= 1.5
+    inv = 1.0 / cell
+    slot = np.empty(ns, dtype=np.int64)
+    start = np.zeros(total + 1, dtype=np.int64)
+    for i in range(ns):
+        ix = min(int((samples[i, 0] - lo[0]) * inv), dims[0] - 1)
+        iy = min(int((samples[i, 1] - lo[1]) * inv), dims[1] - 1)
+        iz = min(int((samples[i, 2] - lo[2]) * inv), dims[2] - 1)
+        slot[i] = (ix * dims[1] + iy) * dims[2] + iz
+        start[slot[i] + 1] += 1
+    for c in range(total):
+        start[c + 1] += start[c]
+    fill = start[:-1].copy()
+    order = np.empty(ns, dtype=np.int64)
+    for i in range(ns):
+        order[fill[slot[i]]] = i
+        fill[slot[i]] += 1
+    r2 = reach * reach
+    for q in range(nq):
+        gx = (queries[q, 0] - lo[0]) * inv
+        gy = (queries[q, 1] - lo[1]) * inv
+        gz = (queries[q, 2] - lo[2]) * inv
+        if not (0.0 <= gx < dims[0] and 0.0 <= gy < dims[1] and 0.0 <= gz < dims[2]):
+            continue  # farther than reach from every sample (and NaN)
+        ix, iy, iz = int(gx), int(gy), int(gz)
+        best = np.inf
+        for x in range(max(ix - 1, 0), min(ix + 2, dims[0])):
+            for y in range(max(iy - 1, 0), min(iy + 2, dims[1])):
+                base = (x * dims[1] + y) * dims[2]
+                for c in range(base + max(iz - 1, 0), base + min(iz + 2, dims[2])):
+                    for j in range(start[c], start[c + 1]):
+                        k = order[j]
+                        dx = queries[q, 0] - samples[k, 0]
+                        dy = queries[q, 1] - samples[k, 1]
+                        dz = queries[q, 2] - samples[k, 2]
+                        d2 = dx * dx + dy * dy + dz * dz
+                        if d2 < best:
+                            best = d2
+        if best < r2:
+            out[q] = math.sqrt(best)
+    return out
 
 
 @njit(cache=True, nogil=True, inline="always")

@@ -307,3 +307,27 @@ def test_the_one_pass_kernel_agrees_with_the_array_steps(panel):
     np.testing.assert_array_equal(nodes, expected)
     np.testing.assert_array_equal(off, surface.off_edge(pts, q.points, normals, q.distances))
     assert off[:500].sum() > 100 and off[500:].mean() < 0.05  # both kinds are in the test
+
+
+@pytest.mark.parametrize("reach", [0.2, 4.0, 8.0, 60.0])
+def test_the_nearest_edge_sample_within_reach_is_the_kd_trees(panel, reach):
+    """The binned search gives each point the distance to its nearest sample below the
+    reach, and inf beyond it, as a k-d tree does: on the panel's outline samples, from
+    points on, beside and far off the part, and from a point with no sample near."""
+    from inspection.surface import _nearest_within
+
+    cad, tree, surface = panel
+    rng = np.random.default_rng(11)
+    pts = np.concatenate(
+        [
+            cloud(cad, n=5000, seed=5),
+            surface.boundary[:2000] + rng.normal(0.0, reach / 2, (2000, 3)),
+            rng.uniform(-2000.0, 2000.0, (500, 3)),
+        ]
+    )
+    samples = surface.boundary
+    expected, _ = cKDTree(samples).query(pts, distance_upper_bound=reach)
+    got = _nearest_within(pts, samples, reach)
+    np.testing.assert_array_equal(got, expected)
+    assert np.isfinite(got).sum() > 1000 and np.isinf(got).sum() > 400  # both kinds
+    assert np.isinf(_nearest_within(pts, np.empty((0, 3)), reach)).all()
