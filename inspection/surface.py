@@ -604,6 +604,10 @@ class SurfaceModel:
         )
 
 
+# Points of a node up to which :func:`_node_medians` sorts them by insertion.
+_INSERTION_MAX = 64
+
+
 @njit(cache=True, nogil=True)
 def _node_medians(
     d: np.ndarray, nodes: np.ndarray, first: np.ndarray, second: np.ndarray, m: int
@@ -627,19 +631,42 @@ def _node_medians(
     n_second = np.zeros(m, dtype=np.int64)
     med_first = np.zeros(m)
     n_first = np.zeros(m, dtype=np.int64)
+    # A node holds about ten points: sorted in place by insertion in scratch
+    # arrays, which spares it the allocations of a sort (a crowded node is
+    # sorted by argsort, as insertion takes the square of its count).
+    longest = 0
+    for j in range(m):
+        longest = max(longest, start[j + 1] - start[j])
+    bucket = np.empty(longest)
+    keep = np.empty(longest, dtype=np.bool_)
+    sub = np.empty(longest)
     for j in range(m):
         a, b = start[j], start[j + 1]
-        if b == a:
-            continue
-        bucket = values[a:b]
-        keep = inner[a:b]
-        order = np.argsort(bucket)
-        bucket, keep = bucket[order], keep[order]
         k = b - a
+        if k == 0:
+            continue
+        if k > _INSERTION_MAX:
+            order = np.argsort(values[a:b])
+            bucket[:k] = values[a:b][order]
+            keep[:k] = inner[a:b][order]
+        else:
+            for i in range(k):
+                v = values[a + i]
+                f = inner[a + i]
+                t = i
+                while t > 0 and bucket[t - 1] > v:
+                    bucket[t] = bucket[t - 1]
+                    keep[t] = keep[t - 1]
+                    t -= 1
+                bucket[t] = v
+                keep[t] = f
         med_first[j] = 0.5 * (bucket[(k - 1) // 2] + bucket[k // 2])
         n_first[j] = k
-        sub = bucket[keep]
-        q = sub.shape[0]
+        q = 0
+        for i in range(k):
+            if keep[i]:
+                sub[q] = bucket[i]
+                q += 1
         if q:
             med_second[j] = 0.5 * (sub[(q - 1) // 2] + sub[q // 2])
             n_second[j] = q

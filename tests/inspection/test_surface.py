@@ -331,3 +331,27 @@ def test_the_nearest_edge_sample_within_reach_is_the_kd_trees(panel, reach):
     np.testing.assert_array_equal(got, expected)
     assert np.isfinite(got).sum() > 1000 and np.isinf(got).sum() > 400  # both kinds
     assert np.isinf(_nearest_within(pts, np.empty((0, 3)), reach)).all()
+
+
+def test_node_medians_are_the_medians_of_each_nodes_points():
+    """Per node, the median and count of the points ``first`` selects and of those
+    ``second`` selects, as numpy gives them: on nodes of a few points (sorted in place)
+    and on crowded ones (sorted by argsort), with ties, and on nodes with none."""
+    from inspection.surface import _INSERTION_MAX, _node_medians
+
+    rng = np.random.default_rng(3)
+    m = 400
+    sizes = np.concatenate([rng.integers(0, 12, m - 3), [0, 3 * _INSERTION_MAX, 500]])
+    nodes = np.repeat(np.arange(m), sizes)
+    rng.shuffle(nodes)
+    n = len(nodes)
+    d = np.round(rng.normal(0.0, 0.1, n), 2)  # rounded: ties
+    first = rng.random(n) < 0.9
+    second = first & (rng.random(n) < 0.7)
+    med_second, n_second, med_first, n_first = _node_medians(d, nodes, first, second, m)
+    for j in range(m):
+        for sel, med, count in ((first, med_first, n_first), (second, med_second, n_second)):
+            v = d[sel & (nodes == j)]
+            assert count[j] == len(v)
+            assert med[j] == (np.median(v) if len(v) else 0.0)
+    assert n_first[-1] > 400 and n_first[-2] > _INSERTION_MAX and n_first[-3] == 0
