@@ -389,17 +389,13 @@ class SurfaceModel:
         """
         if len(self.edge_faces) == 0:
             return np.empty((0, 3))
-        n0 = self.face_normals[self.edge_faces[:, 0]]
-        n1 = self.face_normals[self.edge_faces[:, 1]]
-        mid = self.edge_ends.mean(axis=1)
-        silhouette = np.zeros(len(mid), dtype=bool)
-        for c in np.empty((0, 3)) if viewpoints is None else np.asarray(viewpoints, float):
-            towards = c - mid
-            silhouette |= (np.einsum("ij,ij->i", n0, towards) > 0) != (
-                np.einsum("ij,ij->i", n1, towards) > 0
-            )
-        for u in np.empty((0, 3)) if directions is None else np.asarray(directions, float):
-            silhouette |= (n0 @ u > 0) != (n1 @ u > 0)
+        silhouette = _silhouettes(
+            self.edge_faces,
+            self.edge_ends,
+            _f64(self.face_normals),
+            _f64(np.empty((0, 3)) if viewpoints is None else viewpoints).reshape(-1, 3),
+            _f64(np.empty((0, 3)) if directions is None else directions).reshape(-1, 3),
+        )
         return _sample_segments(self.edge_ends[silhouette], _EDGE_STEP_MM * self.node_mm / NODE_MM)
 
     def assess(
@@ -602,6 +598,32 @@ class SurfaceModel:
             nearest_point=nearest,
             points=int(counts[region].sum()),
         )
+
+
+@njit(cache=True, nogil=True)
+def _silhouettes(edge_faces, edge_ends, normals, viewpoints, directions):  # pragma: no cover
+    """(E,) bool: the edges one of whose faces turns towards a viewpoint (or a
+    direction) and the other away (:meth:`SurfaceModel.occlusion_edges`)."""
+    out = np.zeros(edge_faces.shape[0], dtype=np.bool_)
+    for e in range(edge_faces.shape[0]):
+        f, g = edge_faces[e, 0], edge_faces[e, 1]
+        mx = 0.5 * (edge_ends[e, 0, 0] + edge_ends[e, 1, 0])
+        my = 0.5 * (edge_ends[e, 0, 1] + edge_ends[e, 1, 1])
+        mz = 0.5 * (edge_ends[e, 0, 2] + edge_ends[e, 1, 2])
+        for c in range(viewpoints.shape[0] + directions.shape[0]):
+            if c < viewpoints.shape[0]:
+                tx = viewpoints[c, 0] - mx
+                ty = viewpoints[c, 1] - my
+                tz = viewpoints[c, 2] - mz
+            else:
+                u = c - viewpoints.shape[0]
+                tx, ty, tz = directions[u, 0], directions[u, 1], directions[u, 2]
+            a = normals[f, 0] * tx + normals[f, 1] * ty + normals[f, 2] * tz
+            b = normals[g, 0] * tx + normals[g, 1] * ty + normals[g, 2] * tz
+            if (a > 0.0) != (b > 0.0):
+                out[e] = True
+                break
+    return out
 
 
 # Points of a node up to which :func:`_node_medians` sorts them by insertion.
