@@ -412,3 +412,25 @@ def median_abs(r: np.ndarray, v: np.ndarray, k: int) -> float:
     if n == 0:
         return 0.0
     return np.median(a[:n])
+
+
+@numba.njit(cache=True)
+def opposed_fraction(normals: np.ndarray, w: np.ndarray) -> float:
+    """The weight share of the normals more than 120 degrees from their weighted mean
+    (0 when the weights or the mean vanish)."""
+    total = 0.0
+    mx = my = mz = 0.0
+    for i in range(normals.shape[0]):
+        total += w[i]
+        mx += w[i] * normals[i, 0]
+        my += w[i] * normals[i, 1]
+        mz += w[i] * normals[i, 2]
+    norm = np.sqrt(mx * mx + my * my + mz * mz)
+    if total <= 0.0 or norm <= 1e-12 * total:
+        return 0.0
+    mx, my, mz = mx / norm, my / norm, mz / norm
+    opposed = 0.0
+    for i in range(normals.shape[0]):
+        if normals[i, 0] * mx + normals[i, 1] * my + normals[i, 2] * mz < -0.5:
+            opposed += w[i]
+    return opposed / total

@@ -90,6 +90,7 @@ from .kernels import (
     irls_weights,
     lm_step,
     median_abs,
+    opposed_fraction,
     partial_shuffle,
     robust_cost,
     trace_inverse,
@@ -800,13 +801,7 @@ def _result(fit: _Fit, P_in: Points) -> tuple[Registration, float]:
 
 def _opposed_fraction(normals: np.ndarray, w: np.ndarray) -> float:
     """Weight share of the faces whose normals lie over 120 degrees from the weighted mean."""
-    total = float(w.sum())
-    mean = (normals * w[:, None]).sum(axis=0)
-    norm = float(np.linalg.norm(mean))
-    if total <= 0 or norm <= 1e-12 * total:
-        return 0.0
-    opposed = normals @ (mean / norm) < -0.5
-    return float(w[opposed].sum() / total)
+    return opposed_fraction(np.ascontiguousarray(normals, dtype=np.float64), w)
 
 
 def _every_point(
