@@ -486,3 +486,26 @@ def test_progress_reaches_one(sphere):
     GridTree.build(sphere, spacing_mm=1.0, band_mm=2.0, progress=seen.append)
     assert seen and seen[-1] == pytest.approx(1.0)
     assert all(b >= a for a, b in zip(seen, seen[1:], strict=False))
+
+
+def test_queries_beside_a_crack_reach_the_face_across_it():
+    """A flat sheet with a crack that opens from a vertex (two boundary edges
+    a few degrees apart, as a mesher leaves at a T-junction): a cell across
+    the crack stores the face on one side, and a point on the other side
+    must still get its own face, around the crack's corner, not a point on
+    the first face's edge up to a millimetre away."""
+    vertices = np.array(
+        [[0, 0, 0], [-0.5, 8, 0], [0.5, 8, 0], [-8, 0, 0], [8, 0, 0], [0, -8, 0], [-8, 8, 0],
+         [8, 8, 0]],
+        dtype=np.float64,
+    )  # fmt: skip
+    faces = np.array([[0, 1, 3], [0, 4, 2], [3, 5, 0], [0, 5, 4], [1, 6, 3], [2, 4, 7]])
+    cad = CadModel.from_mesh(trimesh.Trimesh(vertices, faces, process=False), name="crack")
+    tree = GridTree.build(cad, spacing_mm=1.0, band_mm=3.0)
+    rng = np.random.default_rng(0)
+    n = 2000
+    y = rng.uniform(0.5, 7.5, n)
+    side = np.where(rng.random(n) < 0.5, 1.0, -1.0)
+    x = side * (y / 16.0 + rng.uniform(0.0, 0.8, n))  # the crack spans |x| < y / 16
+    q = np.stack([x, y, rng.normal(0.0, 0.05, n)], axis=1)
+    check_against_oracle(tree, cad, q, mean_mm=1e-6, p99_mm=FAST_TOL_MM, max_mm=FAST_TOL_MM)

@@ -142,13 +142,32 @@ def walk_and_finish(
                 f, qx, qy, qz, d2, region = bf, bx, by, bz, b2, br
                 moved = True
         elif region >= 4:
-            g = int(hot_i[f, HOT_ADJ + region - 4])
+            e = region - 4
+            g = int(hot_i[f, HOT_ADJ + e])
             if g >= 0 and g != f:
                 rx, ry, rz, e2, rg = closest_any(
                     px, py, pz, hot, hot_i, g, origin, home_step, tri, exact
                 )
                 if e2 < d2 * (1.0 - 1e-12) - 1e-18:
                     f, qx, qy, qz, d2, region = g, rx, ry, rz, e2, rg
+                    moved = True
+            elif g < 0:
+                # A boundary edge: past a crack or a T-junction the surface
+                # goes on from its corners, whose faces the edges do not reach.
+                bf, bx, by, bz, b2, br = f, qx, qy, qz, d2, region
+                for c in range(2):
+                    v = hot_i[f, HOT_VERT + (e + c) % 3]
+                    for k in range(vf_ptr[v], vf_ptr[v + 1]):
+                        g = int(vf_idx[k])
+                        if g == f:
+                            continue
+                        rx, ry, rz, e2, rg = closest_any(
+                            px, py, pz, hot, hot_i, g, origin, home_step, tri, exact
+                        )
+                        if e2 < b2 * (1.0 - 1e-12) - 1e-18:
+                            bf, bx, by, bz, b2, br = g, rx, ry, rz, e2, rg
+                if bf != f:
+                    f, qx, qy, qz, d2, region = bf, bx, by, bz, b2, br
                     moved = True
         else:
             v = hot_i[f, HOT_VERT + region - 1]
