@@ -70,6 +70,23 @@ def closer_across(px, py, pz, f, fd, qx, qy, qz, d2, hot, hot_i, origin, home_st
     return g_best, qx, qy, qz, d2, region
 
 
+@njit(cache=True, inline="always")
+def _closer_around(
+    v, f, px, py, pz, bf, bx, by, bz, b2, br, hot, hot_i, origin, home_step, tri, exact,
+    vf_ptr, vf_idx,
+):  # fmt: skip
+    """The face around vertex v (other than f) closest to p, if closer than the best so
+    far ``(bf, bx, by, bz, b2, br)``; else that best."""
+    for k in range(vf_ptr[v], vf_ptr[v + 1]):
+        g = int(vf_idx[k])
+        if g == f:
+            continue
+        rx, ry, rz, e2, rg = closest_any(px, py, pz, hot, hot_i, g, origin, home_step, tri, exact)
+        if e2 < b2 * (1.0 - 1e-12) - 1e-18:
+            bf, bx, by, bz, b2, br = g, rx, ry, rz, e2, rg
+    return bf, bx, by, bz, b2, br
+
+
 @njit(cache=True)
 def walk_and_finish(
     i,
@@ -157,15 +174,10 @@ def walk_and_finish(
                 bf, bx, by, bz, b2, br = f, qx, qy, qz, d2, region
                 for c in range(2):
                     v = hot_i[f, HOT_VERT + (e + c) % 3]
-                    for k in range(vf_ptr[v], vf_ptr[v + 1]):
-                        g = int(vf_idx[k])
-                        if g == f:
-                            continue
-                        rx, ry, rz, e2, rg = closest_any(
-                            px, py, pz, hot, hot_i, g, origin, home_step, tri, exact
-                        )
-                        if e2 < b2 * (1.0 - 1e-12) - 1e-18:
-                            bf, bx, by, bz, b2, br = g, rx, ry, rz, e2, rg
+                    bf, bx, by, bz, b2, br = _closer_around(
+                        v, f, px, py, pz, bf, bx, by, bz, b2, br,
+                        hot, hot_i, origin, home_step, tri, exact, vf_ptr, vf_idx,
+                    )  # fmt: skip
                 if bf != f:
                     f, qx, qy, qz, d2, region = bf, bx, by, bz, b2, br
                     moved = True
@@ -177,15 +189,10 @@ def walk_and_finish(
                 for k in range(vf_ptr[v], vf_ptr[v + 1]):
                     prefetch(hot, (vf_idx[k], HOT_N))
                     prefetch(hot, (vf_idx[k], HOT_A))
-            for k in range(vf_ptr[v], vf_ptr[v + 1]):
-                g = int(vf_idx[k])
-                if g == f:
-                    continue
-                rx, ry, rz, e2, rg = closest_any(
-                    px, py, pz, hot, hot_i, g, origin, home_step, tri, exact
-                )
-                if e2 < b2 * (1.0 - 1e-12) - 1e-18:
-                    bf, bx, by, bz, b2, br = g, rx, ry, rz, e2, rg
+            bf, bx, by, bz, b2, br = _closer_around(
+                v, f, px, py, pz, bf, bx, by, bz, b2, br,
+                hot, hot_i, origin, home_step, tri, exact, vf_ptr, vf_idx,
+            )  # fmt: skip
             if bf != f:
                 f, qx, qy, qz, d2, region = bf, bx, by, bz, b2, br
                 moved = True
