@@ -254,7 +254,7 @@ def main() -> int:
     near_cpu = {
         name: cpu_per_call(
             lambda fn=fn: fn(near), CPU_CALLS if name.startswith("GridTree") else KD_CPU_CALLS
-        )[0]
+        )
         for name, fn in methods[:2]
     }
     single = _single_threaded(tree, kd, near)

@@ -25,14 +25,11 @@ from collections.abc import Callable
 SETTLE_S = 0.05
 
 
-def cpu_per_call(fn: Callable[[], object], calls: int = 1) -> tuple[float, list[float]]:
+def cpu_per_call(fn: Callable[[], object], calls: int = 1) -> float:
     """Run ``fn`` ``calls`` times; the CPU seconds per call, threads and their
-    spinning included, and each call's wall time."""
-    walls = []
+    spinning included."""
     cpu = time.process_time()
     for _ in range(calls):
-        start = time.perf_counter()
         fn()
-        walls.append(time.perf_counter() - start)
     time.sleep(SETTLE_S)
-    return (time.process_time() - cpu) / calls, walls
+    return (time.process_time() - cpu) / calls

@@ -793,15 +793,10 @@ def _result(fit: _Fit, P_in: Points) -> tuple[Registration, float]:
         loss=p.loss,
         accepted_steps=fit.accepted,
         rejected_steps=fit.rejected,
-        opposed_fraction=_opposed_fraction(mt.normals, np.where(inl, v, 0.0)),
+        opposed_fraction=opposed_fraction(mt.normals, np.where(inl, v, 0.0)),
     )
     misfit = 1.0 - n_inl / max(int(np.sum(v > 0)), 1)
     return result, misfit
-
-
-def _opposed_fraction(normals: np.ndarray, w: np.ndarray) -> float:
-    """Weight share of the faces whose normals lie over 120 degrees from the weighted mean."""
-    return opposed_fraction(np.ascontiguousarray(normals, dtype=np.float64), w)
 
 
 def _every_point(
