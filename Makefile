@@ -6,11 +6,6 @@ BIN    := $(VENV)/bin
 export OPENBLAS_NUM_THREADS ?= 1
 # numba kernels are called from several threads (worker, API): the layer must be thread-safe.
 export NUMBA_THREADING_LAYER ?= threadsafe
-# numba checks a cached kernel against its own file only, so a kernel that
-# calls a function of another file would outlive a change there: the cache
-# is kept per version of the package's sources.
-SOURCES_HASH := $(shell cat $$(find inspection -name '*.py' | LC_ALL=C sort) | sha1sum | cut -c1-12)
-export NUMBA_CACHE_DIR ?= $(CURDIR)/.cache/numba/$(SOURCES_HASH)
 
 HTTP_PORT   ?= 8000
 ZENOH_LISTEN ?= tcp/127.0.0.1:7447

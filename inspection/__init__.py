@@ -11,6 +11,8 @@ rig-frame points into the CAD frame).
 
 from __future__ import annotations
 
+# First: it points numba's cache before any module below defines a cached kernel.
+from . import _kernel_cache  # noqa: F401
 from .alignment import Alignment, align
 from .cad import CadModel, CadReport, load_cad
 from .calibration import Calibration, calibrate

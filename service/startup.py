@@ -5,8 +5,9 @@ A first start builds each part's tree and compiles the numerical kernels
 (minutes); a later one loads both from their caches (seconds). Which of the
 two happens is read from the caches themselves, never assumed: the tree
 cache is the part registry's (a job says "building tree" only when no cached
-tree matches), the kernel cache is numba's (``NUMBA_CACHE_DIR``, else the
-``__pycache__`` folders beside the sources).
+tree matches), the kernel cache is numba's (``NUMBA_CACHE_DIR``, which the
+``inspection`` package points at a folder per version of its sources when it
+is not set).
 """
 
 from __future__ import annotations
@@ -33,7 +34,8 @@ _UNTOLD = frozenset({"queued", "starting", "ready"})
 
 
 def kernel_cache_dir() -> Path:
-    """Where numba keeps compiled kernels: ``NUMBA_CACHE_DIR``, or the package's folders."""
+    """Where numba keeps compiled kernels: ``NUMBA_CACHE_DIR`` (set once ``inspection`` is
+    imported), or the package's folders, numba's own default."""
     configured = os.environ.get("NUMBA_CACHE_DIR", "")
     return Path(configured) if configured else Path(__file__).resolve().parent.parent / "inspection"
 
