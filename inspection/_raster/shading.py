@@ -81,16 +81,20 @@ def face_on_ray(
     and a strip of them may lie between two columns of centres, so such faces
     are found by walking across the mesh's edges from the faces around
     towards the point.
+
+    Also returns whether no cell of the 3 x 3 around holds a face (the belt
+    or the floor all round: no walk can start, and the pixel is on no outline).
     """
     Hb, Wb = fbuf.shape
     f0 = -1
     if bi >= 0 and bi < Hb and bj >= 0 and bj < Wb:
         f0 = fbuf[bi, bj]
     if f0 >= 0 and in_face(sx, sy, faces, f0, pu, pv):
-        return f0
+        return f0, False
     found = -1
     best = np.inf
     edge = False
+    clear = True
     for di in range(-1, 2):
         for dj in range(-1, 2):
             ii = bi + di
@@ -102,15 +106,18 @@ def face_on_ray(
             if g < 0:
                 edge = True
                 continue
+            clear = False
             if g != f0 and g != found:
                 z = _depth_on_face(sx, sy, faces, planes, g, pu, pv, xn, yn)
                 if z < best:
                     best = z
                     found = g
     if found >= 0:
-        return found
+        return found, False
     if not edge:
-        return f0
+        return f0, False
+    if clear:
+        return -1, True
     for di in range(-1, 2):
         for dj in range(-1, 2):
             ii = bi + di
@@ -123,7 +130,7 @@ def face_on_ray(
                 if z < best:
                     best = z
                     found = g
-    return found
+    return found, False
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -459,7 +466,7 @@ def shade_scene(  # pragma: no cover - compiled
             pv = fy * yn + cy - oy
             bj = int(math.floor(pu + 0.5))
             bi = int(math.floor(pv + 0.5))
-            f = face_on_ray(fbuf, sx, sy, faces, planes, neighbours, bi, bj, pu, pv, xn, yn)
+            f, clear = face_on_ray(fbuf, sx, sy, faces, planes, neighbours, bi, bj, pu, pv, xn, yn)
             den_c = ncx * xn + ncy * yn + ncz
             zc = ndc / den_c if den_c != 0.0 else np.inf
             if zc <= 0.0:
@@ -498,7 +505,7 @@ def shade_scene(  # pragma: no cover - compiled
                     points[i, j, 1] = X1
                     points[i, j, 2] = X2
                     flags[i, j] = 3 if irr > 0.0 else 1
-            if edge_samples > 1 and _on_outline(fbuf, zbuf, bi, bj):
+            if edge_samples > 1 and not clear and _on_outline(fbuf, zbuf, bi, bj):
                 # The pixel's own rays, spread over its area.
                 dxu, dyu, dxv, dyv = _ray_jacobian(rays, i, j)
                 acc = 0.0
@@ -510,7 +517,7 @@ def shade_scene(  # pragma: no cover - compiled
                         ys = yn + du * dyu + dv * dyv
                         qu = fx * xs + sk * ys + cx - ox
                         qv = fy * ys + cy - oy
-                        g = face_on_ray(
+                        g, _ = face_on_ray(
                             fbuf, sx, sy, faces, planes, neighbours,
                             int(math.floor(qv + 0.5)), int(math.floor(qu + 0.5)), qu, qv, xs, ys,
                         )  # fmt: skip
