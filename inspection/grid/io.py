@@ -20,7 +20,7 @@ import numpy as np
 
 from ..errors import InvalidInput, TreeMismatch
 
-FORMAT_VERSION = 4
+FORMAT_VERSION = 5
 """Version of the saved file layout; bump when arrays or their meaning change.
 
 1: the first layout. 2: adds the face hierarchy of the exact slow path
@@ -28,6 +28,8 @@ FORMAT_VERSION = 4
 3: faces in the tree's own spatial order, ``face_id`` maps them to the CAD's.
 4: mixed cells are split in eight ``subcells``; the candidate lists
 (``mixed_ptr``, ``mixed_faces``) belong to the mixed subcells.
+5: a one-face subcell is marked safe only where every foot lies inside its
+face (trees of 4 could give a point by a plate's edge the face farther off).
 """
 
 # Exactly these arrays and metadata keys make up a saved tree of this

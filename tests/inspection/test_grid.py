@@ -213,6 +213,28 @@ def test_signed_distance_off_edges_and_corners_of_a_box():
 
 
 @pytest.mark.parametrize(
+    ("max_edge", "points"),
+    [
+        (1.1709, [[0.983551, 19.86388, -14.937223], [0.674559, 19.840005, -14.970782],
+                  [-1.581037, 19.964349, 7.29809]]),
+        (0.8542, [[-1.589689, -14.795942, 14.918618], [-1.598272, -0.122164, 14.992888]]),
+    ],
+)  # fmt: skip
+def test_points_just_inside_a_plates_edge_get_the_nearer_side(max_edge, points):
+    """Inside a 3.2 mm plate, a few hundredths of a millimetre below one face
+    and some tenths from the face across the edge: a subcell by the edge whose
+    corners all have one face closest, but whose points' feet leave it, must
+    not answer with the farther face."""
+    half = np.array([1.6, 20.0, 15.0])
+    mesh = trimesh.creation.box(extents=2.0 * half).subdivide_to_size(max_edge=max_edge)
+    tree = GridTree.build(CadModel.from_mesh(mesh, name="plate"))
+    q = np.array(points)
+    assert (np.abs(q) < half).all()
+    got = tree.query(q)
+    np.testing.assert_allclose(got.distances, -np.min(half - np.abs(q), axis=1), atol=FAST_TOL_MM)
+
+
+@pytest.mark.parametrize(
     ("name", "scale"),
     [
         ("plate_holes.STL", 1.0),

@@ -307,9 +307,11 @@ def _all_behind(f, across, e, x0, y0, z0, h, plane):
 
 @njit(cache=True)
 def mark_safe_subcells(codes, ijk, origin, h, plane, face_adj, smooth_adj, across):
-    """Recode the one-face subcells: INTERIOR_FLAG now marks those where no
-    face across a sharp edge of their face f can be closer to a point whose
-    foot lies inside f.
+    """Recode the one-face subcells: INTERIOR_FLAG now marks those where every
+    foot lies inside their face f and no face across a sharp edge of f can be
+    closer. A foot that may leave f takes the query to a neighbour of f,
+    whose own sharp edges (by a thin plate's edge, the other side's faces)
+    this test does not see: such a subcell is never marked.
 
     ``codes`` (8 M,) are the subcell codes of the mixed cells with corner
     ``origin + ijk[m] * 2 h`` (h the subcell edge), as cells_from_nodes gave
@@ -329,7 +331,7 @@ def mark_safe_subcells(codes, ijk, origin, h, plane, face_adj, smooth_adj, acros
             x0 = origin[0] + (2 * ijk[m, 0] + (s >> 2)) * h
             y0 = origin[1] + (2 * ijk[m, 1] + ((s >> 1) & 1)) * h
             z0 = origin[2] + (2 * ijk[m, 2] + (s & 1)) * h
-            safe = True
+            safe = interior
             for e in range(3):
                 g = face_adj[f, e]
                 if g < 0 or smooth_adj[f, e] >= 0:
