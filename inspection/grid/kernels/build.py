@@ -317,9 +317,9 @@ def mark_safe_subcells(codes, ijk, origin, h, plane, face_adj, smooth_adj, acros
     ``origin + ijk[m] * 2 h`` (h the subcell edge), as cells_from_nodes gave
     them (INTERIOR_FLAG: every foot inside f). A sharp neighbour is harmless
     when it lies behind f's plane for every point of the subcell
-    (:func:`_all_behind`, a convex edge), or when every foot lies inside f
-    and :func:`_never_closer` holds. Queries in a marked subcell take the
-    one-face path of a cell; the others also look across f's sharp edges.
+    (:func:`_all_behind`, a convex edge), or when :func:`_never_closer`
+    holds. Queries in a marked subcell take the one-face path of a cell; the
+    others also look across the sharp edges of the face they end on.
     """
     for m in range(ijk.shape[0]):
         for s in range(8):
@@ -333,13 +333,14 @@ def mark_safe_subcells(codes, ijk, origin, h, plane, face_adj, smooth_adj, acros
             z0 = origin[2] + (2 * ijk[m, 2] + (s & 1)) * h
             safe = interior
             for e in range(3):
+                if not safe:
+                    break
                 g = face_adj[f, e]
                 if g < 0 or smooth_adj[f, e] >= 0:
                     continue
                 if _all_behind(f, across[f], e, x0, y0, z0, h, plane):
                     continue
                 k = (across[f] >> (2 * e)) & 3
-                if not interior or k == 3 or not _never_closer(f, g, k, x0, y0, z0, h, plane):
+                if k == 3 or not _never_closer(f, g, k, x0, y0, z0, h, plane):
                     safe = False
-                    break
             codes[8 * m + s] = f | INTERIOR_FLAG if safe else f
