@@ -34,10 +34,9 @@ _UNTOLD = frozenset({"queued", "starting", "ready"})
 
 
 def kernel_cache_dir() -> Path:
-    """Where numba keeps compiled kernels: ``NUMBA_CACHE_DIR`` (set once ``inspection`` is
-    imported), or the package's folders, numba's own default."""
-    configured = os.environ.get("NUMBA_CACHE_DIR", "")
-    return Path(configured) if configured else Path(__file__).resolve().parent.parent / "inspection"
+    """Where numba keeps compiled kernels: ``NUMBA_CACHE_DIR``, which importing
+    ``inspection`` (as this module does, through the part registry) always sets."""
+    return Path(os.environ["NUMBA_CACHE_DIR"])
 
 
 def cached_kernels(root: Path | None = None) -> int:
