@@ -70,23 +70,6 @@ def closer_across(px, py, pz, f, fd, qx, qy, qz, d2, hot, hot_i, origin, home_st
     return g_best, qx, qy, qz, d2, region
 
 
-@njit(cache=True, inline="always")
-def _closer_around(
-    v, f, px, py, pz, bf, bx, by, bz, b2, br, hot, hot_i, origin, home_step, tri, exact,
-    vf_ptr, vf_idx,
-):  # fmt: skip
-    """The face around vertex v (other than f) closest to p, if closer than the best so
-    far ``(bf, bx, by, bz, b2, br)``; else that best."""
-    for k in range(vf_ptr[v], vf_ptr[v + 1]):
-        g = int(vf_idx[k])
-        if g == f:
-            continue
-        rx, ry, rz, e2, rg = closest_any(px, py, pz, hot, hot_i, g, origin, home_step, tri, exact)
-        if e2 < b2 * (1.0 - 1e-12) - 1e-18:
-            bf, bx, by, bz, b2, br = g, rx, ry, rz, e2, rg
-    return bf, bx, by, bz, b2, br
-
-
 @njit(cache=True)
 def walk_and_finish(
     i,
@@ -158,41 +141,40 @@ def walk_and_finish(
             if bf != f:
                 f, qx, qy, qz, d2, region = bf, bx, by, bz, b2, br
                 moved = True
-        elif region >= 4:
-            e = region - 4
-            g = int(hot_i[f, HOT_ADJ + e])
-            if g >= 0 and g != f:
+        elif region >= 4 and hot_i[f, HOT_ADJ + region - 4] >= 0:
+            g = int(hot_i[f, HOT_ADJ + region - 4])
+            if g != f:
                 rx, ry, rz, e2, rg = closest_any(
                     px, py, pz, hot, hot_i, g, origin, home_step, tri, exact
                 )
                 if e2 < d2 * (1.0 - 1e-12) - 1e-18:
                     f, qx, qy, qz, d2, region = g, rx, ry, rz, e2, rg
                     moved = True
-            elif g < 0:
-                # A boundary edge: past a crack or a T-junction the surface
-                # goes on from its corners, whose faces the edges do not reach.
-                bf, bx, by, bz, b2, br = f, qx, qy, qz, d2, region
-                for c in range(2):
-                    v = hot_i[f, HOT_VERT + (e + c) % 3]
-                    bf, bx, by, bz, b2, br = _closer_around(
-                        v, f, px, py, pz, bf, bx, by, bz, b2, br,
-                        hot, hot_i, origin, home_step, tri, exact, vf_ptr, vf_idx,
-                    )  # fmt: skip
-                if bf != f:
-                    f, qx, qy, qz, d2, region = bf, bx, by, bz, b2, br
-                    moved = True
         else:
-            v = hot_i[f, HOT_VERT + region - 1]
+            # Around a corner; or, on a boundary edge, around both its
+            # corners: past a crack or a T-junction the surface goes on from
+            # them, whose faces the edges do not reach.
+            if region >= 4:
+                c0, n_corners = region - 4, 2
+            else:
+                c0, n_corners = region - 1, 1
             bf, bx, by, bz, b2, br = f, qx, qy, qz, d2, region
-            if not exact:
-                # Start the loads of the faces around the corner first.
+            for c in range(n_corners):
+                v = hot_i[f, HOT_VERT + (c0 + c) % 3]
+                if not exact:
+                    # Start the loads of the faces around the corner first.
+                    for k in range(vf_ptr[v], vf_ptr[v + 1]):
+                        prefetch(hot, (vf_idx[k], HOT_N))
+                        prefetch(hot, (vf_idx[k], HOT_A))
                 for k in range(vf_ptr[v], vf_ptr[v + 1]):
-                    prefetch(hot, (vf_idx[k], HOT_N))
-                    prefetch(hot, (vf_idx[k], HOT_A))
-            bf, bx, by, bz, b2, br = _closer_around(
-                v, f, px, py, pz, bf, bx, by, bz, b2, br,
-                hot, hot_i, origin, home_step, tri, exact, vf_ptr, vf_idx,
-            )  # fmt: skip
+                    g = int(vf_idx[k])
+                    if g == f:
+                        continue
+                    rx, ry, rz, e2, rg = closest_any(
+                        px, py, pz, hot, hot_i, g, origin, home_step, tri, exact
+                    )
+                    if e2 < b2 * (1.0 - 1e-12) - 1e-18:
+                        bf, bx, by, bz, b2, br = g, rx, ry, rz, e2, rg
             if bf != f:
                 f, qx, qy, qz, d2, region = bf, bx, by, bz, b2, br
                 moved = True
