@@ -8,14 +8,18 @@ large share of its points off the CAD. When the fit is flagged degenerate
 and its least constrained rotation (with the translation free to follow it)
 is weak, or when it leaves more than 10 % of its points misfit, that
 rotation is scanned over ``escape_deg`` either way in steps that move the
-points by ~2 mm, twice: about the centroid (a disc turns about its centre),
-and with the shift that follows the turn to first order (a plate that
-settled turned in its own plane about a corner comes back only so). Each
-angle is scored by the truncated distances of a few thousand points to the
-CAD (one query each), and the fit is run again, with everything else as
-given, from up to three of the scans' local minima that score 10 % better
-than the fit or more. A fit that leaves the points' truncated cost (three
-robust scales of the first fit) 10 % lower or more replaces the first.
+points by ~2 mm, three times: about the centroid (a disc turns about its
+centre), with the shift that follows the turn to first order, and with that
+shift then fitted to the points at each angle (a plate that settled turned
+in its own plane about a corner comes back only so, and first order is
+millimetres off a few degrees from a far corner). Each angle is scored by
+the truncated distances of a few thousand points to the CAD (one query
+each, three on the last line), and the fit is run again, with everything
+else as given, from up to three of the scans' local minima that score 10 %
+better than the fit or more (and once more from where it ends, should it
+run out of iterations while it still moves). A fit that leaves the points'
+truncated cost (three robust scales of the first fit) 10 % lower or more
+replaces the first.
 
 The scan is about one axis: a free translation (a plate sliding in its
 plane) is left to the ``degenerate`` flag. :func:`~inspection.align`
@@ -34,7 +38,7 @@ from ..errors import InsufficientOverlap
 from ..protocols import ClosestPointQuery
 from .correspondences import closest
 from .kernels import compose, transform_points
-from .result import INLIER_SIGMAS, Registration
+from .result import INLIER_SIGMAS, Registration, StopReason
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +59,8 @@ _ESCAPE_TRUNCATION_MM = 2.0
 # the first fit) or less.
 _ESCAPE_STARTS = 3
 _ESCAPE_GAIN = 0.9
+# Point-to-plane steps that fit the shift at each angle of the last line.
+_SHIFT_STEPS = 2
 
 
 def escape_free_rotation(
@@ -119,17 +125,22 @@ def escape_free_rotation(
     step = min(trunc / L, np.radians(2.0))
     k = int(np.ceil(span_rad / step))
     angles = np.linspace(-span_rad, span_rad, 2 * k + 1)
-    # Two lines are scanned: the turn about the centroid, and the turn with the
+    # Three lines are scanned: the turn about the centroid; the turn with the
     # shift that follows it to first order (the least-cost shift per radian by
-    # the Schur complement). A disc turns about its centre: the first. A plate
-    # that settled turned in its own plane about one of its corners comes
-    # back only along the second.
+    # the Schur complement); and that shift fitted to the points at each
+    # angle. A disc turns about its centre: the first. A plate that settled
+    # turned in its own plane about one of its corners comes back along the
+    # second, or, where first order misses it, the third.
     follow = -np.linalg.pinv(H[3:, 3:]) @ H[3:, :3] @ (axis * L)
     found: list[tuple[float, int, Transform, float]] = []
-    for line, shift in enumerate((np.zeros(3), follow)):
+    for line, shift in enumerate((np.zeros(3), follow, follow)):
         starts = [compose(fit.transform, axis * a, shift * a, center) for a in angles]
         score = np.empty(len(angles))
         for i, T_ in enumerate(starts):
+            for _ in range(_SHIFT_STEPS if line == 2 else 0):
+                X = transform_points(T_[:3, :3].copy(), T_[:3, 3].copy(), P)
+                _, N, d, _ = closest(tree, X)
+                T_[:3, 3] += _shift_to_fit(N, d, trunc)
             X = transform_points(T_[:3, :3].copy(), T_[:3, 3].copy(), P)
             d = closest(tree, X)[2]
             score[i] = np.mean(np.minimum(d * d, trunc * trunc))
@@ -158,6 +169,10 @@ def escape_free_rotation(
     for _, _, T_start, angle in better:
         try:
             other = refit(T_start)
+            if other.stop_reason is StopReason.MAX_ITERATIONS:
+                # Still crawling along the rotation it came back by (a plate
+                # turning about a corner): let it arrive.
+                other = refit(other.transform)
         except InsufficientOverlap:
             continue
         cost = truncated_cost(other)
@@ -182,3 +197,18 @@ def escape_free_rotation(
             first,
         )
     return best
+
+
+def _shift_to_fit(N: np.ndarray, d: np.ndarray, trunc: float) -> np.ndarray:
+    """The shift that best moves the points within ``trunc`` of the CAD onto
+    it (point to plane, least squares): (3,) mm, 0 along directions their
+    normals leave free."""
+    near = np.abs(d) < trunc
+    n, r = N[near], d[near]
+    A = n.T @ n
+    if len(r) < 3 or not np.isfinite(A).all():
+        return np.zeros(3)
+    eig, vec = np.linalg.eigh(A)
+    keep = eig > 1e-6 * max(float(eig[-1]), 1e-300)
+    # Unconstrained directions stay put (a plate may slide in its plane).
+    return -(vec[:, keep] @ ((vec[:, keep].T @ (n.T @ r)) / eig[keep]))

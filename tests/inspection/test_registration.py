@@ -281,14 +281,14 @@ def test_a_plate_turned_in_its_plane_about_a_corner_is_found_by_the_escape(share
     turned in its own plane about one of its corners: the fit settles there
     (the outline's points lie on the plate's own faces), its turn left free.
     Turned about the centroid the outline lands millimetres off; the scan of
-    the turn with the shift that follows it finds the plate again."""
+    the turn with the shift fitted at each angle finds the plate again."""
     cad, tree = shared("1002_tray_bottom.STL", SHARED_SCALE["1002_tray_bottom.STL"])
     data, _ = measure(cad, np.eye(4), 50_000, seed=0, views=rig_views())
     init = np.eye(4)  # the corner at the CAD's origin stays where it is
     init[:3, :3] = Rotation.from_rotvec([0.0, np.radians(deg), 0.0]).as_matrix()
     up = (0.0, 0.0, 1.0)
     stuck = register(tree, data, init=init, view_direction=up, escape_deg=None)
-    assert pose_errors(stuck.transform, np.eye(4), data)[0] > 2.0
+    assert pose_errors(stuck.transform, np.eye(4), data)[0] > 1.0
     reg = register(tree, data, init=init, view_direction=up)
     rot, disp = pose_errors(reg.transform, np.eye(4), data)
     assert rot <= 0.005 and disp <= 0.005, (rot, disp)
