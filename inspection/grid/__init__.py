@@ -41,7 +41,9 @@ In a cell with a candidate list the candidates' planes bound their distances
 from below, so few need the full point-to-triangle test; where no
 candidate's plane foot lies inside it (the closest face is often closest at
 none of the corners), the query steps from the nearest by its plane across
-smooth edges as a one-face cell does. Such lists cost a query several times
+smooth edges as a one-face cell does, and so it does from any candidate
+whose plane is nearer than the best answer so far (inside a thin plate by an
+edge, the face across the edge). Such lists cost a query several times
 a single face, which is why mixed cells are split in subcells, whose lists
 are shorter. A subcell left with one face also looks across that face's
 sharp edges, unless the build proved no face there can be closer, so
@@ -62,7 +64,8 @@ in the far path); cells with a candidate list are exact unless a surface
 feature smaller than a cell (a wall thinner than the spacing, a rib's edge)
 lies between the corners, in which case a point beside it may get the next
 surface instead. Likewise on the concave side of a bend meshed finer than a
-cell, a face closest at none of a cell's corners can be missed. A finer
+cell, and deep inside a solid wall by its end face, a face closest at none
+of a cell's corners can be missed. A finer
 ``spacing_mm`` makes both rarer; ``bench/bench_grid.py`` measures how often
 they happen. The face records hold planes and corners in float32 relative to
 a home point of the face (a block corner near it; the query's offset from it

@@ -22,6 +22,7 @@ from .kernels.build import (
     cells_from_nodes,
     face_block_ranges,
     mark_safe_subcells,
+    subcell_nodes,
 )
 from .kernels.layout import CELL_UNKNOWN
 from .mesh import COS_SMOOTH, Mesh, across_codes, mesh_arrays
@@ -120,13 +121,15 @@ def build_grid(
             "use a larger spacing_mm or a smaller band_mm"
         )
     cells = np.empty(nblocks * BLOCK**3, dtype=np.int32)
-    boxes = (lo, hi, centre, radius)
-    lists = _cells(
-        cells, coords, (ptr, face_idx), mesh, origin, h, BLOCK, boxes, reach * reach, progress
-    )
-    subcells, mixed_ptr, mixed_faces = _split_mixed(
-        cells, coords, lists, mesh, origin, h, boxes, reach * reach
-    )
+    reach2 = reach * reach
+
+    def nodes_of(b0: int, b1: int) -> np.ndarray:
+        return block_nodes(
+            b0, b1, coords, ptr, face_idx, lo, hi, centre, radius, tri, origin, h, BLOCK, reach2
+        )
+
+    lists = _cells(cells, coords, nodes_of, mesh, origin, h, BLOCK, progress)
+    subcells, mixed_ptr, mixed_faces = _split_mixed(cells, coords, lists, mesh, origin, h, reach2)
     grid = Grid(origin, dims, coarse, cells, subcells, mixed_ptr, mixed_faces)
     return mesh, grid
 
@@ -134,26 +137,21 @@ def build_grid(
 def _cells(
     out: np.ndarray,
     coords: np.ndarray,
-    lists: tuple[np.ndarray, np.ndarray],
+    nodes_of: Callable[[int, int], np.ndarray],
     mesh: Mesh,
     origin: np.ndarray,
     h: float,
     block: int,
-    boxes: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
-    reach2: float,
     progress: ProgressFn | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Cell codes of blocks of block^3 cells of edge h, a chunk of blocks per
     kernel call, written to ``out``; returns their candidate lists.
 
-    Block b has its corner at ``origin + coords[b] * block * h`` and its
-    nodes' closest faces are sought among ``faces[ptr[b]:ptr[b + 1]]`` of
-    ``lists = (ptr, faces)``; ``boxes`` are the faces' expanded boxes, centres
-    and radii. Used for the blocks of the grid and for the subcells of its
-    mixed cells (blocks of 2^3).
+    Block b has its corner at ``origin + coords[b] * block * h``;
+    ``nodes_of(b0, b1)`` gives the closest faces of the (block+1)^3 nodes of
+    blocks b0..b1-1. Used for the blocks of the grid and for the subcells of
+    its mixed cells (blocks of 2^3).
     """
-    ptr, faces = lists
-    lo, hi, centre, radius = boxes
     n = len(coords)
     chunk = max(1, (_CHUNK_BLOCKS * BLOCK**3) // block**3)
     counts_parts: list[np.ndarray] = []
@@ -162,11 +160,8 @@ def _cells(
     b3 = block**3
     for b0 in range(0, n, chunk):
         b1 = min(n, b0 + chunk)
-        nodes = block_nodes(
-            b0, b1, coords, ptr, faces, lo, hi, centre, radius, mesh.tri, origin, h, block, reach2
-        )
         counts, mixed = cells_from_nodes(
-            nodes,
+            nodes_of(b0, b1),
             b0,
             coords,
             origin,
@@ -206,7 +201,6 @@ def _split_mixed(
     mesh: Mesh,
     origin: np.ndarray,
     h: float,
-    boxes: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
     reach2: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Split every mixed cell in eight subcells of edge h / 2.
@@ -215,9 +209,11 @@ def _split_mixed(
     of faces meet across a sharp edge or a hole; a query there tests every
     candidate, several times the cost of a single-face cell. Its 19 new
     subcell corners get their closest face among the cell's candidates,
-    which are the faces closest to its corners: the subcells that then see
-    one face (or one smooth patch) take the single-face path, and the others
-    keep the shorter list of their own corners' faces.
+    which are the faces closest to its corners, the faces of their smooth
+    patches that hold the corners' plane feet, and the faces across sharp
+    edges from there (:func:`subcell_nodes`): the subcells that then see
+    one face (or one smooth patch) take the single-face path, and the
+    others keep the shorter list of their own corners' faces.
     A one-face subcell is answered by its face's plane alone only where no
     face across a sharp edge of it can be closer (:func:`mark_safe_subcells`);
     elsewhere its queries look across those edges, as a list's would.
@@ -242,7 +238,14 @@ def _split_mixed(
     )
     ijk = np.ascontiguousarray(ijk, dtype=np.int64)
     subcells = np.empty(8 * n_mixed, dtype=np.int32)
-    mixed_ptr, mixed_faces = _cells(subcells, ijk, lists, mesh, origin, h / 2, 2, boxes, reach2)
+
+    def nodes_of(b0: int, b1: int) -> np.ndarray:
+        return subcell_nodes(
+            b0, b1, ijk, origin, h / 2, ptr0, faces0, mesh.tri, mesh.plane, mesh.face_adj,
+            mesh.smooth_adj, reach2,
+        )  # fmt: skip
+
+    mixed_ptr, mixed_faces = _cells(subcells, ijk, nodes_of, mesh, origin, h / 2, 2)
     mark_safe_subcells(
         subcells, ijk, origin, h / 2, mesh.plane, mesh.face_adj, mesh.smooth_adj, across_codes(mesh)
     )

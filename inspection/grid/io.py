@@ -20,7 +20,7 @@ import numpy as np
 
 from ..errors import InvalidInput, TreeMismatch
 
-FORMAT_VERSION = 5
+FORMAT_VERSION = 6
 """Version of the saved file layout; bump when arrays or their meaning change.
 
 1: the first layout. 2: adds the face hierarchy of the exact slow path

@@ -234,6 +234,28 @@ def test_points_just_inside_a_plates_edge_get_the_nearer_side(max_edge, points):
     np.testing.assert_allclose(got.distances, -np.min(half - np.abs(q), axis=1), atol=FAST_TOL_MM)
 
 
+@pytest.mark.parametrize("max_edge", [1.1709, 0.8542, 2.3975])
+def test_every_point_about_a_plates_surface_gets_its_closest_face(max_edge):
+    """Points within a few hundredths of a millimetre of a 3.2 mm plate's
+    surface, inside and out: by its edges the face across the edge can be
+    closest at none of a subcell's corners (from inside), and a strip of
+    slivers along an edge takes many steps to cross."""
+    half = np.array([1.6, 20.0, 15.0])
+    mesh = trimesh.creation.box(extents=2.0 * half).subdivide_to_size(max_edge=max_edge)
+    tree = GridTree.build(CadModel.from_mesh(mesh, name="plate"))
+    rng = np.random.default_rng(3)
+    on, face = trimesh.sample.sample_surface(mesh, 20000, seed=3)
+    q = on + mesh.face_normals[face] * rng.normal(0.0, 0.05, len(on))[:, None]
+    inside = (np.abs(q) < half).all(axis=1)
+    expected = np.where(
+        inside,
+        -np.min(half - np.abs(q), axis=1),
+        np.linalg.norm(np.maximum(np.abs(q) - half, 0.0), axis=1),
+    )
+    got = tree.query(q)
+    np.testing.assert_allclose(got.distances, expected, atol=FAST_TOL_MM)
+
+
 @pytest.mark.parametrize(
     ("name", "scale"),
     [

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from .face import behind, closest_on_triangle, plane_foot
+from .face import FOOT_STEPS, behind, closest_on_triangle, exit_edge, plane_foot
 from .layout import FACE_MASK, INTERIOR_FLAG
 
 
@@ -115,6 +115,81 @@ def block_nodes(
                             best[node] = e2
                             bf[node] = f
         out[bb] = bf
+    return out
+
+
+_SHARP_CROSSINGS = 4
+
+
+@njit(cache=True, parallel=True)
+def subcell_nodes(b0, b1, ijk, origin, h, ptr, faces, tri, plane, face_adj, smooth_adj, reach2):
+    """Closest face of the 27 nodes of the subcells of mixed cells b0..b1-1.
+
+    Mixed cell m has its corner at ``origin + ijk[m] * 2 h`` (h the subcell
+    edge) and its candidates at ``faces[ptr[m]:ptr[m + 1]]``, the faces closest
+    to its corners. A node takes the closest of them, or a face of their smooth
+    patches that is closer: where a candidate's plane is nearer than the best
+    so far but the node's foot on it lies beyond the triangle, the foot is
+    followed across the patch's smooth edges to the face that holds it.
+    Inside a thin plate by an edge, a node closest to the face across the
+    edge thus gets that side's face rather than a farther one of the near
+    side, which would drop the other side from its subcells' lists. Then,
+    as a query does, the best face's neighbours across sharp edges are
+    tried, while one is closer. Nodes beyond sqrt(reach2) of every
+    candidate get -1, as in :func:`block_nodes`.
+    """
+    out = np.empty((b1 - b0, 27), dtype=np.int32)
+    for mm in prange(b1 - b0):
+        m = b0 + mm
+        ox = origin[0] + ijk[m, 0] * 2 * h
+        oy = origin[1] + ijk[m, 1] * 2 * h
+        oz = origin[2] + ijk[m, 2] * 2 * h
+        for node in range(27):
+            px = ox + (node // 9) * h
+            py = oy + ((node // 3) % 3) * h
+            pz = oz + (node % 3) * h
+            best = reach2
+            bf = -1
+            for k in range(ptr[m], ptr[m + 1]):
+                g = int(faces[k])
+                e2 = closest_on_triangle(px, py, pz, tri, g)[3]
+                if e2 < best:
+                    best, bf = e2, g
+            for k in range(ptr[m], ptr[m + 1]):
+                g = int(faces[k])
+                hit, d, u, v = plane_foot(px, py, pz, plane, g)
+                if hit or d * d >= best:
+                    continue
+                prev = -1
+                for _ in range(FOOT_STEPS):
+                    nxt = int(smooth_adj[g, exit_edge(u, v)])
+                    if nxt < 0 or nxt == prev:
+                        break
+                    prev, g = g, nxt
+                    hit, d, u, v = plane_foot(px, py, pz, plane, g)
+                    if hit:
+                        break
+                if hit and d * d < best:
+                    e2 = closest_on_triangle(px, py, pz, tri, g)[3]
+                    if e2 < best:
+                        best, bf = e2, g
+            # Across the best face's sharp edges, as a query looks: inside a
+            # thin wall the end face is closest in its middle and at none of
+            # the cell's corners. Each crossing turns by a sharp angle, so a
+            # few suffice.
+            for _ in range(_SHARP_CROSSINGS):
+                nb = -1
+                for e in range(3):
+                    g = int(face_adj[bf, e]) if bf >= 0 else -1
+                    if g < 0 or smooth_adj[bf, e] >= 0:
+                        continue
+                    e2 = closest_on_triangle(px, py, pz, tri, g)[3]
+                    if e2 < best:
+                        best, nb = e2, g
+                if nb < 0:
+                    break
+                bf = nb
+            out[mm, node] = bf
     return out
 
 

@@ -161,6 +161,22 @@ def face_normal(hot, f, fnorm, exact):
     return nx * s, ny * s, nz * s
 
 
+# How many smooth edges a plane foot that left a candidate is followed across
+# to the face that holds it: a strip of slivers along an edge takes several.
+FOOT_STEPS = 16
+
+
+@njit(cache=True, inline="always")
+def exit_edge(u, v):
+    """The edge opposite the most negative barycentric coordinate of a foot point."""
+    la = 1.0 - u - v
+    if la <= u and la <= v:
+        return 1
+    if u <= v:
+        return 2
+    return 0
+
+
 @njit(cache=True)
 def plane_foot(px, py, pz, plane, f):
     """Signed plane distance and barycentric (u, v) of p's foot on face f; hit if inside."""

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from .face import behind, closest_on_hot, hot_distance, hot_foot
+from .face import FOOT_STEPS, behind, closest_on_hot, exit_edge, hot_distance, hot_foot
 from .layout import (
     CELL_UNKNOWN,
     FACE_MASK,
@@ -38,17 +38,6 @@ def _shift_of(block):
     while (1 << shift) < block:
         shift += 1
     return shift
-
-
-@njit(cache=True, inline="always")
-def _exit_edge(u, v):
-    """The edge opposite the most negative barycentric coordinate of a foot point."""
-    la = 1.0 - u - v
-    if la <= u and la <= v:
-        return 1
-    if u <= v:
-        return 2
-    return 0
 
 
 @njit(cache=True, inline="always")
@@ -271,7 +260,7 @@ def query_grid(
                 # The foot left the triangle: step across the edge it left
                 # by, if that edge is smooth (a patch where plane feet are
                 # the exact answer); pass 4 tests the neighbour.
-                g = int(hot_i[f, HOT_SMOOTH + _exit_edge(u, v)])
+                g = int(hot_i[f, HOT_SMOOTH + exit_edge(u, v)])
                 if g >= 0:
                     prefetch(hot, (g, HOT_N))
                     wait_i[n_wait] = i
@@ -326,7 +315,7 @@ def query_grid(
             for _ in range(_MAX_PLANE_STEPS - 1):
                 if hit:
                     break
-                nxt = int(hot_i[g, HOT_SMOOTH + _exit_edge(u, v)])
+                nxt = int(hot_i[g, HOT_SMOOTH + exit_edge(u, v)])
                 if nxt < 0 or nxt == prev:
                     break
                 prev = g
@@ -429,6 +418,27 @@ def query_grid(
 
 
 @njit(cache=True, inline="always")
+def _step_to_foot(px, py, pz, g, u, v, hot, hot_i, origin, home_step):
+    """From face g, whose plane foot (barycentric u, v) lies outside it, step
+    across the smooth edges the foot leaves by, as a one-face cell does.
+
+    Returns (face, hit, d): the face whose triangle holds its plane foot
+    (hit) at signed plane distance d, or hit False where the patch ends first.
+    """
+    prev = -1
+    hit, d = False, 0.0
+    for _ in range(FOOT_STEPS):
+        nxt = int(hot_i[g, HOT_SMOOTH + exit_edge(u, v)])
+        if nxt < 0 or nxt == prev:
+            break
+        prev, g = g, nxt
+        hit, d, u, v = hot_foot(px, py, pz, hot, hot_i, g, origin, home_step)
+        if hit:
+            break
+    return g, hit, d
+
+
+@njit(cache=True, inline="always")
 def _mixed_best(px, py, pz, code, mixed_ptr, mixed_faces, hot, hot_i, origin, home_step):
     """The closest of the candidates of a list cell (code <= -2).
 
@@ -459,21 +469,22 @@ def _mixed_best(px, py, pz, code, mixed_ptr, mixed_faces, hot, hot_i, origin, ho
         # Step from the candidate nearest by its plane across the smooth
         # edges its foot leaves by, as a one-face cell does; a plane foot
         # inside a face gives a first answer that bounds the exact tests.
-        g, prev, u, v = near_g, -1, near_u, near_v
-        for _ in range(_MAX_PLANE_STEPS):
-            nxt = int(hot_i[g, HOT_SMOOTH + _exit_edge(u, v)])
-            if nxt < 0 or nxt == prev:
-                break
-            prev, g = g, nxt
-            hit, d, u, v = hot_foot(px, py, pz, hot, hot_i, g, origin, home_step)
-            if hit:
-                f, d2, fd = g, d * d, d
-                break
+        g, hit, d = _step_to_foot(px, py, pz, near_g, near_u, near_v, hot, hot_i, origin, home_step)
+        if hit:
+            f, d2, fd = g, d * d, d
     region = REGION_INTERIOR
     for k in range(k0, k1):
         g = int(mixed_faces[k])
         hit, d, u, v = hot_foot(px, py, pz, hot, hot_i, g, origin, home_step)
         if hit or d * d >= d2:
+            continue
+        # A plane nearer than the best so far whose foot lies beyond this
+        # candidate: its smooth patch goes on to the foot, where a face
+        # closest at no corner of the subcell may beat the best (inside a
+        # thin plate by an edge, the other side's plane).
+        s, hit, e = _step_to_foot(px, py, pz, g, u, v, hot, hot_i, origin, home_step)
+        if hit and e * e < d2:
+            f, d2, fd, region = s, e * e, e, REGION_INTERIOR
             continue
         _, _, _, e2, rg = closest_on_hot(px, py, pz, hot, hot_i, g, origin, home_step)
         if e2 < d2:
