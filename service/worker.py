@@ -688,6 +688,21 @@ class Worker:
                 self._given_up.popitem(last=False)
             self._hand_out_finished()
 
+    def _answered_before(
+        self, line: str, station: str, seq: int | None, triggered_ns: int, replayed: bool
+    ) -> bool:
+        """Whether this FrameSet's trigger has its answer already, which raised its alarm.
+
+        A FrameSet of a trigger answered missed on the trigger source's word is
+        told as late first: its missed answer may carry the same id (the count
+        names the last trigger's time exactly), and "delivered again" would
+        misname it.
+        """
+        if not replayed and self._came_late(line, station, seq, triggered_ns):
+            return True
+        id_ = make_result_id(line, station, seq or 0, triggered_ns)
+        return self._answered(id_, seq, triggered_ns, replayed)
+
     def _came_late(self, line: str, station: str, seq: int | None, triggered_ns: int) -> bool:
         """Whether this is the FrameSet of a trigger answered missed already, on the
         trigger source's word (it came after the grace): an alarm, no second result."""
@@ -706,9 +721,7 @@ class Worker:
         seq = ident.get("seq")
         t_ns = ident.get("triggered_ns", item.received_ns)
         line, station = ident.get("line", self.line), ident.get("station", self.station)
-        if self._answered(make_result_id(line, station, seq or 0, t_ns), seq, t_ns, item.replayed):
-            return
-        if self._came_late(line, station, seq, t_ns):
+        if self._answered_before(line, station, seq, t_ns, item.replayed):
             return
         fields: dict[str, Any] = dict(
             line=line, station=station, seq=seq if seq is not None else 0, triggered_ns=t_ns,
@@ -736,9 +749,7 @@ class Worker:
             seq = ident.get("seq")
             t_ns = ident.get("triggered_ns", item.received_ns)
             line, station = ident.get("line", self.line), ident.get("station", self.station)
-            if self._answered(
-                make_result_id(line, station, seq or 0, t_ns), seq, t_ns, item.replayed
-            ) or self._came_late(line, station, seq, t_ns):
+            if self._answered_before(line, station, seq, t_ns, item.replayed):
                 return False
             if (line, station) == (self.line, self.station):
                 self.seqs.note_unreadable(seq)
@@ -761,11 +772,9 @@ class Worker:
                 None,
             )
             return False
+        if self._answered_before(fs.line, fs.station, fs.seq, fs.triggered_ns, item.replayed):
+            return False
         id_ = make_result_id(fs.line, fs.station, fs.seq, fs.triggered_ns)
-        if self._answered(id_, fs.seq, fs.triggered_ns, item.replayed):
-            return False
-        if self._came_late(fs.line, fs.station, fs.seq, fs.triggered_ns):
-            return False
         if (fs.line, fs.station) == (self.line, self.station) and not self._owed(
             fs.seq, item.replayed
         ):
