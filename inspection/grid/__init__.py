@@ -65,14 +65,14 @@ feature smaller than a cell (a wall thinner than the spacing, a rib's edge)
 lies between the corners, in which case a point beside it may get the next
 surface instead. Likewise on the concave side of a bend meshed finer than a
 cell, and deep inside a solid wall by its end face, a face closest at none
-of a cell's corners can be missed. A finer
-``spacing_mm`` makes both rarer; ``bench/bench_grid.py`` measures how often
-they happen. The face records hold planes and corners in float32 relative to
-a home point of the face (a block corner near it; the query's offset from it
-is taken in float64), which rounds them by about 6e-8 of their distance from
-that point: where the fast path has the closest face, its points and
-distances are exact to a few nanometres, its normals unit vectors within
-1e-7 rad of the face's. The far path is exact in float64.
+of a cell's corners can be missed. A finer ``spacing_mm`` makes all of these
+rarer; ``bench/bench_grid.py`` measures how often they happen. The face
+records hold planes and corners in float32 relative to a home point of the
+face (a block corner near it; the query's offset from it is taken in
+float64), which rounds them by about 6e-8 of their distance from that
+point: where the fast path has the closest face, its points and distances
+are exact to a few nanometres, its normals unit vectors within 1e-7 rad of
+the face's. The far path is exact in float64.
 
 Compilation: the kernels are numba functions cached on disk (``cache=True``).
 The first query of a fresh process loads (or, on a new machine, compiles) them;
