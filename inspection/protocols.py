@@ -46,6 +46,18 @@ class ClosestPointQuery(Protocol):
 
 
 @runtime_checkable
+class ClosestWithinQuery(Protocol):
+    """A closest-point query that may leave the points beyond a reach unanswered (a
+    ``GridTree``): face -1 and an infinite distance for those, every nearer point
+    answered as ``query`` answers it."""
+
+    def query_within(
+        self, points: Points, within_mm: float
+    ) -> ClosestLike:  # pragma: no cover - protocol
+        ...
+
+
+@runtime_checkable
 class Triangles(Protocol):
     """A triangle mesh in the CAD's face numbering (a ``CadModel``, a ``GridTree``).
 

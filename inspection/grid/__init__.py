@@ -55,7 +55,10 @@ or number of threads.
 Points outside the band, outside the bounding box, or in cells whose corners
 lie outside the band take the exact slow path: a bounding volume hierarchy
 over the faces, searched depth first with the nearer box first and every box
-farther than the best face so far pruned.
+farther than the best face so far pruned. A caller that needs only the
+points within a reach (``query_within``: a score that truncates distances)
+spares that search: within the band it is not run, past it every box beyond
+the reach is pruned from the start.
 
 Accuracy: cells with one face are exact where the surface is smooth (two
 adjacent faces meeting at less than 0.02 rad can swap on the concave side,

@@ -12,6 +12,7 @@ import hashlib
 import json
 import logging
 import math
+import numbers
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -249,6 +250,40 @@ class GridTree:
         InvalidInput
             Not an (N, 3) array of finite numbers.
         """
+        return self._query(points, math.inf)
+
+    def query_within(self, points: np.ndarray, within_mm: float) -> Closest:
+        """Closest points on the CAD surface of the points within ``within_mm`` of it.
+
+        Answers as :meth:`query` does, to the bit, every point nearer the
+        surface than ``within_mm``. A point farther off may be answered so
+        too (the fast path answers the whole band), or as beyond reach: face
+        -1, distance ``+inf``, NaN point and normal. Far points cost the
+        exact search only the few boxes within reach, where :meth:`query`
+        searches on until it finds their face: for callers that truncate
+        distances anyway (a score capped at a few millimetres).
+
+        Parameters
+        ----------
+        points : (N, 3) float, mm, CAD frame
+        within_mm : float
+            Positive reach, mm.
+
+        Raises
+        ------
+        InvalidInput
+            Not an (N, 3) array of finite numbers, or a reach that is not
+            a positive number.
+        """
+        if not (
+            isinstance(within_mm, numbers.Real)
+            and not isinstance(within_mm, bool)
+            and 0.0 < within_mm < math.inf
+        ):
+            raise InvalidInput(f"within_mm must be a positive finite number, got {within_mm!r}")
+        return self._query(points, float(within_mm) ** 2)
+
+    def _query(self, points: np.ndarray, reach2: float) -> Closest:
         # NaN and inf fail the fast path's range test, so they can only be
         # among the rows it leaves to the slow path: checked there, which
         # spares a pass over the whole batch.
@@ -291,11 +326,19 @@ class GridTree:
             if n_slow.sum():
                 slow = np.flatnonzero(out_face == FACE_SLOW)
                 _check_finite(p[slow])
-                self._query_slow(p, slow, out_pts, out_nrm, out_dist, out_face)
+                if reach2 <= self.params.band_mm**2:
+                    # The fast path answers every point within the band: these
+                    # lie beyond it, so beyond reach.
+                    out_pts[slow] = np.nan
+                    out_nrm[slow] = np.nan
+                    out_dist[slow] = np.inf
+                else:
+                    self._query_slow(p, slow, out_pts, out_nrm, out_dist, out_face, reach2)
         return Closest(points=out_pts, normals=out_nrm, distances=out_dist, face=out_face)
 
-    def _query_slow(self, p, rows, out_pts, out_nrm, out_dist, out_face) -> None:
-        """Exact closest faces of p[rows] through the bounding volume hierarchy."""
+    def _query_slow(self, p, rows, out_pts, out_nrm, out_dist, out_face, reach2) -> None:
+        """Exact closest faces of p[rows] through the bounding volume hierarchy, of those
+        within ``sqrt(reach2)`` of the surface."""
         m = self._mesh
         query_bvh(
             p,
@@ -320,6 +363,7 @@ class GridTree:
             out_nrm,
             out_dist,
             out_face,
+            reach2,
         )
 
     # ------------------------------------------------------------------ facts

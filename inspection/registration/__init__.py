@@ -9,7 +9,7 @@ a rotation the fit leaves free) and ``result`` (:class:`Registration`).
 
 from __future__ import annotations
 
-from ..protocols import ClosestLike, ClosestPointQuery
+from ..protocols import ClosestLike, ClosestPointQuery, ClosestWithinQuery
 from ..validate import validate_points, validate_transform, validate_view
 from .correspondences import CadFaces
 from .kernels import LOSSES
@@ -22,6 +22,7 @@ __all__ = [
     "CadFaces",
     "ClosestLike",
     "ClosestPointQuery",
+    "ClosestWithinQuery",
     "RegisterParams",
     "Registration",
     "StopReason",

@@ -11,6 +11,7 @@ ICP argument).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -20,7 +21,7 @@ import numpy as np
 from .._faces import face_planes
 from ..arrays import Points, Scalars, Transform, Vectors
 from ..errors import InvalidInput
-from ..protocols import ClosestPointQuery, Triangles
+from ..protocols import ClosestPointQuery, ClosestWithinQuery, Triangles
 from .kernels import distance_residuals, face_residuals, plane_residuals, transform_points
 
 
@@ -95,19 +96,26 @@ class Matches(NamedTuple):
 
 
 def closest(
-    tree: ClosestPointQuery, X: Points
+    tree: ClosestPointQuery, X: Points, within_mm: float | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Closest points, face normals, signed distances and faces of ``X`` on ``tree``."""
+    """Closest points, face normals, signed distances and faces of ``X`` on ``tree``;
+    with ``within_mm``, points farther off may come back beyond reach (face -1,
+    distance ``+inf``, NaN point and normal) where the tree can spare their search
+    (a :class:`~inspection.protocols.ClosestWithinQuery`)."""
     # One numba thread for the tree's parallel kernels: these queries are
     # small, and on a loaded machine a parallel launch waits for a second core
     # longer than the query takes. The answer does not depend on the thread count.
+    if within_mm is not None and isinstance(tree, ClosestWithinQuery):
+        run = functools.partial(tree.query_within, X, within_mm)
+    else:
+        run = functools.partial(tree.query, X)
     threads = numba.get_num_threads()
     if threads == 1:
-        cl = tree.query(X)
+        cl = run()
     else:
         numba.set_num_threads(1)
         try:
-            cl = tree.query(X)
+            cl = run()
         finally:
             numba.set_num_threads(threads)
     Q = np.ascontiguousarray(cl.points, dtype=np.float64)

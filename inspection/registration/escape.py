@@ -137,12 +137,14 @@ def escape_free_rotation(
         starts = [compose(fit.transform, axis * a, shift * a, center) for a in angles]
         score = np.empty(len(angles))
         for i, T_ in enumerate(starts):
+            # Both read the points within trunc of the CAD only: the others are
+            # answered as beyond it, without the search for their faces.
             for _ in range(_SHIFT_STEPS if line == 2 else 0):
                 X = transform_points(T_[:3, :3].copy(), T_[:3, 3].copy(), P)
-                _, N, d, _ = closest(tree, X)
+                _, N, d, _ = closest(tree, X, within_mm=trunc)
                 T_[:3, 3] += _shift_to_fit(N, d, trunc)
             X = transform_points(T_[:3, :3].copy(), T_[:3, 3].copy(), P)
-            d = closest(tree, X)[2]
+            d = closest(tree, X, within_mm=trunc)[2]
             score[i] = np.mean(np.minimum(d * d, trunc * trunc))
         # Local minima of the scan that place clearly more of the points on the
         # CAD than the fit does (the fit's neighbours are its own minimum).

@@ -175,6 +175,51 @@ def test_queries_outside_the_bounding_box(panel_tree, small_panel):
     assert np.all((got.face >= 0) & (got.face < len(small_panel.faces)))
 
 
+@pytest.mark.parametrize("within_mm", [2.0, 12.0])
+def test_a_query_within_a_reach_answers_the_nearer_points_as_the_full_query(
+    panel_tree, small_panel, within_mm
+):
+    """Inside the band (2 mm) nothing beyond the fast path is searched; past it
+    (12 mm) the exact search stops at the reach. Either way every point nearer
+    than the reach gets the full query's answer to the bit, and the others
+    that one or beyond reach: face -1, an infinite distance, NaN point and normal."""
+    rng = np.random.default_rng(11)
+    q = np.vstack(
+        [
+            offset_queries(small_panel, 300, 0.0, 3.0, rng),
+            offset_queries(small_panel, 300, 5.0, 30.0, rng),
+        ]
+    )
+    full = panel_tree.query(q)
+    got = panel_tree.query_within(q, within_mm)
+    beyond = got.face < 0
+    assert beyond.sum() > 100
+    if within_mm > panel_tree.params.band_mm:
+        # Points between the band and the reach are searched, not left.
+        assert ((~beyond) & (np.abs(full.distances) > panel_tree.params.band_mm)).sum() > 20
+    assert not (beyond & (np.abs(full.distances) < within_mm)).any()
+    for a, b in (
+        (got.points, full.points),
+        (got.normals, full.normals),
+        (got.distances, full.distances),
+        (got.face, full.face),
+    ):
+        np.testing.assert_array_equal(a[~beyond], b[~beyond])
+    assert np.isposinf(got.distances[beyond]).all()
+    assert np.isnan(got.points[beyond]).all() and np.isnan(got.normals[beyond]).all()
+
+
+@pytest.mark.parametrize("reach", [0.0, -1.0, float("nan"), float("inf"), "2", True, None])
+def test_a_query_within_refuses_a_reach_that_is_not_a_positive_number(sphere_tree, reach):
+    with pytest.raises(InvalidInput, match="within_mm"):
+        sphere_tree.query_within(np.zeros((3, 3)), reach)
+
+
+def test_a_query_within_refuses_points_that_are_not_finite(sphere_tree):
+    with pytest.raises(InvalidInput):
+        sphere_tree.query_within(np.array([[0.0, np.nan, 0.0], [90.0, 0.0, 0.0]]), 2.0)
+
+
 def test_signed_distance_both_sides_of_the_panel(panel_tree, small_panel):
     rng = np.random.default_rng(4)
     p, f = surface_samples(small_panel, 400, rng)

@@ -269,6 +269,44 @@ def test_a_turn_out_of_the_holes_reach_is_found_by_the_escape(discs, deg, caplog
     assert reg.inlier_fraction > stuck.inlier_fraction + 0.02
 
 
+class _EveryPoint:
+    """A tree that only answers every point with its closest face."""
+
+    def __init__(self, tree: GridTree) -> None:
+        self.tree = tree
+        self.beyond = 0
+
+    def query(self, points):
+        return self.tree.query(points)
+
+
+class _Searching(_EveryPoint):
+    """A tree that answers a reach-bounded query too (as a ``GridTree`` does) and
+    counts the points it answered as beyond that reach."""
+
+    def query_within(self, points, within_mm):
+        got = self.tree.query_within(points, within_mm)
+        self.beyond += int((got.face < 0).sum())
+        return got
+
+
+def test_the_escapes_scan_fits_the_same_whether_far_points_are_searched_or_not(discs):
+    """The scan truncates each point's distance at a few millimetres, so it asks
+    the tree for the points within that reach only; the scanned angles put
+    thousands of points beyond it, and a tree that searches each of those on
+    to its face gives the same fit, to the bit."""
+    cad, tree = discs["holed"]
+    data, _ = measure(cad, np.eye(4), 50_000, seed=1)
+    up = (0.0, 0.0, 1.0)
+    faces = CadFaces.of(tree)
+    bounded = _Searching(tree)
+    reg = register(bounded, data, init=_turned(20.0), view_direction=up, faces=faces)
+    assert bounded.beyond > 1000
+    full = register(_EveryPoint(tree), data, init=_turned(20.0), view_direction=up, faces=faces)
+    np.testing.assert_array_equal(reg.transform, full.transform)
+    np.testing.assert_array_equal(reg.residuals, full.residuals)
+
+
 @pytest.mark.parametrize(
     "deg",
     [

@@ -124,9 +124,15 @@ def query_bvh(
     out_nrm,
     out_dist,
     out_face,
+    reach2,
 ):
     """Exact closest face of points[rows[j]] by depth-first search, nearer child first,
-    pruning boxes farther than the best face so far; written to row rows[j]."""
+    pruning boxes farther than the best face so far; written to row rows[j].
+
+    Only faces nearer than ``sqrt(reach2)`` are searched (``inf``: all): a
+    point with none gets ``out_face = -1``, an infinite distance and NaN for
+    its point and normal, at the cost of the few boxes within reach.
+    """
     for j in prange(rows.shape[0]):
         i = rows[j]
         px, py, pz = points[i, 0], points[i, 1], points[i, 2]
@@ -135,7 +141,7 @@ def query_bvh(
         top = 1
         f = -1
         qx = qy = qz = 0.0
-        d2 = np.inf
+        d2 = reach2
         region = 0
         while top > 0:
             top -= 1
@@ -170,6 +176,13 @@ def query_bvh(
                 stack[top] = c0
                 stack[top + 1] = c1
             top += 2
+        if f < 0:
+            for a in range(3):
+                out_pts[i, a] = np.nan
+                out_nrm[i, a] = np.nan
+            out_dist[i] = np.inf
+            out_face[i] = -1
+            continue
         walk_and_finish(
             i,
             px,
