@@ -37,7 +37,7 @@ import numpy.typing as npt
 from numba import njit
 from scipy.spatial import cKDTree
 
-from .arrays import Faces, Points, Transform, mesh_arrays
+from .arrays import Faces, Points, Transform, Vectors, mesh_arrays
 from .errors import InvalidInput
 from .validate import validate_transform
 
@@ -287,17 +287,8 @@ def draw_map(
     """:meth:`PerspectiveMap.build` for callers inside the package, trusted: ``T`` a rigid
     transform, ``o`` and ``d`` (H W, 3) C-contiguous float64 with unit directions."""
     h, w = shape
-    T_cad_rig = _rigid_inverse(T)
-    R, t = T_cad_rig[:3, :3], T_cad_rig[:3, 3]
-    if faces is None:
-        face, p_cad = caster.cast(o @ R.T + t, d @ R.T)
-    else:
-        face, p_cad = _from_faces(caster, T, o, d, np.asarray(faces, dtype=np.int64))
-    R_rc = T[:3, :3]
-    points = p_cad @ R_rc.T + T[:3, 3]
+    face, points, normals = surface_seen(caster, T, o, d, faces)
     seen = face >= 0
-    normals = np.full((h * w, 3), np.nan)
-    normals[seen] = caster.normals[face[seen]] @ R_rc.T
     offsets = np.full(h * w, np.nan)
     offsets[seen] = np.einsum("ij,ij->i", normals[seen], points[seen])
     # The view's angular pixel pitch and the nearest depth set the margin a
@@ -312,6 +303,28 @@ def draw_map(
         (int(corner[0]), int(corner[1])), (h, w), o, d, face, points, normals, offsets,
         step, T, max_motion_mm, margin, caster,
     )  # fmt: skip
+
+
+def surface_seen(
+    caster: RayCaster, T: Transform, o: Points, d: Points, faces: npt.ArrayLike | None
+) -> tuple[npt.NDArray[np.int64], Points, Vectors]:
+    """What each ray sees of the CAD at the pose ``T`` (CAD -> ray frame): its facet (-1:
+    none), point and normal, in the rays' frame (NaN where none); what a
+    :class:`PerspectiveMap` holds, without what it needs to answer moved poses. Trusted
+    arguments, as :func:`draw_map`'s; ``faces``: a rasteriser's facet per ray, or None
+    to cast every ray."""
+    T_cad_rig = _rigid_inverse(T)
+    R, t = T_cad_rig[:3, :3], T_cad_rig[:3, 3]
+    if faces is None:
+        face, p_cad = caster.cast(o @ R.T + t, d @ R.T)
+    else:
+        face, p_cad = _from_faces(caster, T, o, d, np.asarray(faces, dtype=np.int64))
+    R_rc = T[:3, :3]
+    points = p_cad @ R_rc.T + T[:3, 3]
+    seen = face >= 0
+    normals = np.full((len(face), 3), np.nan)
+    normals[seen] = caster.normals[face[seen]] @ R_rc.T
+    return face, points, normals
 
 
 def _rigid_inverse(T: Transform) -> Transform:
@@ -645,4 +658,5 @@ __all__ = [
     "face_neighbours",
     "pinhole_faces",
     "rectified_rays",
+    "surface_seen",
 ]

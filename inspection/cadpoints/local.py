@@ -4,9 +4,11 @@ Given the part's pose, each comparison point and its support disc are
 projected into the rectified left view of every stereo pair whose two
 cameras see the point's face. There, and only there:
 
-1. the CAD at the pose is drawn into the patch (:class:`~inspection.perspective.PerspectiveMap`):
-   per pixel its point on the surface, hence the disparity the pair would
-   measure if the part were its CAD;
+1. the CAD at the pose is drawn into the patch (a rasteriser's facets, walked
+   and ray cast as a :class:`~inspection.perspective.PerspectiveMap` is, by
+   :func:`~inspection.perspective.surface_seen`): per pixel its point on the
+   surface, hence the disparity the pair would measure if the part were its
+   CAD;
 2. the patch and the part of the right view those disparities reach are
    rectified from the frames (slices of the pair's rectification maps), and
    normalised as the cloud path normalises its crops;
@@ -42,7 +44,7 @@ import numpy.typing as npt
 
 from ..deviations import ComparisonPoint, robust_location
 from ..errors import InvalidInput
-from ..perspective import FacetSet, RayCaster, draw_map, pinhole_faces, rectified_rays
+from ..perspective import FacetSet, RayCaster, pinhole_faces, rectified_rays, surface_seen
 from ..reconstruct import Reconstructor, ReconstructParams
 from ..reconstruct.matching import local_normalise, spline_rows
 from ..reconstruct.pairs import RectifiedPair, rectified_pair
@@ -306,10 +308,10 @@ def _one_pair(
     o, d = rectified_rays(pair, (x0, y0), (size, size))
     hint = pinhole_faces(model.caster, T_rig, facets, pair.R_rect_rig, pair.centre_left,
                          pair.f_px, (pair.cx_left, pair.cy), (x0, y0), (size, size))  # fmt: skip
-    pm = draw_map(model.caster, T_rig, o, d, (size, size), (x0, y0), p.max_motion_mm, hint)
-    seen = pm.face >= 0
-    depth = np.full(pm.size, np.nan)
-    depth[seen] = (pm.points[seen] - pair.centre_left) @ pair.R_rect_rig[2]
+    face, at, normals = surface_seen(model.caster, T_rig, o, d, hint)
+    seen = face >= 0
+    depth = np.full(len(face), np.nan)
+    depth[seen] = (at[seen] - pair.centre_left) @ pair.R_rect_rig[2]
     disp = pair.fb / depth + pair.offset_px  # NaN off the part
     field_ = disp.reshape(size, size)
     d_lo, d_hi = float(disp[seen].min()), float(disp[seen].max())
@@ -328,7 +330,7 @@ def _one_pair(
     gx = np.arange((-x0) % p.stride, size, p.stride)
     gy = np.arange((-y0) % p.stride, size, p.stride)
     cand = (gy[:, None] * size + gx[None, :]).ravel()
-    off = pm.points[cand] - X
+    off = at[cand] - X
     with np.errstate(invalid="ignore"):
         sel = cand[np.einsum("ij,ij->i", off, off) <= radius_mm * radius_mm]
     if len(sel) == 0:
@@ -362,13 +364,13 @@ def _one_pair(
     idx = sel[ok]
     d_meas = out_d[ok].astype(np.float64) - shift
     z_meas = pair.fb / (d_meas - pair.offset_px)
-    ray = pm.directions[idx]
+    ray = d[idx]
     rz = ray @ pair.R_rect_rig[2]
     measured = pair.centre_left + (z_meas / rz)[:, None] * ray
-    dev = np.einsum("ij,ij->i", measured - pm.points[idx], pm.normals[idx])
+    dev = np.einsum("ij,ij->i", measured - at[idx], normals[idx])
     # The calibration's disparity error moves the depth by z^2 / (f B) per pixel,
     # seen along the normal through the ray's angle to it.
-    cos_n = float(np.mean(np.abs(np.einsum("ij,ij->i", ray, pm.normals[idx]))))
+    cos_n = float(np.mean(np.abs(np.einsum("ij,ij->i", ray, normals[idx]))))
     sigma_z = z * z / pair.fb * p.calibration_px
     return look, dev, measured, (sigma_z * cos_n / float(np.mean(rz))) ** 2
 

@@ -6,7 +6,6 @@ import math
 from dataclasses import dataclass
 
 from ..errors import InvalidInput
-from ..perspective import DEFAULT_MAX_MOTION_MM
 
 
 @dataclass(frozen=True)
@@ -38,8 +37,6 @@ class LocalParams:
         A camera's ray to the point meeting the part this far from it: occluded.
     calibration_px : float
         The rig calibration's disparity error (1 sigma, px), for the uncertainty.
-    max_motion_mm : float
-        The perspective maps' validity range.
     max_sigma_fraction : float
         A point whose own uncertainty (3 sigma) exceeds this fraction of its
         tolerance band is not measurable.
@@ -61,7 +58,6 @@ class LocalParams:
     max_view_deg: float = 65.0
     occlusion_mm: float = 1.0
     calibration_px: float = 0.02
-    max_motion_mm: float = DEFAULT_MAX_MOTION_MM
     max_sigma_fraction: float = 0.25
     shading_bend: float = 0.01
 
@@ -80,9 +76,7 @@ class LocalParams:
             raise InvalidInput(
                 f"LocalParams.max_view_deg must lie in (0, 90), got {self.max_view_deg}"
             )
-        for name in (
-            "converged_px", "max_shift_px", "occlusion_mm", "max_motion_mm", "max_sigma_fraction"
-        ):  # fmt: skip
+        for name in ("converged_px", "max_shift_px", "occlusion_mm", "max_sigma_fraction"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise InvalidInput(f"LocalParams.{name} must be finite and > 0, got {v!r}")
