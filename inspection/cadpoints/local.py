@@ -305,15 +305,21 @@ def _one_pair(
     for cam in (pair.left, pair.right):
         if not sees[cam]:
             return PairLook(name, reason=f"cam{cam} does not see it (occluded)"), *empty
-    o, d = rectified_rays(pair, (x0, y0), (size, size))
+    # The CAD is drawn only where the windows reach: the patch less the normalisation's
+    # margin, which reads the images alone.
+    m = p.norm_window // 2
+    inner = size - 2 * m
+    o, d = rectified_rays(pair, (x0 + m, y0 + m), (inner, inner))
     hint = pinhole_faces(model.caster, T_rig, facets, pair.R_rect_rig, pair.centre_left,
-                         pair.f_px, (pair.cx_left, pair.cy), (x0, y0), (size, size))  # fmt: skip
+                         pair.f_px, (pair.cx_left, pair.cy), (x0 + m, y0 + m),
+                         (inner, inner))  # fmt: skip
     face, at, normals = surface_seen(model.caster, T_rig, o, d, hint)
     seen = face >= 0
     depth = np.full(len(face), np.nan)
     depth[seen] = (at[seen] - pair.centre_left) @ pair.R_rect_rig[2]
     disp = pair.fb / depth + pair.offset_px  # NaN off the part
-    field_ = disp.reshape(size, size)
+    field_ = np.full((size, size), np.nan)
+    field_[m : m + inner, m : m + inner] = disp.reshape(inner, inner)
     d_lo, d_hi = float(disp[seen].min()), float(disp[seen].max())
     # The right view's columns those disparities reach, with the windows' margins.
     pad = hw + p.norm_window // 2 + 2 + int(math.ceil(p.max_shift_px))
@@ -326,10 +332,11 @@ def _one_pair(
     right_n = spline_rows(local_normalise(right, p.norm_window))
     wl = (left < SATURATION_DN - 0.5).astype(np.float32)
     wr = (right < SATURATION_DN - 0.5).astype(np.float32)
-    # The windows: every stride-th pixel whose CAD point lies within the support.
-    gx = np.arange((-x0) % p.stride, size, p.stride)
-    gy = np.arange((-y0) % p.stride, size, p.stride)
-    cand = (gy[:, None] * size + gx[None, :]).ravel()
+    # The windows: every stride-th pixel (of the image) whose CAD point lies within the
+    # support; indices of the drawn square.
+    gx = np.arange((-(x0 + m)) % p.stride, inner, p.stride)
+    gy = np.arange((-(y0 + m)) % p.stride, inner, p.stride)
+    cand = (gy[:, None] * inner + gx[None, :]).ravel()
     off = at[cand] - X
     with np.errstate(invalid="ignore"):
         sel = cand[np.einsum("ij,ij->i", off, off) <= radius_mm * radius_mm]
@@ -338,8 +345,8 @@ def _one_pair(
     shift = float(rx0 - x0)
     shape = np.where(np.isfinite(field_), field_ + shift, 0.0).astype(np.float32)
     mask = np.isfinite(field_).astype(np.float32)
-    px = (sel % size).astype(np.int64)
-    py = (sel // size).astype(np.int64)
+    px = (sel % inner + m).astype(np.int64)
+    py = (sel // inner + m).astype(np.int64)
     d0 = (disp[sel] + shift).astype(np.float32)
     out_d = np.empty(len(sel), np.float32)
     score = np.empty(len(sel), np.float32)
