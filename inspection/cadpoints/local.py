@@ -296,7 +296,9 @@ def _one_pair(
     xs, ys, zs = pair.project(X[None])
     xc, yc, z = float(xs[0]), float(ys[0]), float(zs[0])
     hw = p.window // 2
-    half = int(math.ceil(radius_mm * pair.f_px / z)) + hw + p.norm_window // 2 + 1
+    # The normalisation's margin: the patch reaches it beyond the windows.
+    m = p.norm_window // 2
+    half = int(math.ceil(radius_mm * pair.f_px / z)) + hw + m + 1
     x0, y0 = int(round(xc)) - half, int(round(yc)) - half
     size = 2 * half + 1
     w_img, h_img = pair.size
@@ -307,7 +309,6 @@ def _one_pair(
             return PairLook(name, reason=f"cam{cam} does not see it (occluded)"), *empty
     # The CAD is drawn only where the windows reach: the patch less the normalisation's
     # margin, which reads the images alone.
-    m = p.norm_window // 2
     inner = size - 2 * m
     o, d = rectified_rays(pair, (x0 + m, y0 + m), (inner, inner))
     hint = pinhole_faces(model.caster, T_rig, facets, pair.R_rect_rig, pair.centre_left,
@@ -322,7 +323,7 @@ def _one_pair(
     field_[m : m + inner, m : m + inner] = disp.reshape(inner, inner)
     d_lo, d_hi = float(disp[seen].min()), float(disp[seen].max())
     # The right view's columns those disparities reach, with the windows' margins.
-    pad = hw + p.norm_window // 2 + 2 + int(math.ceil(p.max_shift_px))
+    pad = hw + m + 2 + int(math.ceil(p.max_shift_px))
     rx0 = max(int(math.floor(x0 - d_hi)) - pad, 0)
     rx1 = min(int(math.ceil(x0 + size - d_lo)) + pad, w_img)
     rows = slice(y0, y0 + size)
