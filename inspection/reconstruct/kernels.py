@@ -394,48 +394,56 @@ def _warped_window(
     order: the right-image column of each sample less the disparity (``base``),
     its left weight (``wlm``: on the field, and unsaturated), its left value
     (``tv``) and its row (``rows``)."""
+    w = 2 * radius + 1
     j = 0
     for v in range(-radius, radius + 1):
         yy = y + v
-        for u in range(2 * radius + 1):
-            xx = x - radius + u
-            base[j] = xx - (shape[yy, xx] - s0)
-            wlm[j] = mask[yy, xx] * wl[yy, xx]
-            tv[j] = left[yy, xx]
-            rows[j] = yy
-            j += 1
+        # Row slices, as in refine_pixels: indexing them by the loop's own
+        # counter compiles to plain loads, which 2-D indexing does not.
+        lrow = left[yy, x - radius : x + radius + 1]
+        wlrow = wl[yy, x - radius : x + radius + 1]
+        srow = shape[yy, x - radius : x + radius + 1]
+        mrow = mask[yy, x - radius : x + radius + 1]
+        for u in range(w):
+            base[j + u] = (x - radius + u) - (srow[u] - s0)
+            wlm[j + u] = mrow[u] * wlrow[u]
+            tv[j + u] = lrow[u]
+            rows[j + u] = yy
+        j += w
 
 
 @njit(cache=True, nogil=True, fastmath=True, inline="always")
-def _warped_columns(base, d, wr_cols, cols, frac, inside):  # pragma: no cover
-    """Each sample's right-image column at disparity ``d``: the spline's first
-    coefficient column (``cols``, clamped to the row), the fraction between
-    columns (``frac``) and whether the column lies on the row (``inside``: 1, or 0
-    for a clamped one, which then gets no weight). A loop of its own, free of the
-    image reads, so that it vectorises."""
+def _warped_columns(base, d, rows, wr_cols, at, frac, inside):  # pragma: no cover
+    """Where each sample reads the right image at disparity ``d``: the flat index
+    (into the image raveled) of the spline's second coefficient (``at``, its
+    column clamped to the row ``rows`` gives; the row holds ``wr_cols``), the
+    fraction between columns (``frac``) and whether the column lies on the row
+    (``inside``: 1, or 0 for a clamped one, which then gets no weight). A loop of
+    its own, free of the image reads, so that it vectorises."""
     for j in range(base.shape[0]):
         xr = base[j] - d
         xf = math.floor(xr)
         frac[j] = xr - xf
         xb0 = int(xf)
         xb = min(max(xb0, 1), wr_cols - 3)
-        cols[j] = xb
+        # One flat index: the reads of the sample loop then cost one address each.
+        at[j] = rows[j] * wr_cols + xb
         inside[j] = 1.0 if xb == xb0 else 0.0
 
 
 @njit(cache=True, nogil=True, fastmath=True, inline="always")
-def _warped_sample(right, wr, row, xb, a, inside):  # pragma: no cover
-    """The right image's spline (coefficients ``right``) in ``row`` at column
-    ``xb + a``: its value, its derivative, and the sample's weight (the right
-    weights ``wr`` of the two nearest pixels, times ``inside``)."""
+def _warped_sample(right, wr, k, a, inside):  # pragma: no cover
+    """The right image's spline (coefficients ``right``, raveled) at flat index ``k``
+    plus the fraction ``a``: its value, its derivative, and the sample's weight (the
+    right weights ``wr``, raveled, of the two nearest pixels, times ``inside``)."""
     w0, w1, w2, w3, g0, g1, g2, g3 = _bspline(a)
-    r0 = right[row, xb - 1]
-    r1 = right[row, xb]
-    r2 = right[row, xb + 1]
-    r3 = right[row, xb + 2]
+    r0 = right[k - 1]
+    r1 = right[k]
+    r2 = right[k + 1]
+    r3 = right[k + 2]
     rv = w0 * r0 + w1 * r1 + w2 * r2 + w3 * r3
     gv = g0 * r0 + g1 * r1 + g2 * r2 + g3 * r3
-    return rv, gv, inside * wr[row, xb] * wr[row, xb + 1]
+    return rv, gv, inside * wr[k] * wr[k + 1]
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -472,6 +480,8 @@ def refine_warped(
     Others as :func:`refine_pixels`.
     """
     wr_cols = right.shape[1]
+    rf = right.ravel()
+    wf = wr.ravel()
     n = px.shape[0]
     nw = (2 * radius + 1) ** 2
     base = np.empty(nw)
@@ -505,9 +515,9 @@ def refine_warped(
             stt = 0.0
             stw = 0.0
             stg = 0.0
-            _warped_columns(base, d, wr_cols, cols, frac, inside)
+            _warped_columns(base, d, rows, wr_cols, cols, frac, inside)
             for j in range(nw):
-                rv, gv, wrt = _warped_sample(right, wr, rows[j], cols[j], frac[j], inside[j])
+                rv, gv, wrt = _warped_sample(rf, wf, cols[j], frac[j], inside[j])
                 wt = wlm[j] * wrt
                 t = tv[j]
                 s1 += wt
@@ -595,6 +605,8 @@ def refine_warped_shaded(
     Others as :func:`refine_warped`.
     """
     wr_cols = right.shape[1]
+    rf = right.ravel()
+    wf = wr.ravel()
     n = px.shape[0]
     nw = (2 * radius + 1) ** 2
     nc = _SHADED_UNKNOWNS - 2
@@ -659,9 +671,9 @@ def refine_warped_shaded(
             # Whether every sample's weight is that of the last step: then so is
             # the block of the normal equations of the offset and the light.
             same = it > 0
-            _warped_columns(base, d, wr_cols, cols, frac, inside)
+            _warped_columns(base, d, rows, wr_cols, cols, frac, inside)
             for j in range(nw):
-                rv, gv, wrt = _warped_sample(right, wr, rows[j], cols[j], frac[j], inside[j])
+                rv, gv, wrt = _warped_sample(rf, wf, cols[j], frac[j], inside[j])
                 wt = wlm[j] * wrt
                 same = same and w_[j] == wt
                 w_[j] = wt
