@@ -100,6 +100,12 @@ class ReconstructParams:
         :meth:`Reconstructor.sparse_cloud
         <inspection.reconstruct.Reconstructor.sparse_cloud>` matches those
         rows alone.
+    sparse_cloud_warp_slope, sparse_cloud_warp_passes : float, int
+        ``warp_slope`` and ``warp_passes`` of :meth:`Reconstructor.sparse_cloud
+        <inspection.reconstruct.Reconstructor.sparse_cloud>`. That cloud
+        places the part alone, with no guided pass after it to fit the
+        windows on slopes to the surface's shape, so it warps the windows on
+        gentler slopes than the first pass does, in one pass.
     threads : int
         Stereo pairs matched at once (one thread each, from the pool the
         :class:`Reconstructor` owns; 1: no pool, the pairs one after the other).
@@ -136,6 +142,8 @@ class ReconstructParams:
     warp_passes: int = 2
     threads: int = 2
     sparse_rows: int = 4
+    sparse_cloud_warp_slope: float = 0.02
+    sparse_cloud_warp_passes: int = 1
     score_full: float = 0.95
     warp_curvature_px: float = 0.03
     warp_slope: float = 0.1
@@ -167,6 +175,7 @@ class ReconstructParams:
             raise InvalidInput("ReconstructParams.iterations must be an int in [1, 50]")
         for name, top in (
             ("warp_passes", 5),
+            ("sparse_cloud_warp_passes", 5),
             ("guide_passes", 5),
             ("warp_iterations", 50),
             ("threads", 8),
@@ -174,7 +183,7 @@ class ReconstructParams:
             ("row_stride", 8),
         ):
             v = getattr(self, name)
-            low = 0 if name == "warp_passes" else 1
+            low = 0 if name in ("warp_passes", "sparse_cloud_warp_passes") else 1
             if not (isinstance(v, int) and low <= v <= top):
                 raise InvalidInput(f"ReconstructParams.{name} must be an int in [{low}, {top}]")
         if self.sparse_rows % self.row_stride:
@@ -197,6 +206,7 @@ class ReconstructParams:
             "free_space_mm",
             "warp_curvature_px",
             "warp_slope",
+            "sparse_cloud_warp_slope",
             "guide_tolerance_px",
             "shading_bend",
         ):

@@ -208,7 +208,9 @@ class Reconstructor:
 
         The rows between are neither refined nor triangulated; the warped
         windows follow, and the other pair's check reads, the field of the
-        sparse rows filled across them. Nothing is kept for a :meth:`guided`
+        sparse rows filled across them. The windows are warped as
+        ``params.sparse_cloud_warp_slope`` and ``sparse_cloud_warp_passes``
+        say, not as the first pass's. Nothing is kept for a :meth:`guided`
         pass: ``match(frames, sparse=True)`` gives a cloud of the same rows
         and what the guided pass starts from, at the cost of every square
         window.
@@ -307,8 +309,18 @@ class Reconstructor:
         rows_only: bool = False,
     ) -> tuple[Cloud, Matching]:
         p = self.params
-        # The pairs' own stages see the sparse rows as the rows refined.
-        per_pair = replace(p, row_stride=max(p.row_stride, p.sparse_rows)) if rows_only else p
+        # The pairs' own stages see the sparse rows as the rows refined, and the sparse
+        # cloud's own warping.
+        per_pair = (
+            replace(
+                p,
+                row_stride=max(p.row_stride, p.sparse_rows),
+                warp_slope=p.sparse_cloud_warp_slope,
+                warp_passes=p.sparse_cloud_warp_passes,
+            )
+            if rows_only
+            else p
+        )
         imgs = _check_frames(self.rig, frames)
         timings: dict[str, float] = {}
         t0 = time.perf_counter()

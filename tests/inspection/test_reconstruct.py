@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import signal
 
@@ -407,6 +408,26 @@ def test_a_sparse_cloud_matches_its_rows_alone_and_places_the_part_as_well(
     r_full, bent_full = _surface_errors(tree, T, plain)
     assert len(r) > 0.95 * len(cloud) and _rms(r) < 1.1 * _rms(r_full)
     assert _rms(r[bent]) < 1.1 * _rms(r_full[bent_full])
+
+
+def test_a_sparse_cloud_warps_its_windows_as_its_own_params_say(
+    reconstructor: Reconstructor, panel_scene
+) -> None:
+    frames = panel_scene[3]
+    p = reconstructor.params
+
+    def with_params(**changes: object) -> Reconstructor:
+        return dataclasses.replace(reconstructor, params=dataclasses.replace(p, **changes))
+
+    cloud = reconstructor.sparse_cloud(frames)
+    # The first pass's warping does not reach it ...
+    other_first = with_params(warp_slope=p.warp_slope + 0.5, warp_passes=p.warp_passes + 1)
+    np.testing.assert_array_equal(other_first.sparse_cloud(frames).points, cloud.points)
+    # ... its own does: the windows on the slopes between its threshold and the first
+    # pass's are warped.
+    assert p.sparse_cloud_warp_slope < p.warp_slope
+    steeper = with_params(sparse_cloud_warp_slope=p.warp_slope).sparse_cloud(frames)
+    assert len(steeper) != len(cloud) or not np.array_equal(steeper.points, cloud.points)
 
 
 def test_field_slopes_against_numpy() -> None:
@@ -825,6 +846,8 @@ def test_bad_params() -> None:
         ReconstructParams(stride=0)
     for bad in (
         {"warp_passes": -1},
+        {"sparse_cloud_warp_passes": -1},
+        {"sparse_cloud_warp_slope": -0.1},
         {"warp_iterations": 0},
         {"warp_smooth": 4},
         {"threads": 0},
