@@ -426,24 +426,28 @@ def _warped_columns(base, d, rows, wr_cols, at, frac, inside):  # pragma: no cov
         frac[j] = xr - xf
         xb0 = int(xf)
         xb = min(max(xb0, 1), wr_cols - 3)
-        # One flat index: the reads of the sample loop then cost one address each.
-        at[j] = rows[j] * wr_cols + xb
+        # One flat index, unsigned: the reads of the sample loop then cost one
+        # address each, with no check for a negative index.
+        at[j] = np.uint64(rows[j] * wr_cols + xb)
         inside[j] = 1.0 if xb == xb0 else 0.0
 
 
 @njit(cache=True, nogil=True, fastmath=True, inline="always")
 def _warped_sample(right, wr, k, a, inside):  # pragma: no cover
-    """The right image's spline (coefficients ``right``, raveled) at flat index ``k``
-    plus the fraction ``a``: its value, its derivative, and the sample's weight (the
-    right weights ``wr``, raveled, of the two nearest pixels, times ``inside``)."""
+    """The right image's spline (coefficients ``right``, raveled) at the flat index
+    ``k`` (uint64) plus the fraction ``a``: its value, its derivative, and the
+    sample's weight (the right weights ``wr``, raveled, of the two nearest pixels,
+    times ``inside``)."""
     w0, w1, w2, w3, g0, g1, g2, g3 = _bspline(a)
-    r0 = right[k - 1]
+    # Unsigned steps: an int64 would turn the uint64 index into a float.
+    one = np.uint64(1)
+    r0 = right[k - one]
     r1 = right[k]
-    r2 = right[k + 1]
-    r3 = right[k + 2]
+    r2 = right[k + one]
+    r3 = right[k + one + one]
     rv = w0 * r0 + w1 * r1 + w2 * r2 + w3 * r3
     gv = g0 * r0 + g1 * r1 + g2 * r2 + g3 * r3
-    return rv, gv, inside * wr[k] * wr[k + 1]
+    return rv, gv, inside * wr[k] * wr[k + one]
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -490,7 +494,7 @@ def refine_warped(
     frac = np.empty(nw)
     inside = np.empty(nw)
     rows = np.empty(nw, np.int64)
-    cols = np.empty(nw, np.int64)
+    cols = np.empty(nw, np.uint64)
     for i in range(n):
         x = px[i]
         y = py[i]
@@ -624,7 +628,7 @@ def refine_warped_shaded(
     frac = np.empty(nw)
     inside = np.empty(nw)
     rows = np.empty(nw, np.int64)
-    cols = np.empty(nw, np.int64)
+    cols = np.empty(nw, np.uint64)
     # The Jacobian by rows, one column per sample (a sample of weight 0 adds
     # nothing): the normal equations are then contiguous dot products, which
     # vectorise. The rows of the offset and the light (1, and each regressor
