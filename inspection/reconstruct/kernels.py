@@ -166,6 +166,14 @@ def refine_pixels(
         Refined disparity, weighted normalised correlation, last step (written).
     """
     H, W = left.shape
+    WR = right.shape[1]
+    # Flat views read with unsigned indices: numba then checks no index for a
+    # negative value, which it does on every read of a row slice's counter too.
+    lf = left.ravel()
+    wlf = wl.ravel()
+    rf = right.ravel()
+    wrf = wr.ravel()
+    one = np.uint64(1)
     n = px.shape[0]
     for i in range(n):
         x = px[i]
@@ -175,12 +183,14 @@ def refine_pixels(
         o = 0.0
         score = -1.0
         step = 99.0
-        ok = True
+        ok = x - radius >= 0 and x + radius < W and y - radius >= 0 and y + radius < H
         for _ in range(iterations):
+            if not ok:
+                break
             xr = x - d
             xi = int(math.floor(xr))
             a = xr - xi
-            if xi - radius - 1 < 0 or xi + radius + 2 >= W or y - radius < 0 or y + radius >= H:
+            if xi - radius - 1 < 0 or xi + radius + 2 >= W:
                 ok = False
                 break
             w0, w1, w2, w3, g0, g1, g2, g3 = _bspline(a)
@@ -196,22 +206,21 @@ def refine_pixels(
             stg = 0.0
             for v in range(-radius, radius + 1):
                 yy = y + v
-                # Row slices (1-D, unit stride) halve the time of 2-D indexing
-                # here: the compiler keeps one base pointer per row.
-                lrow = left[yy, x - radius : x + radius + 1]
-                wlrow = wl[yy, x - radius : x + radius + 1]
-                rrow = right[yy, xi - radius - 1 : xi + radius + 3]
-                wrrow = wr[yy, xi - radius : xi + radius + 2]
-                for u in range(2 * radius + 1):
+                # The row's first sample in the left image, and its spline's first
+                # coefficient in the right one.
+                kl = np.uint64(yy * W + x - radius)
+                kr = np.uint64(yy * WR + xi - radius - 1)
+                for c in range(2 * radius + 1):
+                    u = np.uint64(c)
                     # No branch on zero weights: the loop stays vectorisable.
-                    wt = wlrow[u] * wrrow[u] * wrrow[u + 1]
-                    r0 = rrow[u]
-                    r1 = rrow[u + 1]
-                    r2 = rrow[u + 2]
-                    r3 = rrow[u + 3]
+                    wt = wlf[kl + u] * wrf[kr + u + one] * wrf[kr + u + one + one]
+                    r0 = rf[kr + u]
+                    r1 = rf[kr + u + one]
+                    r2 = rf[kr + u + one + one]
+                    r3 = rf[kr + u + one + one + one]
                     rv = w0 * r0 + w1 * r1 + w2 * r2 + w3 * r3
                     gv = g0 * r0 + g1 * r1 + g2 * r2 + g3 * r3
-                    t = lrow[u]
+                    t = lf[kl + u]
                     s1 += wt
                     sw += wt * rv
                     sg += wt * gv
