@@ -407,8 +407,8 @@ def _warped_window(
     j = 0
     for v in range(-radius, radius + 1):
         yy = y + v
-        # Row slices, as in refine_pixels: indexing them by the loop's own
-        # counter compiles to plain loads, which 2-D indexing does not.
+        # Row slices indexed by the loop's own counter: plain loads, where 2-D
+        # indexing pays numba's index arithmetic on every read.
         lrow = left[yy, x - radius : x + radius + 1]
         wlrow = wl[yy, x - radius : x + radius + 1]
         srow = shape[yy, x - radius : x + radius + 1]
@@ -503,7 +503,7 @@ def refine_warped(
     frac = np.empty(nw)
     inside = np.empty(nw)
     rows = np.empty(nw, np.int64)
-    cols = np.empty(nw, np.uint64)
+    at = np.empty(nw, np.uint64)
     for i in range(n):
         x = px[i]
         y = py[i]
@@ -528,9 +528,9 @@ def refine_warped(
             stt = 0.0
             stw = 0.0
             stg = 0.0
-            _warped_columns(base, d, rows, wr_cols, cols, frac, inside)
+            _warped_columns(base, d, rows, wr_cols, at, frac, inside)
             for j in range(nw):
-                rv, gv, wrt = _warped_sample(rf, wf, cols[j], frac[j], inside[j])
+                rv, gv, wrt = _warped_sample(rf, wf, at[j], frac[j], inside[j])
                 wt = wlm[j] * wrt
                 t = tv[j]
                 s1 += wt
@@ -637,7 +637,7 @@ def refine_warped_shaded(
     frac = np.empty(nw)
     inside = np.empty(nw)
     rows = np.empty(nw, np.int64)
-    cols = np.empty(nw, np.uint64)
+    at = np.empty(nw, np.uint64)
     # The Jacobian by rows, one column per sample (a sample of weight 0 adds
     # nothing): the normal equations are then contiguous dot products, which
     # vectorise. The rows of the offset and the light (1, and each regressor
@@ -684,9 +684,9 @@ def refine_warped_shaded(
             # Whether every sample's weight is that of the last step: then so is
             # the block of the normal equations of the offset and the light.
             same = it > 0
-            _warped_columns(base, d, rows, wr_cols, cols, frac, inside)
+            _warped_columns(base, d, rows, wr_cols, at, frac, inside)
             for j in range(nw):
-                rv, gv, wrt = _warped_sample(rf, wf, cols[j], frac[j], inside[j])
+                rv, gv, wrt = _warped_sample(rf, wf, at[j], frac[j], inside[j])
                 wt = wlm[j] * wrt
                 same = same and w_[j] == wt
                 w_[j] = wt
