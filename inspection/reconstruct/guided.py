@@ -49,7 +49,7 @@ from ..errors import InvalidInput
 from ..transforms import apply
 from ..validate import validate_transform
 from . import kernels
-from .matching import PairFrame, PairResult, PairState, crops, triangulate_state
+from .matching import PairFrame, PairResult, PairState, crops, grid_pixels, triangulate_state
 from .pairs import RectifiedPair, rectify
 from .params import SATURATION_DN, ReconstructParams
 from .result import PairReport
@@ -203,9 +203,7 @@ def ring_pair(
     roi, x0, y0, rx0, left_n, right_n, wl, wr = crops(
         left, right, sat_l, sat_r, seen, d_min, d_max, p
     )
-    cols = np.arange(roi[1].start, roi[1].stop) % p.stride == 0
-    rows = np.arange(roi[0].start, roi[0].stop) % p.row_stride == 0
-    py, px = np.nonzero(seen[roi] & ~sat_l[roi] & cols[None, :] & rows[:, None])
+    py, px = grid_pixels(seen[roi] & ~sat_l[roi], x0, y0, p.stride, p.row_stride)
     d_init = g[roi][py, px].astype(np.float32)
     shift = float(rx0 - x0)
     d_sq = np.empty(len(px), np.float32)

@@ -200,13 +200,16 @@ def crops(
     the right crop's first column, both crops locally normalised (the right one
     as row spline coefficients, which the kernels sample between pixels) and
     their weights (0 where saturated)."""
-    ys, xs = np.nonzero(region)
+    # The region's bounding box from its rows and columns that hold a pixel: two
+    # reductions, not a list of every pixel.
+    ys = np.flatnonzero(region.any(axis=1))
+    xs = np.flatnonzero(region.any(axis=0))
     pad = p.window + p.norm_window
     h_img, w_img = region.shape
-    y0 = max(int(ys.min()) - pad, 0)
-    y1 = min(int(ys.max()) + pad + 1, h_img)
-    x0 = max(int(xs.min()) - pad, 0)
-    x1 = min(int(xs.max()) + pad + 1, w_img)
+    y0 = max(int(ys[0]) - pad, 0)
+    y1 = min(int(ys[-1]) + pad + 1, h_img)
+    x0 = max(int(xs[0]) - pad, 0)
+    x1 = min(int(xs[-1]) + pad + 1, w_img)
     roi = (slice(y0, y1), slice(x0, x1))
     rx0 = max(int(math.floor(x0 - d_max)) - pad, 0)
     rx1 = min(int(math.ceil(x1 - d_min)) + pad, w_img)
@@ -215,6 +218,19 @@ def crops(
     wl = (~sat_l[roi]).astype(np.float32)
     wr = (~sat_r[y0:y1, rx0:rx1]).astype(np.float32)
     return roi, x0, y0, rx0, left_n, right_n, wl, wr
+
+
+def grid_pixels(
+    mask: npt.NDArray[np.bool_], x0: int, y0: int, stride: int, row_stride: int
+) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]:
+    """Rows and columns of the pixels of ``mask`` (a crop whose pixel (0, 0) is the
+    image's (y0, x0)) on every ``stride``-th column and ``row_stride``-th row of the
+    image, in the order ``np.nonzero`` gives them; found on those rows and columns
+    alone."""
+    cy = (-y0) % row_stride
+    cx = (-x0) % stride
+    sy, sx = np.nonzero(mask[cy::row_stride, cx::stride])
+    return sy * row_stride + cy, sx * stride + cx
 
 
 def skipped(rig: Rig, pair: RectifiedPair, usable: Sequence[bool]) -> PairResult:
@@ -277,11 +293,11 @@ def match_pair(
         left, right, sat_l, sat_r, fg, d_min, d_max, p
     )
     todo = fg[roi] & ~sat_l[roi]
-    py, px = np.nonzero(todo)
-    d_init = d_coarse[roi][py, px]
     report = PairReport(pair.name, coarse=n_coarse, foreground=n_fg, disparity_range=(d_min, d_max))
     frame = PairFrame(fg.shape, lo, hi, report, d_coarse)
     if p.symmetric:
+        py, px = np.nonzero(todo)
+        d_init = d_coarse[roi][py, px]
         # Points on the cyclopean view's grid: c = x_left - d / 2 (full-image
         # columns), every stride-th column; the coarse disparity of each comes
         # from the left pixel that maps to it.
@@ -312,11 +328,10 @@ def match_pair(
         x_left = c + 0.5 * d_ref.astype(np.float64)
         rows = py_ + y0
     else:
-        if p.stride > 1 or p.row_stride > 1:
-            # Refine every stride-th column of every row_stride-th row only (the
-            # windows overlap anyway).
-            sel = ((px + x0) % p.stride == 0) & ((py + y0) % p.row_stride == 0)
-            px, py, d_init = px[sel], py[sel], d_init[sel]
+        # Refine every stride-th column of every row_stride-th row only (the
+        # windows overlap anyway).
+        py, px = grid_pixels(todo, x0, y0, p.stride, p.row_stride)
+        d_init = d_coarse[roi][py, px]
         # In the crops, a left pixel x matches right x - d', with d' = d - x0 + rx0.
         shift = float(rx0 - x0)
         n = len(px)
@@ -453,6 +468,7 @@ __all__ = [
     "coarse_disparity",
     "crops",
     "fill_gaps",
+    "grid_pixels",
     "local_normalise",
     "match_pair",
     "skipped",

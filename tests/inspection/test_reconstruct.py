@@ -28,7 +28,7 @@ from inspection.reconstruct import (
     kernels,
     reconstruct,
 )
-from inspection.reconstruct.matching import fill_gaps, local_normalise, spline_rows
+from inspection.reconstruct.matching import fill_gaps, grid_pixels, local_normalise, spline_rows
 from inspection.registration import register
 from inspection.rig import Rig, belt_pose
 from inspection.simulate import simulate
@@ -468,6 +468,19 @@ def _fill_once_along(a: np.ndarray, axis: int) -> np.ndarray:
     count[..., :-1] += on[..., 1:]
     out = np.where(~on & (count > 0), total / np.maximum(count, 1), m)
     return np.moveaxis(out, -1, axis)
+
+
+@pytest.mark.parametrize(("x0", "y0"), [(0, 0), (7, 3), (12, 9)])
+@pytest.mark.parametrize(("stride", "row_stride"), [(1, 1), (2, 1), (2, 4), (3, 2)])
+def test_the_pixels_refined_are_those_on_the_image_grid_in_row_major_order(
+    x0: int, y0: int, stride: int, row_stride: int
+) -> None:
+    mask = np.random.default_rng(x0 + 10 * y0).random((37, 53)) < 0.6
+    py, px = np.nonzero(mask)
+    on_grid = ((px + x0) % stride == 0) & ((py + y0) % row_stride == 0)
+    got_y, got_x = grid_pixels(mask, x0, y0, stride, row_stride)
+    np.testing.assert_array_equal(got_y, py[on_grid])
+    np.testing.assert_array_equal(got_x, px[on_grid])
 
 
 @pytest.mark.parametrize("row_stride", [2, 4])
