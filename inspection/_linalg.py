@@ -1,4 +1,13 @@
-"""Small dense linear algebra for the compiled kernels (callers are trusted)."""
+"""Small dense linear algebra for the compiled kernels (callers are trusted).
+
+Both functions state ``fastmath=False``. numba compiles a helper once per
+signature and process, with the options of the first kernel that calls it
+when the helper states none: the window fits (``fastmath=True``) and the
+registration (exact arithmetic) call the same solver, so whichever compiled
+first would decide the other's rounding, and a fit's last bits would depend
+on what ran before it in the process, or in the process that filled the
+kernel cache.
+"""
 
 from __future__ import annotations
 
@@ -6,7 +15,7 @@ import numba
 import numpy as np
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, fastmath=False)
 def cholesky_solve(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, bool]:
     """Solve ``A x = b`` for a small symmetric positive definite ``A``
     (Cholesky, fixed order); ``ok`` False when ``A`` is not positive definite."""
@@ -16,7 +25,7 @@ def cholesky_solve(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, bool]:
     return x, ok
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath=False)
 def cholesky_solve_into(
     A: np.ndarray, b: np.ndarray, Lc: np.ndarray, y: np.ndarray, x: np.ndarray
 ) -> bool:

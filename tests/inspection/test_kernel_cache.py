@@ -75,3 +75,47 @@ def test_importing_the_package_points_numba_at_its_cache(tmp_path: Path) -> None
     # A folder the user names is kept.
     mine = str(tmp_path / "mine")
     assert _cache_seen_by_numba(package, {**env, "NUMBA_CACHE_DIR": mine})[1:] == [mine, mine]
+
+
+_SOLVES = """
+import sys
+import numpy as np
+if sys.argv[1] == "window fits first":
+    from inspection.reconstruct.kernels import refine_warped_shaded
+    rng = np.random.default_rng(0)
+    left = rng.normal(size=(40, 60)).astype(np.float32)
+    right = rng.normal(size=(40, 70)).astype(np.float32)
+    ones, zeros = np.ones((40, 60), np.float32), np.zeros((40, 60), np.float32)
+    out = [np.empty(1, np.float32) for _ in range(3)]
+    refine_warped_shaded(
+        left, right, ones, np.ones_like(right), zeros, ones, zeros, zeros, 1e-3,
+        np.array([30]), np.array([20]), np.array([2.0], np.float32), 4, 3, *out,
+    )
+from inspection.registration.kernels import lm_step, trace_inverse
+rng = np.random.default_rng(1)
+A = rng.normal(size=(6, 6))
+H = A @ A.T + 6.0 * np.eye(6)
+g = rng.normal(size=6)
+steps = [lm_step(H, g, lam) for lam in (1e-4, 1e-2, 1.0)]
+print(np.concatenate([np.r_[d, p] for d, p, _ in steps] + [[trace_inverse(H)]]).tobytes().hex())
+"""
+
+
+def _solves(order: str, cache: Path) -> str:
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache)}
+    out = subprocess.run(
+        [sys.executable, "-c", _SOLVES, order],
+        env=env, capture_output=True, text=True, timeout=300, check=True,
+    )  # fmt: skip
+    return out.stdout.strip()
+
+
+def test_the_fit_s_arithmetic_does_not_depend_on_which_kernels_compiled_first(
+    tmp_path: Path,
+) -> None:
+    # The window fits (fastmath) share the registration's linear solver.
+    alone = _solves("registration alone", tmp_path / "fresh")
+    after = _solves("window fits first", tmp_path / "shared")
+    # ... and a process that finds the solver in a cache another process filled.
+    cached = _solves("registration alone", tmp_path / "shared")
+    assert alone == after == cached
