@@ -808,6 +808,88 @@ def field_slopes(field_, out_x, out_y):  # pragma: no cover
 
 
 @njit(cache=True, nogil=True)
+def masked_field(field_, out_v, out_mask):  # pragma: no cover
+    """A field with holes as the box filters take it, in one pass: ``out_v`` the
+    field where finite and 0 elsewhere, ``out_mask`` 1 where finite and 0 elsewhere
+    (all (H, W) float32)."""
+    H, W = field_.shape
+    zero = np.float32(0.0)
+    one = np.float32(1.0)
+    for y in range(H):
+        for x in range(W):
+            f = field_[y, x]
+            if np.isfinite(f):
+                out_v[y, x] = f
+                out_mask[y, x] = one
+            else:
+                out_v[y, x] = zero
+                out_mask[y, x] = zero
+
+
+@njit(cache=True, nogil=True)
+def masked_mean(num, den, mask, out):  # pragma: no cover
+    """``num / max(den, 1)`` where ``mask`` is set and 0 elsewhere, in float32: the mean
+    of the field's values a box filter summed (``num``) over the pixels it counted
+    (``den``), on the field only."""
+    H, W = num.shape
+    zero = np.float32(0.0)
+    one = np.float32(1.0)
+    for y in range(H):
+        for x in range(W):
+            if mask[y, x] != zero:
+                out[y, x] = num[y, x] / max(den[y, x], one)
+            else:
+                out[y, x] = zero
+
+
+@njit(cache=True, nogil=True)
+def uneven_windows(num_w, den_w, field_, px, py, curvature, slope, full, out):  # pragma: no cover
+    """Per window centred at ``(px, py)``: whether the field (float32, 0 off it) is far
+    from constant over it, from the box sums of the field (``num_w``) and of its mask
+    (``den_w``) over the window: its mean off the centre's value by more than
+    ``curvature``, a slope along the rows above ``slope``, or fewer than ``full`` of
+    its pixels on the field. The thresholds are float32, as the field."""
+    W = field_.shape[1]
+    one = np.float32(1.0)
+    half = np.float32(0.5)
+    for i in range(px.shape[0]):
+        x = px[i]
+        y = py[i]
+        cnt = den_w[y, x]
+        off = abs(num_w[y, x] / max(cnt, one) - field_[y, x])
+        right = field_[y, min(x + 1, W - 1)]
+        left = field_[y, max(x - 1, 0)]
+        out[i] = off > curvature or abs(right - left) * half > slope or cnt < full
+
+
+@njit(cache=True, nogil=True)
+def range_inputs(g, on_part, out_hi, out_lo):  # pragma: no cover
+    """A slope as a dilation (``out_hi``) and an erosion (``out_lo``) take it to find
+    its range over a window: off the part -1e30 and 1e30, which never win."""
+    H, W = g.shape
+    low = np.float32(-1e30)
+    high = np.float32(1e30)
+    for y in range(H):
+        for x in range(W):
+            if on_part[y, x]:
+                out_hi[y, x] = g[y, x]
+                out_lo[y, x] = g[y, x]
+            else:
+                out_hi[y, x] = low
+                out_lo[y, x] = high
+
+
+@njit(cache=True, nogil=True)
+def mark_wide(hi, lo, limit, out):  # pragma: no cover
+    """Set ``out`` where the range ``hi - lo`` exceeds ``limit`` (float32), in place."""
+    H, W = hi.shape
+    for y in range(H):
+        for x in range(W):
+            if hi[y, x] - lo[y, x] > limit:
+                out[y, x] = True
+
+
+@njit(cache=True, nogil=True)
 def fill_row_gaps(disparity, passes):  # pragma: no cover
     """Fill NaN pixels from their measured row neighbours, in place, ``passes`` times.
 
@@ -976,9 +1058,14 @@ __all__ = [
     "field_slopes",
     "fill_column_gaps",
     "fill_row_gaps",
+    "mark_wide",
+    "masked_field",
+    "masked_mean",
+    "range_inputs",
     "refine_cyclopean",
     "refine_pixels",
     "refine_warped",
     "refine_warped_shaded",
     "triangulate_matches",
+    "uneven_windows",
 ]

@@ -144,12 +144,13 @@ def warped_passes(
         field_ = np.full(left_n.shape, np.nan, np.float32)
         field_[py[ok], px[ok]] = d_ref[ok]
         fill_gaps(field_, p)
-        known = np.isfinite(field_)
-        mask = known.astype(np.float32)
-        v = np.where(known, field_, 0.0).astype(np.float32)
+        v = np.empty_like(field_)
+        mask = np.empty_like(field_)
+        kernels.masked_field(field_, v, mask)
         num = cv2.boxFilter(v, cv2.CV_32F, ks, normalize=False, borderType=cv2.BORDER_CONSTANT)
         den = cv2.boxFilter(mask, cv2.CV_32F, ks, normalize=False, borderType=cv2.BORDER_CONSTANT)
-        smooth = np.where(known, num / np.maximum(den, 1.0), 0.0).astype(np.float32)
+        smooth = np.empty_like(field_)
+        kernels.masked_mean(num, den, mask, smooth)
         sel = fit & bends(smooth, mask, px, py, p)
         d_ref, score, step = d_ref.copy(), score.copy(), step.copy()
         if guided is not None:
@@ -182,13 +183,13 @@ def bends(
     kw = (p.window, p.window)
     num_w = cv2.boxFilter(field_, cv2.CV_32F, kw, normalize=False, borderType=cv2.BORDER_CONSTANT)
     den_w = cv2.boxFilter(mask, cv2.CV_32F, kw, normalize=False, borderType=cv2.BORDER_CONSTANT)
-    cnt = den_w[py, px]
-    off = np.abs(num_w[py, px] / np.maximum(cnt, 1.0) - field_[py, px])
-    right = field_[py, np.minimum(px + 1, field_.shape[1] - 1)]
-    slope = np.abs(right - field_[py, np.maximum(px - 1, 0)]) * 0.5
-    uneven: npt.NDArray[np.bool_] = (
-        (off > p.warp_curvature_px) | (slope > p.warp_slope) | (cnt < p.window * p.window - 0.5)
-    )
+    uneven = np.empty(len(px), np.bool_)
+    # The thresholds in float32, as the field is: numpy compares a float32 array with
+    # a Python float so.
+    kernels.uneven_windows(
+        num_w, den_w, field_, px, py, np.float32(p.warp_curvature_px), np.float32(p.warp_slope),
+        np.float32(p.window * p.window - 0.5), uneven,
+    )  # fmt: skip
     return uneven
 
 
@@ -286,11 +287,16 @@ def shading(
     b = np.empty(field_.shape, np.float32)
     kernels.field_slopes(np.ascontiguousarray(field_, dtype=np.float32), a, b)
     k = np.ones((window, window), np.uint8)
-    bent = np.zeros(on_part.shape, bool)
+    # One set of buffers for both slopes: large images allocated afresh cost page
+    # faults.
+    hi, lo = np.empty_like(a), np.empty_like(a)
+    hi_w, lo_w = np.empty_like(a), np.empty_like(a)
+    bent = np.zeros(on_part.shape, np.bool_)
     for g in (a, b):
-        hi = cv2.dilate(np.where(on_part, g, np.float32(-1e30)), k)
-        lo = cv2.erode(np.where(on_part, g, np.float32(1e30)), k)
-        bent |= hi - lo > bend
+        kernels.range_inputs(g, on_part, hi, lo)
+        cv2.dilate(hi, k, dst=hi_w)
+        cv2.erode(lo, k, dst=lo_w)
+        kernels.mark_wide(hi_w, lo_w, np.float32(bend), bent)
     scale = np.float32(_SHADING_SCALE)
     return (scale * a, scale * b), bent
 

@@ -28,7 +28,9 @@ from inspection.reconstruct import (
     kernels,
     reconstruct,
 )
+from inspection.reconstruct import kernels as reconstruct_kernels
 from inspection.reconstruct.matching import fill_gaps, grid_pixels, local_normalise, spline_rows
+from inspection.reconstruct.warping import bends, shading
 from inspection.registration import register
 from inspection.rig import Rig, belt_pose
 from inspection.simulate import simulate
@@ -468,6 +470,56 @@ def _fill_once_along(a: np.ndarray, axis: int) -> np.ndarray:
     count[..., :-1] += on[..., 1:]
     out = np.where(~on & (count > 0), total / np.maximum(count, 1), m)
     return np.moveaxis(out, -1, axis)
+
+
+def _field_with_holes(seed: int) -> np.ndarray:
+    """A disparity field (px) with a ramp, a bend along each axis and holes, NaN off it."""
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:48, 0:64].astype(np.float32)
+    f = 40.0 + 0.05 * x + 0.3 * np.maximum(x - 30.0, 0.0) + 0.2 * np.maximum(y - 24.0, 0.0)
+    f = f.astype(np.float32)
+    f += rng.normal(0.0, 0.001, f.shape).astype(np.float32)
+    f[:, 40:][rng.random((48, 24)) < 0.05] = np.nan
+    f[10:18, 5:15] = np.nan
+    return f
+
+
+def test_the_windows_on_bends_are_those_numpy_finds_to_the_bit() -> None:
+    p = ReconstructParams()
+    field_ = _field_with_holes(3)
+    known = np.isfinite(field_)
+    mask = known.astype(np.float32)
+    smooth = np.where(known, field_, 0.0).astype(np.float32)
+    py, px = np.nonzero(np.ones(field_.shape, bool))
+    # The rule as numpy states it, in float32 throughout.
+    kw = (p.window, p.window)
+    num = cv2.boxFilter(smooth, cv2.CV_32F, kw, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    den = cv2.boxFilter(mask, cv2.CV_32F, kw, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    cnt = den[py, px]
+    off = np.abs(num[py, px] / np.maximum(cnt, 1.0) - smooth[py, px])
+    right = smooth[py, np.minimum(px + 1, smooth.shape[1] - 1)]
+    slope = np.abs(right - smooth[py, np.maximum(px - 1, 0)]) * 0.5
+    want = (off > p.warp_curvature_px) | (slope > p.warp_slope) | (cnt < p.window**2 - 0.5)
+    got = bends(smooth, mask, px, py, p)
+    assert 0 < got.sum() < len(got)
+    np.testing.assert_array_equal(got, want)
+
+
+def test_the_windows_spanning_a_bend_and_the_light_coordinates_are_numpy_s() -> None:
+    field_ = _field_with_holes(4).astype(np.float64)
+    _, bent = shading(field_, 9, 0.01)
+    on_part = np.isfinite(field_)
+    a = np.empty(field_.shape, np.float32)
+    b = np.empty(field_.shape, np.float32)
+    reconstruct_kernels.field_slopes(field_.astype(np.float32), a, b)
+    k = np.ones((9, 9), np.uint8)
+    want = np.zeros(field_.shape, bool)
+    for g in (a, b):
+        hi = cv2.dilate(np.where(on_part, g, np.float32(-1e30)), k)
+        lo = cv2.erode(np.where(on_part, g, np.float32(1e30)), k)
+        want |= hi - lo > 0.01
+    assert 0 < bent.sum() < bent.size
+    np.testing.assert_array_equal(bent, want)
 
 
 @pytest.mark.parametrize(("x0", "y0"), [(0, 0), (7, 3), (12, 9)])
