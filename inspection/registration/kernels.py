@@ -415,6 +415,27 @@ def median_abs(r: np.ndarray, v: np.ndarray, k: int) -> float:
 
 
 @numba.njit(cache=True)
+def turned_away(
+    r: np.ndarray, normals: np.ndarray, w: np.ndarray, cos: float, far: float
+) -> np.ndarray:
+    """``r`` with ``far`` where the normal's cosine to ``w`` is below ``cos`` (a copy
+    only if there is such a point; ``r`` itself otherwise)."""
+    n = r.shape[0]
+    first = n
+    for i in range(n):
+        if normals[i, 0] * w[0] + normals[i, 1] * w[1] + normals[i, 2] * w[2] < cos:
+            first = i
+            break
+    if first == n:
+        return r
+    out = r.copy()
+    for i in range(first, n):
+        if normals[i, 0] * w[0] + normals[i, 1] * w[1] + normals[i, 2] * w[2] < cos:
+            out[i] = far
+    return out
+
+
+@numba.njit(cache=True)
 def opposed_fraction(normals: np.ndarray, w: np.ndarray) -> float:
     """The weight share of the normals more than 120 degrees from their weighted mean
     (0 when the weights or the mean vanish)."""

@@ -95,6 +95,7 @@ from .kernels import (
     robust_cost,
     trace_inverse,
     transform_points,
+    turned_away,
     weighted_centroid,
 )
 from .params import RegisterParams
@@ -338,12 +339,7 @@ class _Fit:
         plateau, no pull) rather than pulling the part onto a back face."""
         if self.view is None or not self.view_active:
             return r
-        back = normals @ (T[:3, :3] @ self.view) < _BACK_FACE_COS
-        if not back.any():
-            return r
-        out = r.copy()
-        out[back] = _FAR_MM
-        return out
+        return turned_away(r, normals, T[:3, :3] @ self.view, _BACK_FACE_COS, _FAR_MM)
 
     def trial(self, T: Transform, step_mm: float) -> Matches:
         """The subset's matches at a trial pose ``T``, reached from the current
