@@ -51,7 +51,15 @@ import numpy.typing as npt
 from ..alignment import align
 from ..alignment.rps import rps_align
 from ..cadpoints import LocalModel, measure_points
-from ..deviations import FEATURE_KINDS, ComparisonPoint, Deviations, Verdict, deviations
+from ..deviations import (
+    FEATURE_KINDS,
+    ComparisonPoint,
+    Deviations,
+    FieldSummary,
+    Verdict,
+    deviations,
+    part_verdict,
+)
 from ..errors import InspectionError, InvalidInput
 from ..feature_checks import check_features, hole_spec
 from ..features import Flash, hole_frame
@@ -519,7 +527,29 @@ def _judge(
         rps = rps_align(part.rps.datums, measured, init=T, hold=part.rps.mode == "best_fit_rps")
         T = rps.transform
         _lap(timings, "rps", t)
-    devs = at(T)
+    if rps is None:
+        devs = at(T)
+    else:
+        # A datum on a dent or a bump tilts the part by its height, and in the datums'
+        # frame the whole surface would read as one defect. Defects are local shapes, and
+        # points are edges or outliers whatever the frame: the surface is assessed with
+        # the part placed by its best fit, which spreads no datum's error. The comparison
+        # points, the features and the field's values are the datums'.
+        devs = at(T, surface=False)
+        t = _mark()
+        shape = _surface_at(part, points, fit.transform, fit=fit, p=p, frame=frame,
+                            cameras=cameras)  # fmt: skip
+        _lap(timings, "deviations", t, add=True)
+        if shape.classes is not None:
+            devs = dataclasses.replace(
+                devs,
+                classes=shape.classes,
+                summary=FieldSummary.of(devs.distances, shape.classes.surface, shape.classes),
+            )
+        devs = dataclasses.replace(devs, defects=shape.defects, defects_fail=shape.defects_fail)
+        devs = dataclasses.replace(
+            devs, verdict=part_verdict(devs.comparison, devs.failing_defects)
+        )
     _lap(timings, "total", t_start)
     return Measurement(
         verdict=devs.verdict,
@@ -551,22 +581,19 @@ def _deviations_at(
     lines: np.ndarray,
     flash: Flash | None = None,
     only: Sequence[ComparisonPoint] | None = None,
+    surface: bool = True,
 ) -> Deviations:
     """6., 7. and the features: the deviations of ``points`` placed by ``T`` (laps
     ``deviations`` and ``features``); character lines in ``lines`` placed by ``T``.
 
     ``only``: these comparison points alone, and no search of the surface (the
-    datums that place the part before it is measured).
+    datums that place the part before it is measured); ``surface`` False: no search
+    of the surface either.
 
     A guided pass takes its windows' shape from the CAD, which pulls a crease
     towards its drawn place: lines are found in the unguided first pass."""
     comparison_points = part.comparison_points if only is None else tuple(only)
     t = _mark()
-    viewpoints = directions = None
-    if cameras is not None:
-        viewpoints = apply(T, cameras)
-    elif frame == "rig" and p.register.view_direction is not None:
-        directions = (T[:3, :3] @ np.asarray(p.register.view_direction, dtype=np.float64))[None]
     points_cad = apply(T, points)
     devs = deviations(
         part.exact,
@@ -574,11 +601,10 @@ def _deviations_at(
         comparison_points,
         min_support=p.min_support,
         max_distance_mm=p.register.max_distance_mm,
-        surface=part.surface if only is None else None,
+        surface=part.surface if only is None and surface else None,
         surface_params=p.surface,
         outlier_mm=rejection_mm(fit),
-        viewpoints=viewpoints,
-        view_directions=directions,
+        **_views(T, p, frame, cameras),
     )
     devs = _held_to_the_pose(devs, comparison_points, fit, p)
     _lap(timings, "deviations", t)
@@ -590,6 +616,45 @@ def _deviations_at(
         )  # fmt: skip
         _lap(timings, "features", t)
     return devs
+
+
+def _views(
+    T: np.ndarray, p: MeasureParams, frame: Frame, cameras: np.ndarray | None
+) -> dict[str, np.ndarray | None]:
+    """Where the cameras are, or the direction they look from, in the CAD frame of the
+    pose ``T``: the surface model's occlusion edges are where they see depth jump."""
+    viewpoints = directions = None
+    if cameras is not None:
+        viewpoints = apply(T, cameras)
+    elif frame == "rig" and p.register.view_direction is not None:
+        directions = (T[:3, :3] @ np.asarray(p.register.view_direction, dtype=np.float64))[None]
+    return {"viewpoints": viewpoints, "view_directions": directions}
+
+
+def _surface_at(
+    part: PartModel,
+    points: np.ndarray,
+    T: np.ndarray,
+    *,
+    fit: Registration,
+    p: MeasureParams,
+    frame: Frame,
+    cameras: np.ndarray | None,
+) -> Deviations:
+    """The deviations of ``points`` placed by ``T`` for their surface: its classes and
+    defects, each defect naming its nearest comparison point (measured too, at little
+    cost; the features are not)."""
+    return deviations(
+        part.exact,
+        apply(T, points),
+        part.comparison_points,
+        min_support=p.min_support,
+        max_distance_mm=p.register.max_distance_mm,
+        surface=part.surface,
+        surface_params=p.surface,
+        outlier_mm=rejection_mm(fit),
+        **_views(T, p, frame, cameras),
+    )
 
 
 def _datums_measured(
@@ -667,6 +732,9 @@ def _mark() -> tuple[float, float]:
     return time.perf_counter(), time.process_time()
 
 
-def _lap(laps: _Laps, stage: str, since: tuple[float, float]) -> None:
-    laps[stage] = (time.perf_counter() - since[0]) * 1e3
-    laps.cpu[stage] = (time.process_time() - since[1]) * 1e3
+def _lap(laps: _Laps, stage: str, since: tuple[float, float], *, add: bool = False) -> None:
+    """The stage's time since ``since``; ``add``: added to what the stage already took."""
+    laps[stage] = (time.perf_counter() - since[0]) * 1e3 + (laps.get(stage, 0.0) if add else 0.0)
+    laps.cpu[stage] = (time.process_time() - since[1]) * 1e3 + (
+        laps.cpu.get(stage, 0.0) if add else 0.0
+    )

@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 from inspection.alignment.rps import Datum, RpsScheme
+from inspection.defects import Dent, press
 from inspection.deviations import ComparisonPoint, Verdict
 from inspection.errors import InvalidInput
 from inspection.feature_checks import hole_spec
@@ -243,6 +244,34 @@ def test_best_fit_held_to_an_incomplete_scheme_keeps_the_free_turn(scene, measur
     assert m.rps is not None and not m.rps.exact, m.reason
     assert any("rotation about z" in f for f in m.rps.free_directions)
     assert max(r.max_abs_mm for r in m.rps.residuals) < 1e-6
+
+
+def test_a_dent_on_a_datum_is_found_where_it_is_not_spread_over_the_part(scene):
+    part, rec, _ = scene
+    z3 = next(cp for cp in part.comparison_points if cp.name == "Z3")
+    dent = Dent(z3.position, z3.normal, 0.5, 16.0, 6.0)
+    dented = press(sheet_metal_panel(spec_with(truth_holes())).to_trimesh(), [dent])
+    frames = simulate(Rig.nominal(), dented, POSE, seed=3)
+    best = measure_frames(part, rec, frames, MeasureParams(guided=False))
+    m = measure_frames(
+        dataclasses.replace(part, rps=scheme(part)), rec, frames, MeasureParams(guided=False)
+    )
+    assert m.rps is not None and m.deviations is not None, m.reason
+    assert best.deviations is not None and best.deviations.defects, best.reason
+    # The datum Z3 lies in the dent: held on its nominal, it tilts the part by the
+    # dent's depth in the datums' frame. The defects are the surface's own shape all the
+    # same: the dent, where it is, and nothing as large as the part.
+    assert not np.allclose(m.transform, best.transform, atol=1e-3)
+    got = m.deviations.defects
+    assert got is not None
+    assert [(d.kind, d.peak_mm, d.area_mm2, d.nearest_point) for d in got] == [
+        (d.kind, d.peak_mm, d.area_mm2, d.nearest_point) for d in best.deviations.defects
+    ]
+    assert all(d.area_mm2 < math.pi * 16.0**2 for d in got), got
+    at_dent = [d for d in got if np.linalg.norm(d.center_mm - np.asarray(z3.position)) < 5.0]
+    assert len(at_dent) == 1 and abs(at_dent[0].peak_mm + 0.5) < 0.1, got
+    assert m.verdict is Verdict.FAIL, m.reason
+    assert f"dent {abs(at_dent[0].peak_mm):.2f} mm" in (m.reason or ""), m.reason
 
 
 def test_an_under_determined_scheme_names_its_free_direction(scene):
