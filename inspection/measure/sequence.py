@@ -537,8 +537,12 @@ def _judge(
         # points, the features and the field's values are the datums'.
         devs = at(T, surface=False)
         t = _mark()
-        shape = _surface_at(part, points, fit.transform, fit=fit, p=p, frame=frame,
-                            cameras=cameras)  # fmt: skip
+        # Each defect names its nearest comparison point: those are measured here too,
+        # at little cost (the features are not).
+        T_fit = np.asarray(fit.transform, dtype=np.float64)
+        shape = _deviations_of(part, apply(T_fit, points), T_fit, part.comparison_points,
+                               surface=True, fit=fit, p=p, frame=frame,
+                               cameras=cameras)  # fmt: skip
         _lap(timings, "deviations", t, add=True)
         if shape.classes is not None:
             devs = dataclasses.replace(
@@ -595,17 +599,9 @@ def _deviations_at(
     comparison_points = part.comparison_points if only is None else tuple(only)
     t = _mark()
     points_cad = apply(T, points)
-    devs = deviations(
-        part.exact,
-        points_cad,
-        comparison_points,
-        min_support=p.min_support,
-        max_distance_mm=p.register.max_distance_mm,
-        surface=part.surface if only is None and surface else None,
-        surface_params=p.surface,
-        outlier_mm=rejection_mm(fit),
-        **_views(T, p, frame, cameras),
-    )
+    devs = _deviations_of(part, points_cad, T, comparison_points,
+                          surface=only is None and surface, fit=fit, p=p, frame=frame,
+                          cameras=cameras)  # fmt: skip
     devs = _held_to_the_pose(devs, comparison_points, fit, p)
     _lap(timings, "deviations", t)
     if any(cp.kind in FEATURE_KINDS for cp in comparison_points):
@@ -618,42 +614,38 @@ def _deviations_at(
     return devs
 
 
-def _views(
-    T: np.ndarray, p: MeasureParams, frame: Frame, cameras: np.ndarray | None
-) -> dict[str, np.ndarray | None]:
-    """Where the cameras are, or the direction they look from, in the CAD frame of the
-    pose ``T``: the surface model's occlusion edges are where they see depth jump."""
-    viewpoints = directions = None
-    if cameras is not None:
-        viewpoints = apply(T, cameras)
-    elif frame == "rig" and p.register.view_direction is not None:
-        directions = (T[:3, :3] @ np.asarray(p.register.view_direction, dtype=np.float64))[None]
-    return {"viewpoints": viewpoints, "view_directions": directions}
-
-
-def _surface_at(
+def _deviations_of(
     part: PartModel,
-    points: np.ndarray,
+    points_cad: np.ndarray,
     T: np.ndarray,
+    comparison_points: Sequence[ComparisonPoint],
     *,
+    surface: bool,
     fit: Registration,
     p: MeasureParams,
     frame: Frame,
     cameras: np.ndarray | None,
 ) -> Deviations:
-    """The deviations of ``points`` placed by ``T`` for their surface: its classes and
-    defects, each defect naming its nearest comparison point (measured too, at little
-    cost; the features are not)."""
+    """:func:`~inspection.deviations.deviations` of ``points_cad`` (placed by ``T``) at
+    ``comparison_points``, and with ``surface`` the surface's classes and defects; the
+    cameras' places, or the direction they look from, in the CAD frame of ``T`` give the
+    surface model its occlusion edges."""
+    viewpoints = directions = None
+    if cameras is not None:
+        viewpoints = apply(T, cameras)
+    elif frame == "rig" and p.register.view_direction is not None:
+        directions = (T[:3, :3] @ np.asarray(p.register.view_direction, dtype=np.float64))[None]
     return deviations(
         part.exact,
-        apply(T, points),
-        part.comparison_points,
+        points_cad,
+        comparison_points,
         min_support=p.min_support,
         max_distance_mm=p.register.max_distance_mm,
-        surface=part.surface,
+        surface=part.surface if surface else None,
         surface_params=p.surface,
         outlier_mm=rejection_mm(fit),
-        **_views(T, p, frame, cameras),
+        viewpoints=viewpoints,
+        view_directions=directions,
     )
 
 
