@@ -808,6 +808,25 @@ def field_slopes(field_, out_x, out_y):  # pragma: no cover
 
 
 @njit(cache=True, nogil=True)
+def normalised(img, mean, sq, out):  # pragma: no cover
+    """``(img - mean) / sqrt(max(sq - mean^2, 0) + 4)`` per pixel, into ``out``: an
+    image less its local mean over its local standard deviation, from the box means
+    of the image (``mean``) and of its square (``sq``), both float32. The variance
+    and its root in float32, the rest in the image's type, as numpy computes them."""
+    H, W = img.shape
+    zero = np.float32(0.0)
+    floor = np.float32(4.0)
+    for y in range(H):
+        for x in range(W):
+            m = mean[y, x]
+            v = sq[y, x] - m * m
+            # np.maximum's rule: a NaN stays.
+            if v < zero:
+                v = zero
+            out[y, x] = (img[y, x] - m) / np.sqrt(v + floor)
+
+
+@njit(cache=True, nogil=True)
 def masked_field(field_, out_v, out_mask):  # pragma: no cover
     """A field with holes as the box filters take it, in one pass: ``out_v`` the
     field where finite and 0 elsewhere, ``out_mask`` 1 where finite and 0 elsewhere

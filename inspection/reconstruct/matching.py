@@ -57,9 +57,11 @@ def local_normalise(img: F32, window: int) -> F32:
     k = (window, window)
     mean = cv2.boxFilter(img, cv2.CV_32F, k, borderType=cv2.BORDER_REFLECT)
     sq = cv2.boxFilter(img * img, cv2.CV_32F, k, borderType=cv2.BORDER_REFLECT)
-    var = np.maximum(sq - mean * mean, 0.0)
-    # The floor keeps flat, dark regions (shadows) from being amplified into noise.
-    return ((img - mean) / np.sqrt(var + 4.0)).astype(np.float32)
+    # The floor under the variance keeps flat, dark regions (shadows) from being
+    # amplified into noise.
+    out = np.empty(img.shape, np.float32)
+    kernels.normalised(img, mean, sq, out)
+    return out
 
 
 def spline_rows(img: F32) -> F32:

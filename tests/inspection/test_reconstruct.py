@@ -522,6 +522,25 @@ def test_the_windows_spanning_a_bend_and_the_light_coordinates_are_numpy_s() -> 
     np.testing.assert_array_equal(bent, want)
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("view", ["whole", "crop"])
+def test_local_normalisation_is_numpy_s_formula_to_the_bit(dtype: type, view: str) -> None:
+    rng = np.random.default_rng(11)
+    img = (rng.random((90, 120)) * 255.0).astype(dtype)
+    # Nearly flat and bright: the box variance, a small difference of large sums,
+    # rounds below 0 there.
+    img[20:50, 30:80] = (200.0 + 0.01 * rng.random((30, 50))).astype(dtype)
+    if view == "crop":
+        img = img[5:83, 9:111]  # a strided view, as the crops are
+    k = (15, 15)
+    mean = cv2.boxFilter(img, cv2.CV_32F, k, borderType=cv2.BORDER_REFLECT)
+    sq = cv2.boxFilter(img * img, cv2.CV_32F, k, borderType=cv2.BORDER_REFLECT)
+    want = ((img - mean) / np.sqrt(np.maximum(sq - mean * mean, 0.0) + 4.0)).astype(np.float32)
+    got = local_normalise(img, 15)
+    assert got.dtype == np.float32 and got.shape == img.shape
+    assert got.tobytes() == want.tobytes()
+
+
 @pytest.mark.parametrize(("x0", "y0"), [(0, 0), (7, 3), (12, 9)])
 @pytest.mark.parametrize(("stride", "row_stride"), [(1, 1), (2, 1), (2, 4), (3, 2)])
 def test_the_pixels_refined_are_those_on_the_image_grid_in_row_major_order(
