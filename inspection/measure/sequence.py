@@ -544,16 +544,15 @@ def _judge(
                                surface=True, fit=fit, p=p, frame=frame,
                                cameras=cameras)  # fmt: skip
         _lap(timings, "deviations", t, add=True)
+        classes, summary = devs.classes, devs.summary
         if shape.classes is not None:
-            devs = dataclasses.replace(
-                devs,
-                classes=shape.classes,
-                summary=FieldSummary.of(devs.distances, shape.classes.surface, shape.classes),
-            )
-        devs = dataclasses.replace(devs, defects=shape.defects, defects_fail=shape.defects_fail)
+            classes = shape.classes
+            summary = FieldSummary.of(devs.distances, classes.surface, classes)
         devs = dataclasses.replace(
-            devs, verdict=part_verdict(devs.comparison, devs.failing_defects)
-        )
+            devs, classes=classes, summary=summary, defects=shape.defects,
+            defects_fail=shape.defects_fail,
+            verdict=part_verdict(devs.comparison, shape.failing_defects),
+        )  # fmt: skip
     _lap(timings, "total", t_start)
     return Measurement(
         verdict=devs.verdict,
