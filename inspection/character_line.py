@@ -20,7 +20,10 @@ projected onto the CAD. Per cross-section along it, every ``station_mm``:
 
 The crease's measured points (each section's nominal point moved by its
 ``s``) are fitted as a curve (:func:`inspection.edge_curve.curve_offset`):
-its mean offset across the line and its largest, and where.
+its mean offset across the line and its largest, and where. The sections
+reach ``margin_mm`` beyond the span measured and the curve is read over the
+span alone: a fitted curve follows its last points least firmly, and its
+largest offset would otherwise most often lie at an end of the span.
 
 The cloud must not have been matched with windows shaped by the CAD (a
 guided pass): those follow the drawn crease and hide its bend.
@@ -65,6 +68,10 @@ class LineParams:
     iterations : int
         Gauss-Newton steps per section.
     reject_sigma : float
+    margin_mm : float
+        Sections are also taken this far beyond either end of the span measured:
+        the curve through them is read over the span alone, whose ends then are
+        not the curve's, where it follows the last sections least firmly.
     """
 
     band_mm: float = 12.0
@@ -74,6 +81,7 @@ class LineParams:
     min_turn: float = 0.05
     iterations: int = 3
     reject_sigma: float = 3.0
+    margin_mm: float = 10.0
 
 
 def _frame(
@@ -189,12 +197,19 @@ def measure_character_line(
     reason : str or None
         Why there is none.
     """
-    nominal, e, shift, _ = crease_points(tree, points_cad, position, across, half_length_mm, params)
+    p = params if params is not None else LineParams()
+    nominal, e, shift, _ = crease_points(
+        tree, points_cad, position, across, half_length_mm + p.margin_mm, p
+    )
+    # The sections lie every station either side of the middle one, at ``position``.
+    k = (len(nominal) - 1) // 2
+    read = np.abs(np.arange(len(nominal)) - k) * p.station_mm <= half_length_mm + 1e-9
     seen = np.isfinite(shift)
-    if seen.sum() < min_support:
+    if (seen & read).sum() < min_support:
         return (
             None,
-            f"{int(seen.sum())} sections along the line see it in the cloud, {min_support} needed",
+            f"{int((seen & read).sum())} sections along the line see it in the cloud, "
+            f"{min_support} needed",
         )
     measured = nominal[seen] + shift[seen, None] * e
     line = nominal_curve(nominal)
@@ -203,4 +218,4 @@ def measure_character_line(
     c = CurveParams(points_per_span=5, min_span_mm=20.0, smoothing=0.1)
     c = curve if curve is not None else c
     return curve_offset(measured, line, nominal, np.tile(e, (len(nominal), 1)), c,
-                        min_support=min_support)  # fmt: skip
+                        min_support=min_support, read=read)  # fmt: skip

@@ -21,6 +21,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 from scipy.interpolate import make_lsq_spline
 
 from .arrays import Points, Scalars
@@ -104,7 +105,7 @@ class EdgeCurve:
     support : int
         Points the final fit used.
     span_mm : float
-        Length of the nominal the points cover.
+        Length of the nominal the readings cover.
     points : (k, 3) float64, mm
         The nominal's samples over the span.
     offsets : (k,) float64, mm
@@ -171,6 +172,7 @@ def curve_offset(
     params: CurveParams | None = None,
     *,
     min_support: int = 10,
+    read: npt.NDArray[np.bool_] | None = None,
 ) -> tuple[EdgeCurve | None, str | None]:
     """The fitted curve of measured edge points, against the nominal along its normal.
 
@@ -188,6 +190,12 @@ def curve_offset(
     min_support : int
         Points needed (at least the curve's degree + 1); after the outliers
         are dropped, the curve's degree + 1 must be left.
+    read : (K,) bool, optional
+        The samples the curve is read at: the offset's mean, the largest and
+        the span are those of the curve's stretch nearest to them (None: all).
+        The points beyond it still shape the curve, so that the stretch read
+        need not end where the fit ends, which follows its last points least
+        firmly.
 
     Returns
     -------
@@ -247,6 +255,12 @@ def curve_offset(
     # Length along the nominal per sample, for the mean over the span.
     _, d1 = nominal.evaluate(dev.params, 1)
     w = np.linalg.norm(d1, axis=1) * np.gradient(dev.params)
+    at_points = dev.points
+    if read is not None:
+        inside = np.asarray(read, dtype=bool)[near]
+        if not inside.any():
+            return None, "the points' curve does not reach the stretch to be measured"
+        off, w, at_points = off[inside], w[inside], at_points[inside]
     k = int(np.argmax(np.abs(off)))
     rms = float(fit.fit.rms_mm)
     # The constant offset lies in the curve's span: its mean has the variance of a mean
@@ -257,11 +271,11 @@ def curve_offset(
             offset_mm=float(np.sum(w * off) / np.sum(w)),
             sigma_mm=rms / math.sqrt(dof),
             max_mm=float(off[k]),
-            at=(float(dev.points[k, 0]), float(dev.points[k, 1]), float(dev.points[k, 2])),
+            at=(float(at_points[k, 0]), float(at_points[k, 1]), float(at_points[k, 2])),
             rms_mm=rms,
             support=len(x),
             span_mm=float(np.sum(w)),
-            points=dev.points,
+            points=at_points,
             offsets=off,
             edge=fit,
         ),

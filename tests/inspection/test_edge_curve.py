@@ -110,6 +110,31 @@ def test_a_bent_edge_is_followed_where_one_offset_is_not(cad):
     assert m.offset_mm < 0.2
 
 
+def test_a_curve_read_over_a_stretch_takes_its_figures_there_alone(cad):
+    """Points beyond the stretch read shape the curve, but its offset, its largest and the
+    span come from the stretch: an edge turned about the middle of the span."""
+    samples, outward, _ = rim(cad, 0.0, radius_mm=8.0)
+    nominal = nominal_curve(samples)
+    t = np.random.default_rng(5).uniform(*nominal.domain, 120)
+    base = nominal.evaluate(t)
+    near = np.argmin(((base[:, None] - samples[None]) ** 2).sum(-1), axis=1)
+    # 0.1 mm off per mm along the edge from the middle: 0.4 mm at the stretch's ends.
+    pts = base + (0.1 * (base[:, 1] - HOLE.y_mm))[:, None] * outward[near]
+    read = np.abs(samples[:, 1] - HOLE.y_mm) <= 4.0
+    whole, why = curve_offset(pts, nominal, samples, outward, min_support=10)
+    assert whole is not None, why
+    m, why = curve_offset(pts, nominal, samples, outward, min_support=10, read=read)
+    assert m is not None, why
+    assert abs(whole.max_mm) > 0.6 and abs(whole.at[1] - HOLE.y_mm) > 6.0
+    assert abs(m.max_mm) == pytest.approx(0.4, abs=0.03) and abs(m.at[1] - HOLE.y_mm) <= 4.5
+    assert abs(m.offset_mm) < 0.03
+    assert m.span_mm < 0.7 * whole.span_mm and m.support == whole.support
+    nowhere = np.zeros(len(samples), bool)
+    assert curve_offset(pts, nominal, samples, outward, min_support=10, read=nowhere) == (
+        None, "the points' curve does not reach the stretch to be measured"
+    )  # fmt: skip
+
+
 def test_too_few_points_give_the_reason(cad):
     samples, outward, _ = rim(cad, 0.0)
     pts = measured_edge(samples, 60, 0.04, seed=1)[3:9]
