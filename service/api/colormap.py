@@ -21,6 +21,8 @@ from inspection.surface import SUPPORT_MM
 
 _BACKGROUND = 40
 _OUTLINE = (0, 215, 255)  # BGR amber: apart from the blue-white-red scale
+_FONT = cv2.FONT_HERSHEY_SIMPLEX
+_FONT_SCALE = 0.45
 
 
 @dataclass(frozen=True)
@@ -110,20 +112,22 @@ def render_top_view(
     for k, mk in enumerate(markers, start=1):
         cx = int(round((mk.center_mm[0] - lo[0]) * scale)) + left
         cy = int(round((hi[1] - mk.center_mm[1]) * scale)) + margin
-        radius = int(np.ceil((np.sqrt(max(mk.area_mm2, 0.0) / np.pi) + SUPPORT_MM) * scale))
-        cv2.circle(img, (cx, cy), max(radius, 6), _OUTLINE, 2, cv2.LINE_AA)
-        cv2.putText(img, f"{k} {mk.label}", (cx + max(radius, 6) + 3, cy + 4),
-                    cv2.FONT_HERSHEY_SIMPLEX, 0.45, _OUTLINE, 1, cv2.LINE_AA)  # fmt: skip
+        radius = max(int(np.ceil((np.sqrt(max(mk.area_mm2, 0.0) / np.pi) + SUPPORT_MM) * scale)), 6)
+        # A dark rim under the amber: the map behind it may be any colour, pale most often.
+        cv2.circle(img, (cx, cy), radius, (0, 0, 0), 4, cv2.LINE_AA)
+        cv2.circle(img, (cx, cy), radius, _OUTLINE, 2, cv2.LINE_AA)
+        text = f"{k} {mk.label}"
+        (tw, _), _ = cv2.getTextSize(text, _FONT, _FONT_SCALE, 1)
+        # Right of the circle, or left of it where the text would leave the map.
+        x = cx + radius + 3 if cx + radius + 3 + tw <= left + w else cx - radius - 3 - tw
+        _label(img, text, (max(x, 0), cy + 4), _OUTLINE)
     for pm in points_marked:
         px = int(round((pm.position_mm[0] - lo[0]) * scale)) + left
         py = int(round((hi[1] - pm.position_mm[1]) * scale)) + margin
         colour = (40, 40, 230) if pm.failed else (255, 255, 255)
         cv2.drawMarker(img, (px, py), (0, 0, 0), cv2.MARKER_CROSS, 13, 3, cv2.LINE_AA)
         cv2.drawMarker(img, (px, py), colour, cv2.MARKER_CROSS, 11, 1, cv2.LINE_AA)
-        cv2.putText(img, pm.label, (px + 7, py - 5), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 3,
-                    cv2.LINE_AA)  # fmt: skip
-        cv2.putText(img, pm.label, (px + 7, py - 5), cv2.FONT_HERSHEY_SIMPLEX, 0.45, colour, 1,
-                    cv2.LINE_AA)  # fmt: skip
+        _label(img, pm.label, (px + 7, py - 5), colour)
     if axes:
         _axes(img, lo=lo, hi=hi, scale=scale, x0=left, y0=margin, w=w, h=h)
     _colour_bar(img, x0=w + left + margin + 10, y0=margin, height=max(h, 120), limit_mm=limit_mm)
@@ -134,6 +138,12 @@ def render_top_view(
     if not ok:  # pragma: no cover - OpenCV always encodes a uint8 BGR image
         raise RuntimeError("PNG encoding failed")
     return png.tobytes()
+
+
+def _label(img: np.ndarray, text: str, org: tuple[int, int], colour: tuple[int, int, int]) -> None:
+    """``text`` at ``org`` in ``colour`` over a dark halo, legible on any part of the map."""
+    cv2.putText(img, text, org, _FONT, _FONT_SCALE, (0, 0, 0), 3, cv2.LINE_AA)
+    cv2.putText(img, text, org, _FONT, _FONT_SCALE, colour, 1, cv2.LINE_AA)
 
 
 def _axes(
