@@ -211,6 +211,10 @@ def measure_character_line(
             f"{int((seen & read).sum())} sections along the line see it in the cloud, "
             f"{min_support} needed",
         )
+    # Sections beyond the span count only where they see the line: past its end, the
+    # nominal's points would lie off the line (on whatever surface is nearest there).
+    keep = read | seen
+    nominal, shift, read, seen = nominal[keep], shift[keep], read[keep], seen[keep]
     measured = nominal[seen] + shift[seen, None] * e
     line = nominal_curve(nominal)
     # One point per section: shorter spans, or less smoothing, follow the cloud's own
