@@ -1080,6 +1080,7 @@ __all__ = [
     "mark_wide",
     "masked_field",
     "masked_mean",
+    "normalised",
     "range_inputs",
     "refine_cyclopean",
     "refine_pixels",
