@@ -37,6 +37,7 @@ import numpy.typing as npt
 from numba import njit
 from scipy.spatial import cKDTree
 
+from ._jit import NO_RUNTIME
 from .arrays import Faces, Points, Transform, Vectors, mesh_arrays
 from .errors import InvalidInput
 from .validate import validate_transform
@@ -340,7 +341,7 @@ def _norms(v: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
     return out
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, **NO_RUNTIME)
 def _query_planes(
     idx,
     origins,

@@ -6,6 +6,7 @@ import math
 
 from numba import njit
 
+from .._jit import NO_RUNTIME
 from .flash import pixel_slide, shadow_bias
 from .zbuffer import NEAR_MM
 
@@ -29,7 +30,7 @@ def belt_albedo(x, y, tex, texel_mm, belt_half_width, floor_albedo):  # pragma: 
     )
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, **NO_RUNTIME)
 def belt_static(  # pragma: no cover - compiled
     rays,
     Rcr,

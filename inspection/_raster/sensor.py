@@ -7,6 +7,8 @@ import math
 import numpy as np
 from numba import njit
 
+from .._jit import NO_RUNTIME
+
 
 @njit(cache=True, nogil=True, inline="always")
 def _splitmix64(x):  # pragma: no cover - compiled
@@ -16,7 +18,7 @@ def _splitmix64(x):  # pragma: no cover - compiled
     return x ^ (x >> np.uint64(31))
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, **NO_RUNTIME)
 def sensor_noise(img, key, shot, read2, out):  # pragma: no cover - compiled
     """Add shot and read noise, clip and quantise to 8 bits.
 

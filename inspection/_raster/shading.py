@@ -7,6 +7,7 @@ import math
 import numpy as np
 from numba import njit
 
+from .._jit import NO_RUNTIME
 from .belt import belt_albedo
 from .flash import _bilinear, lit_fraction, pixel_slide, shadow_bias
 from .zbuffer import NEAR_MM, in_face
@@ -322,7 +323,7 @@ def _part_radiance(
     return radiance, X0, X1, X2, irr
 
 
-@njit(cache=True, nogil=True, fastmath=_FAST)
+@njit(cache=True, nogil=True, fastmath=_FAST, **NO_RUNTIME)
 def shade_scene(  # pragma: no cover - compiled
     rays,
     kcam,

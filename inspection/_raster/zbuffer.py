@@ -10,11 +10,13 @@ import math
 
 from numba import njit
 
+from .._jit import NO_RUNTIME
+
 NEAR_MM = 1.0
 """Faces with a vertex closer than this to the image plane are skipped."""
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, **NO_RUNTIME)
 def rasterize(sx, sy, sz, faces, zbuf, fbuf):  # pragma: no cover - compiled
     """Z-buffer rasterisation of triangles.
 

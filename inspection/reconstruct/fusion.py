@@ -34,6 +34,7 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
+from .._jit import NO_RUNTIME
 from ..arrays import Points, Scalars
 from .matching import PairResult
 from .pairs import RectifiedPair
@@ -159,7 +160,7 @@ def _map_depth(disparity, x, y, fb, offset_px):  # pragma: no cover
     return np.nan
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, **NO_RUNTIME)
 def check_in_view(
     points,
     centre,

@@ -48,6 +48,7 @@ import math
 import numpy as np
 from numba import njit
 
+from .._jit import NO_RUNTIME
 from .._linalg import cholesky_solve_into
 
 
@@ -768,7 +769,7 @@ def refine_warped_shaded(
         _store(i, ok, d, score, step, out_d, out_score, out_step)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, **NO_RUNTIME)
 def field_slopes(field_, out_x, out_y):  # pragma: no cover
     """Derivatives of a disparity field along x and y (px/px, written to ``out_x``,
     ``out_y``): at each pixel, the mean of the differences to both neighbours along
@@ -807,7 +808,7 @@ def field_slopes(field_, out_x, out_y):  # pragma: no cover
             out_y[y, x] = ty / np.float32(max(cy, 1))
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, **NO_RUNTIME)
 def normalised(img, mean, sq, out):  # pragma: no cover
     """``(img - mean) / sqrt(max(sq - mean^2, 0) + 4)`` per pixel, into ``out``: an
     image less its local mean over its local standard deviation, from the box means
@@ -826,7 +827,7 @@ def normalised(img, mean, sq, out):  # pragma: no cover
             out[y, x] = (img[y, x] - m) / np.sqrt(v + floor)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, **NO_RUNTIME)
 def masked_field(field_, out_v, out_mask):  # pragma: no cover
     """A field with holes as the box filters take it, in one pass: ``out_v`` the
     field where finite and 0 elsewhere, ``out_mask`` 1 where finite and 0 elsewhere
@@ -845,7 +846,7 @@ def masked_field(field_, out_v, out_mask):  # pragma: no cover
                 out_mask[y, x] = zero
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, **NO_RUNTIME)
 def masked_mean(num, den, mask, out):  # pragma: no cover
     """``num / max(den, 1)`` where ``mask`` is set and 0 elsewhere, in float32: the mean
     of the field's values a box filter summed (``num``) over the pixels it counted
@@ -861,7 +862,7 @@ def masked_mean(num, den, mask, out):  # pragma: no cover
                 out[y, x] = zero
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, **NO_RUNTIME)
 def uneven_windows(num_w, den_w, field_, px, py, curvature, slope, full, out):  # pragma: no cover
     """Per window centred at ``(px, py)``: whether the field (float32, 0 off it) is far
     from constant over it, from the box sums of the field (``num_w``) and of its mask
@@ -881,7 +882,7 @@ def uneven_windows(num_w, den_w, field_, px, py, curvature, slope, full, out):  
         out[i] = off > curvature or abs(right - left) * half > slope or cnt < full
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, **NO_RUNTIME)
 def range_inputs(g, on_part, out_hi, out_lo):  # pragma: no cover
     """A slope as a dilation (``out_hi``) and an erosion (``out_lo``) take it to find
     its range over a window: off the part -1e30 and 1e30, which never win."""
@@ -898,7 +899,7 @@ def range_inputs(g, on_part, out_hi, out_lo):  # pragma: no cover
                 out_lo[y, x] = high
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, **NO_RUNTIME)
 def mark_wide(hi, lo, limit, out):  # pragma: no cover
     """Set ``out`` where the range ``hi - lo`` exceeds ``limit`` (float32), in place."""
     H, W = hi.shape

@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from ..._jit import NO_RUNTIME
 from .face import FOOT_STEPS, behind, closest_on_triangle, exit_edge, plane_foot
 from .layout import FACE_MASK, INTERIOR_FLAG
 
@@ -193,7 +194,7 @@ def subcell_nodes(b0, b1, ijk, origin, h, ptr, faces, tri, plane, face_adj, smoo
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, **NO_RUNTIME)
 def _share_vertex(faces, f, g):
     for a in range(3):
         for b in range(3):
@@ -202,7 +203,7 @@ def _share_vertex(faces, f, g):
     return False
 
 
-@njit(cache=True)
+@njit(cache=True, **NO_RUNTIME)
 def _single(f, x0, y0, z0, h, plane):
     """Code of a cell stored as face f, with INTERIOR_FLAG when all its corners' feet are inside."""
     margin = 1e-9
@@ -326,7 +327,7 @@ def cells_from_nodes(
     return counts[:nm].copy(), buf[:nbuf].copy()
 
 
-@njit(cache=True)
+@njit(cache=True, **NO_RUNTIME)
 def _never_closer(f, g, k, x0, y0, z0, h, plane):
     """Whether face g is nowhere in the cube [x0, x0 + h]^3 closer than face f,
     given that every point of the cube has its foot inside f (so its distance
@@ -366,7 +367,7 @@ def _never_closer(f, g, k, x0, y0, z0, h, plane):
     return beyond or inside
 
 
-@njit(cache=True)
+@njit(cache=True, **NO_RUNTIME)
 def _all_behind(f, across, e, x0, y0, z0, h, plane):
     """Whether every point of the cube [x0, x0 + h]^3 has the face across
     edge e of f behind f's plane (:func:`behind`; the plane distance is
@@ -380,7 +381,7 @@ def _all_behind(f, across, e, x0, y0, z0, h, plane):
     return True
 
 
-@njit(cache=True)
+@njit(cache=True, **NO_RUNTIME)
 def mark_safe_subcells(codes, ijk, origin, h, plane, face_adj, smooth_adj, across):
     """Recode the one-face subcells: INTERIOR_FLAG now marks those where every
     foot lies inside their face f and no face across a sharp edge of f can be

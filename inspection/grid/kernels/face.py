@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from ..._jit import NO_RUNTIME
 from .layout import (
     ACROSS_ABOVE,
     ACROSS_BELOW,
@@ -23,7 +24,7 @@ from .layout import (
 )
 
 
-@njit(cache=True)
+@njit(cache=True, **NO_RUNTIME)
 def closest_on_triangle(px, py, pz, tri, f):
     """Closest point to p on triangle f of ``tri`` (F, 3, 3).
 
@@ -177,7 +178,7 @@ def exit_edge(u, v):
     return 0
 
 
-@njit(cache=True)
+@njit(cache=True, **NO_RUNTIME)
 def plane_foot(px, py, pz, plane, f):
     """Signed plane distance and barycentric (u, v) of p's foot on face f; hit if inside."""
     d = px * plane[f, 0] + py * plane[f, 1] + pz * plane[f, 2] - plane[f, 3]

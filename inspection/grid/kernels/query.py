@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from ..._jit import NO_RUNTIME
 from .face import FOOT_STEPS, behind, closest_on_hot, exit_edge, hot_distance, hot_foot
 from .layout import (
     CELL_UNKNOWN,
@@ -32,7 +33,7 @@ _MAX_PLANE_STEPS = 6
 QUERY_CHUNK = 64
 
 
-@njit(cache=True)
+@njit(cache=True, **NO_RUNTIME)
 def _shift_of(block):
     shift = 0
     while (1 << shift) < block:

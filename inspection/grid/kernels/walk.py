@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from ..._jit import NO_RUNTIME
 from .face import (
     behind,
     closest_any,
@@ -70,7 +71,7 @@ def closer_across(px, py, pz, f, fd, qx, qy, qz, d2, hot, hot_i, origin, home_st
     return g_best, qx, qy, qz, d2, region
 
 
-@njit(cache=True)
+@njit(cache=True, **NO_RUNTIME)
 def walk_and_finish(
     i,
     px,
@@ -201,7 +202,7 @@ def walk_and_finish(
     out_face[i] = face_id[f]
 
 
-@njit(cache=True)
+@njit(cache=True, **NO_RUNTIME)
 def exact_from(
     i,
     px,
