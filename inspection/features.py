@@ -560,71 +560,36 @@ def _fit_edges(
     from scipy.special import ndtr
 
     scan = np.flatnonzero(np.abs(model) <= p.search_px + 1e-9)
-    n = len(prof)
-    rows = np.arange(n)
-    best: tuple[float, float, np.ndarray, np.ndarray, np.ndarray] | None = None
+    prof = np.asarray(prof, dtype=np.float64)
+    rows = np.arange(len(prof))
+    best: tuple[float, float, np.ndarray, _EdgeSystem, np.ndarray] | None = None
     for sigma in p.blur_px:
         # The blur of a step at each model place, seen at each t: the columns' building
         # block, K(t - tau) summed over tau beyond the step.
         kern = ndtr((model[None, :] + 0.5 * _MODEL_STEP_PX - t[:, None]) / sigma) - ndtr(
             (model[None, :] - 0.5 * _MODEL_STEP_PX - t[:, None]) / sigma
         )  # (T, M): the share of model cell m in the blur at t
-        plain = np.cumsum(kern[:, ::-1], axis=1)[:, ::-1][:, scan]  # (T, S)
-        # The columns over t per candidate, shared by all profiles (T, S) or each its own
-        # (n, T, S): the air's level, the air's slope (the belt's light through a hole
-        # need not be even), the unpatterned material, the slide on it.
-        before = np.cumsum(kern, axis=1) - kern  # the cells before each one
-        moment = np.cumsum(kern * model[None, :], axis=1) - kern * model[None, :]
-        cols: list[np.ndarray] = [
-            np.ones_like(plain),
-            moment[:, scan] - model[scan][None, :] * before[:, scan],
-            plain,
-        ]
-        if slide is not None:
-            # The slide's light beyond each candidate: what lies past the last one in one
-            # product, summed back over the candidates' own cells.
-            a, b = scan[0], scan[-1] + 1
-            lit = np.cumsum((kern[None, :, a:b] * slide[:, None, a:b])[:, :, ::-1], axis=2)
-            lit = lit[:, :, ::-1] + (slide[:, b:] @ kern[:, b:].T)[:, :, None]
-            cols.append(lit)  # (n, T, S)
-        npar = len(cols)
-        A = np.empty((n, len(scan), npar, npar))
-        B = np.empty((n, len(scan), npar))
-        for i, ci in enumerate(cols):
-            B[..., i] = np.einsum("nts,nt->ns" if ci.ndim == 3 else "ts,nt->ns", ci, prof)
-            for j in range(i, npar):
-                cj = cols[j]
-                if ci.ndim == 2 and cj.ndim == 2:
-                    v = np.broadcast_to((ci * cj).sum(axis=0), (n, len(scan)))
-                elif ci.ndim == 2:
-                    v = np.einsum("ts,nts->ns", ci, cj)
-                elif cj.ndim == 2:
-                    v = np.einsum("nts,ts->ns", ci, cj)
-                else:
-                    v = np.einsum("nts,nts->ns", ci, cj)
-                A[..., i, j] = v
-                A[..., j, i] = v
-        A = A + 1e-9 * np.eye(npar)
-        coef = np.linalg.solve(A, B[..., None])[..., 0]
-        # The least-squares fit's residual: |y|^2 - coef . (X^T y).
-        sse = (prof * prof).sum(axis=1)[:, None] - (coef * B).sum(axis=2)
+        system = _edge_normal_equations(prof, kern, model, scan, slide)
+        # The least-squares fit's residual: |y|^2 - B . A^-1 B.
+        sse = (prof * prof).sum(axis=1)[:, None] - system.explained()
         k = np.argmin(sse, axis=1)
         total = float(np.median(sse[rows, k]))
         if best is None or total < best[0]:
-            best = (total, sigma, sse, coef, k)
+            best = (total, sigma, sse, system, k)
     assert best is not None
-    _, sigma, sse, coef, k = best
+    _, sigma, sse, system, k = best
+    coef = system.solve(k)
     kc = np.clip(k, 1, len(scan) - 2)
     y0, y1, y2 = sse[rows, kc - 1], sse[rows, kc], sse[rows, kc + 1]
     den = y0 - 2 * y1 + y2
     frac = np.where(den > 1e-12, 0.5 * (y0 - y2) / np.where(den > 1e-12, den, 1.0), 0.0)
     # Candidate j puts the edge between model cells j - 1 and j.
     te = model[scan][kc] - 0.5 * _MODEL_STEP_PX + np.clip(frac, -0.5, 0.5) * _MODEL_STEP_PX
-    c = coef[rows, k, 0]
-    step = coef[rows, k, 2]
+    c = coef[:, 0]
+    step = coef[:, 2]
     if slide is not None:
         at = np.clip(np.searchsorted(model, te), 0, len(model) - 1)
-        step = step + coef[rows, k, 3] * slide[rows, at]
+        step = step + coef[:, 3] * slide[rows, at]
     inside = (k > 0) & (k < len(scan) - 1)
     window = np.abs(t) <= p.window_px + 1e-9
     ok = inside & (step >= p.min_step_dn) & ~(prof[:, window] >= _SATURATED_DN).any(axis=1)
@@ -633,6 +598,106 @@ def _fit_edges(
     if ok.any():
         ok &= c - np.median(c[ok]) <= _AIR_FRACTION * step
     return te, sigma, ok
+
+
+# Added to the normal matrices' diagonals: keeps a candidate whose columns nearly
+# coincide (an edge at the window's end) solvable.
+_EDGE_RIDGE = 1e-9
+
+
+@dataclass(frozen=True)
+class _EdgeSystem:
+    """The normal equations ``A coef = B`` of :func:`_fit_edges`'s model, for n profiles
+    at S candidate edges: ``A = [[shared, cross], [cross^T, own]]``, whose block of the
+    three columns every profile has in common (the air's level and slope, the
+    unpatterned light) is the same for all profiles; ``cross`` (n, S, 3) and ``own``
+    (n, S), of the slide's column, are None without a slide; ``rhs`` (n, S, 3 or 4)."""
+
+    shared: np.ndarray  # (S, 3, 3)
+    cross: np.ndarray | None
+    own: np.ndarray | None
+    rhs: np.ndarray
+
+    def explained(self) -> np.ndarray:
+        """``B . A^-1 B`` per profile and candidate (n, S): the share of a profile's
+        square sum that the candidate's least-squares fit explains. With the slide,
+        through the Schur complement of the shared block, inverted once per candidate."""
+        inv = np.linalg.inv(self.shared + _EDGE_RIDGE * np.eye(3))
+        b0 = self.rhs[..., :3]
+        q = np.einsum("nsi,nsi->ns", b0, np.einsum("sij,nsj->nsi", inv, b0))
+        if self.cross is None or self.own is None:
+            return q
+        u = np.einsum("sij,nsj->nsi", inv, self.cross)  # shared^-1 cross
+        schur = self.own + _EDGE_RIDGE - np.einsum("nsi,nsi->ns", self.cross, u)
+        r = self.rhs[..., 3] - np.einsum("nsi,nsi->ns", u, b0)
+        return q + r * r / schur
+
+    def solve(self, k: np.ndarray) -> np.ndarray:
+        """Each profile's coefficients at its candidate ``k`` (n,): (n, 3 or 4)."""
+        rows = np.arange(len(k))
+        b = self.rhs[rows, k]
+        n, npar = b.shape
+        A = np.empty((n, npar, npar))
+        A[:, :3, :3] = self.shared[k]
+        if self.cross is not None and self.own is not None:
+            A[:, :3, 3] = A[:, 3, :3] = self.cross[rows, k]
+            A[:, 3, 3] = self.own[rows, k]
+        A += _EDGE_RIDGE * np.eye(npar)
+        return np.asarray(np.linalg.solve(A, b[..., None])[..., 0])
+
+
+def _edge_normal_equations(
+    prof: np.ndarray,
+    kern: np.ndarray,
+    model: np.ndarray,
+    scan: np.ndarray,
+    slide: np.ndarray | None,
+) -> _EdgeSystem:
+    """The normal equations of :func:`_fit_edges`'s model for every profile (rows of
+    ``prof`` over ``t``) at every candidate edge (the model cells ``scan``, a run of
+    consecutive ones), for a blur whose shares of the model cells at each ``t`` are
+    ``kern`` (T, M).
+
+    The columns over ``t`` of a candidate at cell ``c``: 1 (the air's level); the
+    air's slope, the blur of ``(tau - model[c])`` over the cells before ``c``; the
+    material's unpatterned light, the blur of the cells from ``c`` on; and with the
+    slide, the blur of the slide over those cells, one column per profile. That last
+    one would make an (n, T, S) array; its sums are taken over the model cells
+    instead, where they are products with the blur's own Gram matrix and sums over
+    the cells from ``c`` on.
+    """
+    plain = np.cumsum(kern[:, ::-1], axis=1)[:, ::-1][:, scan]  # (T, S)
+    before = np.cumsum(kern, axis=1) - kern  # the cells before each one
+    moment = np.cumsum(kern * model[None, :], axis=1) - kern * model[None, :]
+    cols = [
+        np.ones_like(plain),
+        moment[:, scan] - model[scan][None, :] * before[:, scan],
+        plain,
+    ]
+    n, S = len(prof), len(scan)
+    shared = np.empty((S, 3, 3))
+    rhs = np.empty((n, S, 3 if slide is None else 4))
+    for i, ci in enumerate(cols):
+        rhs[..., i] = prof @ ci
+        for j in range(i, 3):
+            shared[:, i, j] = shared[:, j, i] = (ci * cols[j]).sum(axis=0)
+    if slide is None:
+        return _EdgeSystem(shared, None, None, rhs)
+
+    def from_each_candidate(x: np.ndarray) -> np.ndarray:
+        """Sums of ``x`` (n, M) over the cells from each candidate's on: (n, S)."""
+        return np.cumsum(x[:, ::-1], axis=1)[:, ::-1][:, scan]
+
+    # The slide's column is lit[n, t, c] = sum over m >= c of kern[t, m] slide[n, m].
+    later = np.arange(kern.shape[1])[None, :] >= scan[:, None]  # (S, M)
+    cross = np.stack([slide @ np.where(later, ci.T @ kern, 0.0).T for ci in cols], axis=2)
+    rhs[..., 3] = from_each_candidate(slide * (prof @ kern))
+    # sum_t lit^2 = sum over m, m' >= c of slide_m slide_m' G[m, m'], G = kern^T kern:
+    # each cell adds its diagonal term and twice its products with the later cells.
+    gram = kern.T @ kern
+    later_products = slide @ np.triu(gram, 1).T
+    own = from_each_candidate(slide * (slide * np.diag(gram) + 2.0 * later_products))
+    return _EdgeSystem(shared, cross, own, rhs)
 
 
 def measure_hole(

@@ -28,6 +28,7 @@ from inspection.features import (
     Flash,
     HoleSpec,
     _edge_model_grid,
+    _edge_normal_equations,
     _fit_edges,
     hole_frame,
     measure_hole,
@@ -331,6 +332,44 @@ def test_the_edge_model_finds_a_speckled_step_to_the_noise():
     assert abs(np.mean((found - edge)[ok])) < 0.02
     plain, _, ok_plain = _fit_edges(prof, t, None, model, EdgeParams())
     assert np.median(np.abs(plain - edge)[ok_plain]) > 2.5 * np.median(err)
+
+
+@pytest.mark.parametrize("with_slide", [True, False])
+def test_the_edge_fits_normal_equations_are_those_of_their_columns(with_slide):
+    """The edge model's least squares, taken as sums over the model's cells, are the
+    ones of its columns written out over the profile's samples: what each candidate
+    explains of each profile, and the coefficients at the chosen candidates."""
+    from scipy.special import ndtr
+
+    rng = np.random.default_rng(4)
+    edge = rng.uniform(-1.5, 1.5, 60)
+    prof, t, slide, model = _speckled_profiles(edge, seed=5)
+    slide = slide if with_slide else None
+    scan = np.flatnonzero(np.abs(model) <= EdgeParams().search_px + 1e-9)
+    h = 0.5 * (model[1] - model[0])
+    kern = ndtr((model[None, :] + h - t[:, None]) / 0.7) - ndtr(
+        (model[None, :] - h - t[:, None]) / 0.7
+    )
+    # The columns at candidate c, over t: 1; sum over m < c of kern (model[m] - model[c]);
+    # sum over m >= c of kern; and with the slide, sum over m >= c of kern slide.
+    n, S = len(prof), len(scan)
+    cols = np.empty((n, len(t), S, 3 if slide is None else 4))
+    for s, c in enumerate(scan):
+        cols[:, :, s, 0] = 1.0
+        cols[:, :, s, 1] = kern[:, :c] @ (model[:c] - model[c])
+        cols[:, :, s, 2] = kern[:, c:].sum(axis=1)
+        if slide is not None:
+            cols[:, :, s, 3] = slide[:, c:] @ kern[:, c:].T
+    A = np.einsum("ntsi,ntsj->nsij", cols, cols) + 1e-9 * np.eye(cols.shape[-1])
+    B = np.einsum("ntsi,nt->nsi", cols, prof)
+    explained = np.einsum("nsi,nsi->ns", B, np.linalg.solve(A, B[..., None])[..., 0])
+
+    system = _edge_normal_equations(prof, kern, model, scan, slide)
+    scale = (prof * prof).sum(axis=1)[:, None]
+    np.testing.assert_allclose(system.explained() / scale, explained / scale, atol=1e-9)
+    k = rng.integers(1, S - 1, n)
+    expected = np.linalg.solve(A[np.arange(n), k], B[np.arange(n), k][..., None])[..., 0]
+    np.testing.assert_allclose(system.solve(k), expected, rtol=1e-6, atol=1e-6)
 
 
 def _holed_sheet(centre, radius_mm, thickness_mm, top_mm):
