@@ -65,7 +65,7 @@ from ..feature_checks import check_features, hole_spec
 from ..features import Flash, hole_frame
 from ..reconstruct import Cloud, Guide, Matching, Reconstructor
 from ..registration import LOSSES, Registration, register
-from ..rig import Camera, Rig
+from ..rig import Camera, Projector, Rig
 from ..transforms import apply
 from .judging import _fit_problem, _held_to_the_pose, _reason, fit_quality, judge_points
 from .params import Frame, MeasureParams
@@ -175,7 +175,7 @@ def _measure_frames(
     if any(cp.kind in FEATURE_KINDS and cp.kind != "character_line"
            for cp in part.comparison_points):  # fmt: skip
         t = _mark()
-        flash = Flash.build(rec.rig.projector)
+        flash = _flash(rec.rig.projector)
         _lap(timings, "flash", t)
     return _judge(
         part, last.points, final, p, "rig", timings, t_start, tuple(passes), search,
@@ -709,6 +709,13 @@ def _check_part(part: PartModel, frame: Frame) -> None:
             f"part {part.cad.name!r} has no alignment model: build it with alignment=True "
             "to measure clouds that lie anywhere"
         )
+
+
+@functools.lru_cache(maxsize=4)
+def _flash(projector: Projector) -> Flash:
+    """The projector's slide, rendered once: it is the rig's, the same for every part
+    (a projector is one object per rig, hashed by identity)."""
+    return Flash.build(projector)
 
 
 class _Laps(dict[str, float]):
