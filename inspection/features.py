@@ -659,14 +659,21 @@ def _edge_normal_equations(
     ``kern`` (T, M).
 
     The columns over ``t`` of a candidate at cell ``c``: 1 (the air's level); the
-    air's slope, the blur of ``(tau - model[c])`` over the cells before ``c``; the
+    air's slope (the belt's light through a hole need not be even), the blur of
+    ``(tau - model[c])`` over the cells before ``c``; the
     material's unpatterned light, the blur of the cells from ``c`` on; and with the
     slide, the blur of the slide over those cells, one column per profile. That last
     one would make an (n, T, S) array; its sums are taken over the model cells
     instead, where they are products with the blur's own Gram matrix and sums over
     the cells from ``c`` on.
     """
-    plain = np.cumsum(kern[:, ::-1], axis=1)[:, ::-1][:, scan]  # (T, S)
+
+    def from_each_candidate(x: np.ndarray) -> np.ndarray:
+        """Sums of ``x`` (rows over the model cells) over the cells from each
+        candidate's on: (rows, S)."""
+        return np.cumsum(x[:, ::-1], axis=1)[:, ::-1][:, scan]
+
+    plain = from_each_candidate(kern)  # (T, S)
     before = np.cumsum(kern, axis=1) - kern  # the cells before each one
     moment = np.cumsum(kern * model[None, :], axis=1) - kern * model[None, :]
     cols = [
@@ -683,11 +690,6 @@ def _edge_normal_equations(
             shared[:, i, j] = shared[:, j, i] = (ci * cols[j]).sum(axis=0)
     if slide is None:
         return _EdgeSystem(shared, None, None, rhs)
-
-    def from_each_candidate(x: np.ndarray) -> np.ndarray:
-        """Sums of ``x`` (n, M) over the cells from each candidate's on: (n, S)."""
-        return np.cumsum(x[:, ::-1], axis=1)[:, ::-1][:, scan]
-
     # The slide's column is lit[n, t, c] = sum over m >= c of kern[t, m] slide[n, m].
     later = np.arange(kern.shape[1])[None, :] >= scan[:, None]  # (S, M)
     cross = np.stack([slide @ np.where(later, ci.T @ kern, 0.0).T for ci in cols], axis=2)
